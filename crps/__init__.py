@@ -1,0 +1,1 @@
+"""skyfix.crps (see DESIGN.md); filled in by its issue."""

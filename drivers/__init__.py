@@ -1,0 +1,1 @@
+"""skyfix.drivers (see DESIGN.md); filled in by its issue."""

@@ -1,0 +1,1 @@
+"""skyfix.fusion (see DESIGN.md); filled in by its issue."""

@@ -1,0 +1,1 @@
+"""skyfix.mapping (see DESIGN.md); filled in by its issue."""

@@ -1,0 +1,52 @@
+"""Rotation matrices and the fixed axis changes between skyfix's frames.
+
+Frames: NED (north, east, down) and ENU (east, north, up) world axes; body FRD
+(forward, right, down); camera optical frame (OpenCV: x right, y down, z forward).
+Euler angles are aerospace Z-Y-X (yaw, then pitch, then roll) in degrees:
+yaw 0 = north, clockwise positive; pitch nose-up positive; roll right-wing-down positive.
+A matrix named ``r_a_from_b`` maps vectors expressed in frame b into frame a.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: ENU <- NED (its own inverse).
+R_ENU_FROM_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+#: FRD (x forward, y right, z down) <- OpenCV camera (x right, y down, z forward).
+R_FRD_FROM_CAM = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+def rot_x(angle_deg: float) -> np.ndarray:
+    """Active rotation about x by ``angle_deg`` (right-handed)."""
+    a = np.radians(angle_deg)
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(angle_deg: float) -> np.ndarray:
+    """Active rotation about y by ``angle_deg`` (right-handed)."""
+    a = np.radians(angle_deg)
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(angle_deg: float) -> np.ndarray:
+    """Active rotation about z by ``angle_deg`` (right-handed)."""
+    a = np.radians(angle_deg)
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def r_ned_from_frd(yaw_deg: float, pitch_deg: float, roll_deg: float) -> np.ndarray:
+    """Body FRD -> NED for aerospace Z-Y-X Euler angles in degrees."""
+    return rot_z(yaw_deg) @ rot_y(pitch_deg) @ rot_x(roll_deg)
+
+
+def euler_zyx_from_r_ned_from_frd(r: np.ndarray) -> tuple[float, float, float]:
+    """Inverse of :func:`r_ned_from_frd`: (yaw_deg in [-180, 180), pitch_deg, roll_deg)."""
+    r = np.asarray(r, dtype=float)
+    pitch = np.degrees(np.arcsin(np.clip(-r[2, 0], -1.0, 1.0)))
+    yaw = np.degrees(np.arctan2(r[1, 0], r[0, 0]))
+    roll = np.degrees(np.arctan2(r[2, 1], r[2, 2]))
+    return float((yaw + 180.0) % 360.0 - 180.0), float(pitch), float(roll)

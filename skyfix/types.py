@@ -1,0 +1,101 @@
+"""Measurement and estimate types shared between perception, fusion and drivers.
+
+Every measurement carries a time (seconds, on the clock of whoever produced it;
+use one clock per system, e.g. UNIX time), a source id and an uncertainty.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from skyfix import validate
+from skyfix.errors import InputError
+
+
+def _frozen_cov(name: str, value, dim: int) -> np.ndarray:
+    cov = validate.covariance(name, value, dim).copy()
+    cov.setflags(write=False)
+    return cov
+
+
+@dataclass(frozen=True)
+class GeoFix:
+    """A geodetic position with its uncertainty.
+
+    ``lat_deg``/``lon_deg`` WGS84, ``alt_m`` ellipsoidal height; ``cov_enu_m2`` is the
+    3x3 covariance in the local ENU axes at the fix, m^2.
+    """
+
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    cov_enu_m2: np.ndarray
+    time_s: float = 0.0
+    source_id: str = ""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "lat_deg", float(validate.latitude("GeoFix.lat_deg", self.lat_deg)))
+        object.__setattr__(self, "lon_deg", float(validate.longitude("GeoFix.lon_deg", self.lon_deg)))
+        object.__setattr__(self, "alt_m", validate.finite_scalar("GeoFix.alt_m", self.alt_m))
+        object.__setattr__(self, "time_s", validate.finite_scalar("GeoFix.time_s", self.time_s))
+        object.__setattr__(self, "cov_enu_m2", _frozen_cov("GeoFix.cov_enu_m2", self.cov_enu_m2, 3))
+
+    @property
+    def sigma_horizontal_m(self) -> float:
+        """Square root of the larger horizontal covariance eigenvalue, metres (1-sigma)."""
+        return float(np.sqrt(np.linalg.eigvalsh(self.cov_enu_m2[:2, :2]).max()))
+
+    @property
+    def sigma_up_m(self) -> float:
+        """Vertical 1-sigma, metres."""
+        return float(np.sqrt(self.cov_enu_m2[2, 2]))
+
+
+@dataclass(frozen=True)
+class RelativeObservation:
+    """One vehicle's observation of another: where the target is relative to the observer.
+
+    ``bearing_enu`` is a unit vector (3,) from the observer towards the target in the
+    local ENU axes at the observer; ``range_m`` the distance; ``cov_enu_m2`` the 3x3
+    covariance of the relative position ``range_m * bearing_enu`` (ENU, m^2), including
+    the observer's attitude uncertainty but not its position uncertainty, which fusion
+    takes from the observer's own estimate.
+    """
+
+    observer_id: str
+    target_id: str
+    time_s: float
+    bearing_enu: np.ndarray
+    range_m: float
+    cov_enu_m2: np.ndarray
+    observer_lat_deg: float = float("nan")
+    observer_lon_deg: float = float("nan")
+    observer_alt_m: float = float("nan")
+    observer_cov_enu_m2: np.ndarray | None = field(default=None)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "time_s", validate.finite_scalar("RelativeObservation.time_s", self.time_s))
+        rng = validate.positive_scalar("RelativeObservation.range_m", self.range_m)
+        object.__setattr__(self, "range_m", rng)
+        b = validate.finite_array("RelativeObservation.bearing_enu", self.bearing_enu)
+        if b.shape != (3,) or abs(np.linalg.norm(b) - 1.0) > 1e-6:
+            raise InputError(f"RelativeObservation.bearing_enu must be a unit (3,) vector, got {b}")
+        b = b.copy()
+        b.setflags(write=False)
+        object.__setattr__(self, "bearing_enu", b)
+        object.__setattr__(self, "cov_enu_m2", _frozen_cov("RelativeObservation.cov_enu_m2", self.cov_enu_m2, 3))
+        if self.observer_cov_enu_m2 is not None:
+            object.__setattr__(self, "observer_cov_enu_m2",
+                               _frozen_cov("RelativeObservation.observer_cov_enu_m2", self.observer_cov_enu_m2, 3))
+
+    @property
+    def offset_enu_m(self) -> np.ndarray:
+        """Observer -> target vector in ENU metres, (3,)."""
+        return self.range_m * self.bearing_enu
+
+    @property
+    def has_observer_position(self) -> bool:
+        """True when the observer's own geodetic position was recorded with the observation."""
+        return bool(np.isfinite([self.observer_lat_deg, self.observer_lon_deg, self.observer_alt_m]).all())

@@ -1,0 +1,85 @@
+"""Small input checks shared by every module; each raises :class:`skyfix.errors.InputError`.
+
+They return clean float64 arrays and never modify the caller's data.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from skyfix.errors import InputError
+
+
+def finite_scalar(name: str, value: Any) -> float:
+    """Return ``value`` as a float, or raise if it is not a finite real number."""
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a real number, got {value!r}") from None
+    if not math.isfinite(out):
+        raise InputError(f"{name} must be finite, got {out}")
+    return out
+
+
+def positive_scalar(name: str, value: Any) -> float:
+    """Return ``value`` as a float, or raise if it is not finite and > 0."""
+    out = finite_scalar(name, value)
+    if out <= 0.0:
+        raise InputError(f"{name} must be > 0, got {out}")
+    return out
+
+
+def finite_array(name: str, value: Any) -> np.ndarray:
+    """Return ``value`` as a float64 array (a copy when conversion is needed); raise on NaN/inf."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be numeric, got {type(value).__name__}") from None
+    if not np.all(np.isfinite(arr)):
+        bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
+        raise InputError(f"{name} contains {bad} NaN or infinite value(s)")
+    return arr
+
+
+def points(name: str, value: Any, ncols: int) -> np.ndarray:
+    """Return ``value`` as a finite float64 ``(N, ncols)`` array.
+
+    A single point of shape ``(ncols,)`` is accepted and returned as ``(1, ncols)``.
+    """
+    arr = finite_array(name, value)
+    if arr.ndim == 1 and arr.shape[0] == ncols:
+        arr = arr[None, :]
+    if arr.ndim != 2 or arr.shape[1] != ncols:
+        raise InputError(f"{name} must have shape (N, {ncols}) or ({ncols},), got {arr.shape}")
+    return arr
+
+
+def latitude(name: str, value: Any) -> np.ndarray:
+    """Return latitudes in degrees as a finite array, raising outside [-90, 90]."""
+    arr = finite_array(name, value)
+    if np.any(np.abs(arr) > 90.0):
+        raise InputError(f"{name} must be within [-90, 90] degrees, got {arr[np.abs(arr) > 90.0].ravel()[:3]}")
+    return arr
+
+
+def longitude(name: str, value: Any) -> np.ndarray:
+    """Return longitudes in degrees as a finite array, raising outside [-180, 360]."""
+    arr = finite_array(name, value)
+    if np.any((arr < -180.0) | (arr > 360.0)):
+        raise InputError(f"{name} must be within [-180, 360] degrees, got {arr.ravel()[:3]}")
+    return arr
+
+
+def covariance(name: str, value: Any, dim: int) -> np.ndarray:
+    """Return a finite, symmetric, positive semi-definite ``(dim, dim)`` matrix."""
+    arr = finite_array(name, value)
+    if arr.shape != (dim, dim):
+        raise InputError(f"{name} must have shape ({dim}, {dim}), got {arr.shape}")
+    if not np.allclose(arr, arr.T, rtol=1e-9, atol=1e-12 * max(1.0, float(np.abs(arr).max()))):
+        raise InputError(f"{name} must be symmetric")
+    if np.linalg.eigvalsh(arr).min() < -1e-9 * max(1.0, float(np.abs(arr).max())):
+        raise InputError(f"{name} must be positive semi-definite")
+    return arr

@@ -1,0 +1,1 @@
+"""skyfix.tags (see DESIGN.md); filled in by its issue."""

@@ -1,0 +1,1 @@
+"""skyfix.thermal (see DESIGN.md); filled in by its issue."""
