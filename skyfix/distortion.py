@@ -56,6 +56,12 @@ def _newton_invert_2d(forward, target: np.ndarray, tol: float = 1e-13, max_iter:
         dx = (fy[:, 1] * f[:, 0] - fy[:, 0] * f[:, 1]) / det
         dy = (-fx[:, 1] * f[:, 0] + fx[:, 0] * f[:, 1]) / det
         x = x - np.stack((dx, dy), axis=1)
+    residual = np.abs(forward(x) - target).max(axis=1) if len(x) else np.zeros(0)
+    bad = ~(residual < 1e-9)
+    if np.any(bad):
+        raise GeometryError(f"{int(bad.sum())} point(s) lie outside the invertible domain of the "
+                            f"distortion model (first normalised point {target[np.argmax(bad)].tolist()}); "
+                            "the coefficients fold the image there")
     return x
 
 
