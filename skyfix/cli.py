@@ -16,6 +16,7 @@ import sys
 from collections.abc import Sequence
 
 import skyfix
+from skyfix import progress
 from skyfix.errors import SkyfixError
 
 log = logging.getLogger("skyfix")
@@ -68,6 +69,8 @@ def configure_logging(verbose: int, quiet: bool) -> None:
     """Log to stderr at a level chosen by -v/-q (default: warnings and info of skyfix)."""
     level = logging.WARNING if quiet else (logging.DEBUG if verbose >= 2 else logging.INFO)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    if quiet:
+        progress.set_enabled(False)
     if verbose < 2:  # third-party chatter only at -vv
         for noisy in ("matplotlib", "PIL", "rasterio"):
             logging.getLogger(noisy).setLevel(logging.WARNING)
