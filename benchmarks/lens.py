@@ -1,0 +1,172 @@
+"""Benchmark: skyfix barrel correction against ImageMagick's ``convert -distort barrel``.
+
+Same real photos (shared/data/seneca-subset, 1200x900 JPEG), same coefficients as the
+source platform ('0.1 -0.32 0'):
+
+1. geometry: mean absolute difference (grey levels, all channels) between ImageMagick's
+   output and skyfix's, both without JPEG re-encoding (ImageMagick writes PNG). With
+   ``-filter point`` ImageMagick samples bilinearly like skyfix, so the difference is
+   geometry plus rounding; its default EWA (Robidoux) filter adds interpolation blur,
+   reported alongside.
+2. speed: ImageMagick as the source platform ran it (one ``convert`` per photo, JPEG in
+   and out) against ``skyfix.mapping.correct_photos`` on 100 photos (the subset repeated),
+   both on this 2-core machine, full photo I/O included, wall time per photo; also CPU
+   seconds per photo on one core for both.
+3. memory: peak resident memory of the batch processes (bounded: one photo per worker).
+
+ImageMagick: the first real ``convert`` found (a stand-in that only displays PNGs is
+rejected); when missing and apt-get is usable, Debian's ``imagemagick`` is installed.
+Exit status 0 only when MAD <= 1 grey level and the speed-up is >= 20x.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from skyfix.mapping.batch import CorrectionSpec, correct_photos, list_photos
+from skyfix.mapping.correct import Undistortion
+from skyfix.mapping.lens import parse_barrel
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "seneca-subset"
+COEFFS = "0.1 -0.32 0"
+
+
+def find_imagemagick(install: bool) -> str | None:
+    """Path of a real ImageMagick ``convert``/``magick``, installing Debian's package if allowed."""
+    def real(cmd: str) -> bool:
+        try:
+            out = subprocess.run([cmd, "-version"], capture_output=True, text=True, timeout=20)
+        except (OSError, subprocess.TimeoutExpired):
+            return False
+        return out.stdout.startswith("Version: ImageMagick")
+
+    # Debian's binaries first: a wrapper script earlier on PATH would add its own start-up
+    # time to every ImageMagick call and flatter the comparison.
+    candidates = [c for c in ("/usr/bin/convert-im6.q16", "/usr/bin/convert", shutil.which("magick"),
+                              shutil.which("convert")) if c and Path(c).exists()]
+    for cmd in candidates:
+        if real(cmd):
+            return cmd
+    if install and shutil.which("apt-get") and os.geteuid() == 0:
+        print("ImageMagick not found: installing Debian's imagemagick package (apt-get)")
+        subprocess.run("apt-get update -q && apt-get install -y -q imagemagick", shell=True,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=False)
+        for cmd in ("/usr/bin/convert", "/usr/bin/convert-im6.q16"):
+            if Path(cmd).exists() and real(cmd):
+                return cmd
+    return None
+
+
+def children_cpu_s() -> float:
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--photos", type=Path, default=DATA, help="folder of real JPEG photos")
+    ap.add_argument("--batch", type=int, default=100, help="photos in the skyfix batch (subset repeated)")
+    ap.add_argument("--im-photos", type=int, default=10, help="photos ImageMagick converts for timing")
+    ap.add_argument("--diff-photos", type=int, default=6, help="photos compared pixel by pixel")
+    ap.add_argument("--no-install", action="store_true", help="never apt-get install ImageMagick")
+    args = ap.parse_args()
+
+    photos = list_photos(args.photos)
+    if not photos:
+        print(f"no photos in {args.photos}")
+        return 2
+    convert = find_imagemagick(not args.no_install)
+    print(f"photos: {len(photos)} from {args.photos}; ImageMagick: {convert or 'not available (skipped)'}")
+    if convert:
+        print(subprocess.run([convert, "-version"], capture_output=True, text=True).stdout.splitlines()[0])
+    barrel = parse_barrel(COEFFS)
+    cv2.setNumThreads(1)
+    work = Path(tempfile.mkdtemp(prefix="skyfix-lens-bench-"))
+    ok = True
+    try:
+        # 1. Geometry / pixel difference, lossless on both sides.
+        if convert:
+            mads = {"point": [], "default": []}
+            for src in photos[:args.diff_photos]:
+                raw = cv2.imread(str(src), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+                ours = Undistortion.for_barrel(barrel, raw.shape[1], raw.shape[0]).apply(raw).astype(np.float64)
+                for name, extra in (("point", ["-filter", "point"]), ("default", [])):
+                    out_png = work / f"im_{name}_{src.stem}.png"
+                    subprocess.run([convert, str(src), *extra, "-distort", "barrel", COEFFS, str(out_png)],
+                                   check=True)
+                    theirs = cv2.imread(str(out_png), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+                    mads[name].append(float(np.mean(np.abs(ours - theirs))))
+            mad_point, mad_default = float(np.mean(mads["point"])), float(np.mean(mads["default"]))
+            print(f"MAD vs ImageMagick -filter point (bilinear, geometry): mean {mad_point:.3f} grey, "
+                  f"worst photo {max(mads['point']):.3f} ({len(mads['point'])} photos)")
+            print(f"MAD vs ImageMagick default EWA filter (interpolation differs): mean {mad_default:.3f} grey, "
+                  f"worst photo {max(mads['default']):.3f}")
+            ok &= mad_point <= 1.0
+
+        # 2a. ImageMagick as the source platform ran it: one convert per photo, JPEG -> JPEG.
+        im_wall = im_cpu = None
+        if convert:
+            im_out = work / "im_out"
+            im_out.mkdir()
+            cpu0, t0 = children_cpu_s(), time.perf_counter()
+            for src in photos[:args.im_photos]:
+                subprocess.run([convert, str(src), "-distort", "barrel", COEFFS, str(im_out / src.name)], check=True)
+            n_im = min(args.im_photos, len(photos))
+            im_wall = (time.perf_counter() - t0) / n_im
+            im_cpu = (children_cpu_s() - cpu0) / n_im
+            print(f"ImageMagick: {im_wall * 1000:.1f} ms/photo wall, {im_cpu * 1000:.1f} ms/photo CPU "
+                  f"({n_im} photos, sequential as in the source platform)")
+
+        # 2b. skyfix batch: 100 photos, 2 worker processes, progress bar, full I/O.
+        batch_in = work / "batch_in"
+        batch_in.mkdir()
+        for i in range(args.batch):
+            src = photos[i % len(photos)]
+            os.link(src, batch_in / f"{i:03d}_{src.name}") if src.stat().st_dev == batch_in.stat().st_dev \
+                else shutil.copy(src, batch_in / f"{i:03d}_{src.name}")
+        batch_photos = list_photos(batch_in)
+        spec = CorrectionSpec(barrel=barrel)
+        report = correct_photos(batch_photos, work / "batch_out", spec, workers=2, progress=True)
+        sky_wall = report.seconds / len(batch_photos)
+        peak_child_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+        print(f"skyfix batch: {len(report.written)}/{len(batch_photos)} photos in {report.seconds:.2f} s = "
+              f"{sky_wall * 1000:.1f} ms/photo wall (2 processes, tables built once per process)")
+        print(f"peak resident memory of any process so far: {peak_child_mb:.0f} MB (children), "
+              f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB (benchmark process)")
+        ok &= len(report.written) == len(batch_photos)
+
+        # 2c. One core, CPU time per photo (tables included once).
+        cpu0 = time.process_time()
+        single = correct_photos(batch_photos[:len(photos)], work / "single_out", spec, workers=1, progress=False)
+        sky_cpu = (time.process_time() - cpu0) / len(single.written)
+        print(f"skyfix one core: {sky_cpu * 1000:.1f} ms/photo CPU (process_time, cv2.setNumThreads(1))")
+
+        if im_wall is not None:
+            ratio_wall, ratio_cpu = im_wall / sky_wall, im_cpu / sky_cpu
+            print(f"speed ratio, wall per photo on this 2-core machine: {ratio_wall:.1f}x; "
+                  f"CPU per photo on one core: {ratio_cpu:.1f}x")
+            ok &= ratio_wall >= 20.0
+            print(f"lens: skyfix {sky_wall * 1000:.1f} ms/photo vs ImageMagick {im_wall * 1000:.0f} ms/photo = "
+                  f"{ratio_wall:.1f}x faster (goal 20x); MAD {mad_point:.2f} grey (goal <= 1; default EWA "
+                  f"filter {mad_default:.2f}); {'MET' if ok else 'NOT MET'}")
+        else:
+            print(f"lens: skyfix {sky_wall * 1000:.1f} ms/photo; ImageMagick unavailable, comparison skipped")
+            ok = False
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

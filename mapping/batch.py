@@ -1,0 +1,250 @@
+"""Correct a folder of photos: remap tables built once per image size, photos in parallel.
+
+Each worker process holds one photo at a time, so memory stays bounded whatever the
+number of photos. A photo that cannot be corrected (corrupt JPEG, missing EXIF, size
+that does not fit a calibration) is logged, reported and skipped; the batch goes on.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing
+import os
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from skyfix import validate
+from skyfix.camera import Camera
+from skyfix.distortion import Barrel
+from skyfix.errors import DataError, InputError, SkyfixError
+from skyfix.mapping.correct import Undistortion
+from skyfix.mapping.exif import read_metadata, transfer_metadata
+
+__all__ = ["BatchReport", "CorrectionSpec", "PhotoResult", "correct_photos", "list_photos"]
+
+log = logging.getLogger(__name__)
+
+PHOTO_SUFFIXES = (".jpg", ".jpeg")
+
+
+@dataclass(frozen=True)
+class CorrectionSpec:
+    """How to correct photos: exactly one of ``barrel`` or ``camera`` (a calibrated camera).
+
+    ``crop``: keep only pixels that sample inside the raw image. ``jpeg_quality``: 1-100.
+    ``require_exif``: skip photos without EXIF (their corrected focal length could not be
+    recorded for structure-from-motion). ``interpolation``: see :meth:`Undistortion.apply`.
+    """
+
+    barrel: Barrel | None = None
+    camera: Camera | None = None
+    crop: bool = False
+    jpeg_quality: int = 95
+    require_exif: bool = True
+    interpolation: str = "linear"
+
+    def __post_init__(self) -> None:
+        if (self.barrel is None) == (self.camera is None):
+            raise InputError("CorrectionSpec needs exactly one of barrel= or camera=")
+        if not isinstance(self.jpeg_quality, int) or not 1 <= self.jpeg_quality <= 100:
+            raise InputError(f"jpeg_quality must be an integer in [1, 100], got {self.jpeg_quality!r}")
+
+    def undistortion(self, width: int, height: int) -> Undistortion:
+        """Tables for a ``width x height`` photo (a calibration is rescaled if the aspect matches)."""
+        if self.barrel is not None:
+            return Undistortion.for_barrel(self.barrel, width, height, crop=self.crop)
+        cam = self.camera
+        if (cam.width, cam.height) != (width, height):
+            factor = width / cam.width
+            if abs(cam.height * factor - height) > 0.5:
+                raise DataError(f"photo is {width}x{height} but the calibration is {cam.width}x{cam.height} "
+                                "(different aspect ratio)")
+            cam = cam.scaled(factor)
+        return Undistortion.for_camera(cam, crop=self.crop)
+
+
+@dataclass(frozen=True)
+class PhotoResult:
+    """Outcome for one photo: ``output`` is None when it was skipped, ``error`` says why."""
+
+    source: str
+    output: str | None
+    error: str | None = None
+    output_camera: dict | None = None
+
+
+@dataclass
+class BatchReport:
+    """What a batch did: corrected and skipped photos, wall time in seconds."""
+
+    results: list[PhotoResult] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def written(self) -> list[PhotoResult]:
+        return [r for r in self.results if r.output is not None]
+
+    @property
+    def skipped(self) -> list[PhotoResult]:
+        return [r for r in self.results if r.output is None]
+
+    def to_dict(self) -> dict:
+        return {"written": len(self.written), "skipped": [{"photo": r.source, "reason": r.error}
+                                                          for r in self.skipped],
+                "seconds": self.seconds,
+                "cameras": sorted({json.dumps(r.output_camera, sort_keys=True)
+                                   for r in self.written if r.output_camera})}
+
+
+def list_photos(in_dir: str | os.PathLike) -> list[Path]:
+    """JPEG photos directly inside ``in_dir``, sorted by name."""
+    path = Path(in_dir)
+    if not path.is_dir():
+        raise InputError(f"input folder {str(path)!r} does not exist or is not a folder")
+    return sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES)
+
+
+class _Worker:
+    """Per-process state: the spec and remap tables cached per image size."""
+
+    def __init__(self, spec: CorrectionSpec) -> None:
+        self.spec = spec
+        self.tables: dict[tuple[int, int], Undistortion] = {}
+
+    def tables_for(self, width: int, height: int) -> Undistortion:
+        key = (width, height)
+        if key not in self.tables:
+            self.tables[key] = self.spec.undistortion(width, height)
+        return self.tables[key]
+
+    def decode(self, src: Path) -> tuple[bytes, np.ndarray]:
+        data = src.read_bytes()
+        read_metadata(data, str(src), require_exif=self.spec.require_exif)
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+        if image is None:
+            raise DataError(f"{src}: corrupt or unreadable JPEG image data")
+        return data, image
+
+    def finish(self, src: Path, dst: Path, data: bytes, corrected: np.ndarray, tables: Undistortion) -> PhotoResult:
+        ok, encoded = cv2.imencode(".jpg", corrected, [cv2.IMWRITE_JPEG_QUALITY, self.spec.jpeg_quality])
+        if not ok:
+            raise DataError(f"{src}: JPEG encoding failed")
+        out = tables.output
+        blob = transfer_metadata(data, encoded.tobytes(), focal_scale=tables.focal_scale,
+                                 width=out.width, height=out.height, source=str(src))
+        tmp = dst.with_name(dst.name + ".part")
+        tmp.write_bytes(blob)
+        os.replace(tmp, dst)
+        camera = {"width": out.width, "height": out.height, "fx_px": out.fx, "fy_px": out.fy,
+                  "cx_px": out.cx, "cy_px": out.cy, "focal_scale": tables.focal_scale}
+        return PhotoResult(str(src), str(dst), None, camera)
+
+    def __call__(self, job: tuple[Path, Path]) -> PhotoResult:
+        src, dst = job
+        try:
+            data, image = self.decode(src)
+            tables = self.tables_for(image.shape[1], image.shape[0])
+            corrected = tables.apply(image, self.spec.interpolation)
+            return self.finish(src, dst, data, corrected, tables)
+        except (SkyfixError, OSError, cv2.error) as exc:
+            return PhotoResult(str(src), None, str(exc))
+
+
+_WORKER: _Worker | None = None
+
+
+def _init_worker(spec: CorrectionSpec) -> None:
+    global _WORKER
+    cv2.setNumThreads(1)  # parallelism comes from the processes
+    _WORKER = _Worker(spec)
+
+
+def _run_job(job: tuple[Path, Path]) -> PhotoResult:
+    return _WORKER(job)
+
+
+def _torch_results(worker: _Worker, jobs: list[tuple[Path, Path]], device: str | None,
+                   batch_size: int) -> Iterator[PhotoResult]:
+    from skyfix.mapping.remap_torch import TorchRemapper
+
+    remappers: dict[tuple[int, int], TorchRemapper] = {}
+    for start in range(0, len(jobs), batch_size):
+        decoded, pending = [], []
+        for src, dst in jobs[start:start + batch_size]:
+            try:
+                decoded.append((src, dst, *worker.decode(src)))
+            except (SkyfixError, OSError, cv2.error) as exc:
+                pending.append(PhotoResult(str(src), None, str(exc)))
+        by_size: dict[tuple[int, int], list] = {}
+        for item in decoded:
+            by_size.setdefault(item[3].shape[:2], []).append(item)
+        for (h, w), items in by_size.items():
+            try:
+                tables = worker.tables_for(w, h)
+                if (w, h) not in remappers:
+                    remappers[(w, h)] = TorchRemapper(tables, device=device)
+                corrected = remappers[(w, h)](np.stack([it[3] for it in items]))
+            except (SkyfixError, cv2.error) as exc:
+                pending.extend(PhotoResult(str(it[0]), None, str(exc)) for it in items)
+                continue
+            for (src, dst, data, _), out in zip(items, corrected, strict=True):
+                try:
+                    pending.append(worker.finish(src, dst, data, out, tables))
+                except (SkyfixError, OSError, cv2.error) as exc:
+                    pending.append(PhotoResult(str(src), None, str(exc)))
+        yield from pending
+
+
+def correct_photos(photos: Iterable[str | os.PathLike], out_dir: str | os.PathLike, spec: CorrectionSpec, *,
+                   workers: int | None = None, backend: str = "opencv", device: str | None = None,
+                   batch_size: int = 8, progress: bool = True) -> BatchReport:
+    """Correct ``photos`` into ``out_dir`` (same file names); never raises for one bad photo.
+
+    ``workers``: processes for the OpenCV backend (default: CPU count; 1 runs in this
+    process). ``backend='torch'`` remaps batches of ``batch_size`` photos with kornia on
+    ``device`` (default: CUDA when available, else CPU). Returns a :class:`BatchReport`;
+    bad photos are logged at WARNING and listed in ``report.skipped``.
+    """
+    from tqdm import tqdm
+
+    if backend not in ("opencv", "torch"):
+        raise InputError(f"backend must be 'opencv' or 'torch', got {backend!r}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [(Path(p), out / Path(p).name) for p in photos]
+    for src, dst in jobs:
+        if src.resolve() == dst.resolve():
+            raise InputError(f"output folder {str(out)!r} is the input folder; refusing to overwrite {src.name}")
+    n_workers = (os.cpu_count() or 1) if workers is None else int(validate.positive_scalar("workers", workers))
+    report = BatchReport()
+    start = time.perf_counter()
+    bar = tqdm(total=len(jobs), desc="lens correct", unit="photo", disable=not progress)
+    pool = None
+    try:
+        if backend == "torch":
+            results: Iterator[PhotoResult] = _torch_results(_Worker(spec), jobs, device, batch_size)
+        elif n_workers <= 1 or len(jobs) <= 1:
+            worker = _Worker(spec)
+            results = (worker(job) for job in jobs)
+        else:
+            pool = multiprocessing.get_context("fork").Pool(min(n_workers, len(jobs)), _init_worker, (spec,))
+            results = pool.imap_unordered(_run_job, jobs, chunksize=1)
+        for result in results:
+            if result.error is not None:
+                log.warning("skipped %s: %s", result.source, result.error)
+            report.results.append(result)
+            bar.update(1)
+    finally:
+        bar.close()
+        if pool is not None:
+            pool.terminate()
+            pool.join()
+    report.results.sort(key=lambda r: r.source)
+    report.seconds = time.perf_counter() - start
+    return report

@@ -1,0 +1,178 @@
+"""Photo metadata: read the camera and GPS tags, and carry them over to corrected JPEGs.
+
+Corrected photos keep every APPn segment of the original (EXIF with GPS, camera and
+orientation, XMP, ICC profile). The EXIF copy is updated for the corrected camera:
+``FocalLength`` (and the 35 mm equivalent) scaled by the correction's focal scale,
+``PixelXDimension``/``PixelYDimension`` set to the new size, the stale thumbnail dropped.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from fractions import Fraction
+
+from skyfix.errors import DataError
+
+__all__ = ["PhotoMetadata", "read_metadata", "transfer_metadata"]
+
+_SOI = b"\xff\xd8"
+_DIAGONAL_35MM_MM = math.hypot(36.0, 24.0)
+#: FocalPlaneResolutionUnit -> millimetres per unit (EXIF: 2 inch, 3 cm, 4 mm, 5 um).
+_UNIT_MM = {1: 25.4, 2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
+
+
+def _ratio(value) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, tuple) and len(value) == 2:
+        return value[0] / value[1] if value[1] else None
+    return float(value)
+
+
+def _dms(values, ref: bytes, negative: bytes) -> float | None:
+    if not values or len(values) != 3:
+        return None
+    parts = [_ratio(v) for v in values]
+    if any(p is None for p in parts):
+        return None
+    deg = parts[0] + parts[1] / 60.0 + parts[2] / 3600.0
+    return -deg if ref == negative else deg
+
+
+@dataclass(frozen=True)
+class PhotoMetadata:
+    """What skyfix reads from a photo's EXIF. Angles in degrees, lengths in millimetres.
+
+    ``gps_alt_m`` is as recorded (usually above mean sea level). ``focal_plane_px_per_mm``
+    is the sensor pixel density, from which the focal length in pixels follows.
+    """
+
+    source: str
+    make: str | None
+    model: str | None
+    focal_length_mm: float | None
+    focal_length_35mm: float | None
+    focal_plane_px_per_mm: float | None
+    orientation: int | None
+    gps_lat_deg: float | None
+    gps_lon_deg: float | None
+    gps_alt_m: float | None
+
+    def focal_length_px(self, width: int, height: int) -> float:
+        """Focal length in pixels of a ``width x height`` image; DataError when EXIF lacks it."""
+        if self.focal_length_mm and self.focal_plane_px_per_mm:
+            return self.focal_length_mm * self.focal_plane_px_per_mm
+        if self.focal_length_35mm:
+            return self.focal_length_35mm * math.hypot(width, height) / _DIAGONAL_35MM_MM
+        raise DataError(f"{self.source}: EXIF has no FocalLength with FocalPlaneXResolution nor "
+                        "FocalLengthIn35mmFilm; the focal length in pixels is unknown")
+
+
+def _load(data: bytes, source: str) -> dict:
+    import piexif
+
+    if not data.startswith(_SOI):
+        raise DataError(f"{source}: not a JPEG file (no SOI marker)")
+    try:
+        return piexif.load(data)
+    except Exception as exc:  # piexif raises bare ValueError/struct.error on damaged EXIF
+        raise DataError(f"{source}: unreadable EXIF ({exc})") from exc
+
+
+def read_metadata(data: bytes, source: str = "photo", require_exif: bool = True) -> PhotoMetadata:
+    """Metadata of a JPEG given as bytes; ``source`` names it in errors.
+
+    With ``require_exif`` a photo without an EXIF block raises :class:`DataError`.
+    """
+    import piexif
+
+    exif = _load(data, source)
+    zeroth, ex, gps = exif.get("0th", {}), exif.get("Exif", {}), exif.get("GPS", {})
+    if require_exif and not (zeroth or ex or gps):
+        raise DataError(f"{source}: no EXIF metadata (camera, focal length and GPS are needed)")
+
+    def text(tag: int) -> str | None:
+        raw = zeroth.get(tag)
+        return raw.decode("ascii", "replace").strip("\x00 ") if isinstance(raw, bytes) else None
+
+    res, unit = _ratio(ex.get(piexif.ExifIFD.FocalPlaneXResolution)), ex.get(piexif.ExifIFD.FocalPlaneResolutionUnit, 2)
+    px_per_mm = res / _UNIT_MM[unit] if res and unit in _UNIT_MM else None
+    alt = _ratio(gps.get(piexif.GPSIFD.GPSAltitude))
+    if alt is not None and gps.get(piexif.GPSIFD.GPSAltitudeRef) == 1:
+        alt = -alt
+    f35 = ex.get(piexif.ExifIFD.FocalLengthIn35mmFilm)
+    return PhotoMetadata(
+        source=source, make=text(piexif.ImageIFD.Make), model=text(piexif.ImageIFD.Model),
+        focal_length_mm=_ratio(ex.get(piexif.ExifIFD.FocalLength)),
+        focal_length_35mm=float(f35) if f35 else None, focal_plane_px_per_mm=px_per_mm,
+        orientation=zeroth.get(piexif.ImageIFD.Orientation),
+        gps_lat_deg=_dms(gps.get(piexif.GPSIFD.GPSLatitude), gps.get(piexif.GPSIFD.GPSLatitudeRef), b"S"),
+        gps_lon_deg=_dms(gps.get(piexif.GPSIFD.GPSLongitude), gps.get(piexif.GPSIFD.GPSLongitudeRef), b"W"),
+        gps_alt_m=alt)
+
+
+def _segments(data: bytes, source: str) -> list[bytes]:
+    """APPn segments (markers 0xE0..0xEF, whole, marker included) before the image data."""
+    out, pos = [], 2
+    while pos + 4 <= len(data) and data[pos] == 0xFF:
+        marker = data[pos + 1]
+        if marker in (0xDA, 0xD9):  # start of scan / end of image
+            break
+        length = int.from_bytes(data[pos + 2:pos + 4], "big")
+        if length < 2 or pos + 2 + length > len(data):
+            raise DataError(f"{source}: truncated JPEG header segment at byte {pos}")
+        if 0xE0 <= marker <= 0xEF:
+            out.append(data[pos:pos + 2 + length])
+        pos += 2 + length
+    return out
+
+
+def _rational(value: float) -> tuple[int, int]:
+    frac = Fraction(value).limit_denominator(10000)
+    return frac.numerator, frac.denominator
+
+
+def transfer_metadata(original: bytes, corrected: bytes, *, focal_scale: float, width: int, height: int,
+                      source: str = "photo") -> bytes:
+    """``corrected`` (a JPEG from any encoder) with ``original``'s APPn segments, EXIF updated.
+
+    ``focal_scale`` multiplies FocalLength; FocalLengthIn35mmFilm is recomputed for the new
+    focal length and image diagonal; the image size tags become ``width x height``.
+    """
+    import piexif
+
+    if not corrected.startswith(_SOI):
+        raise DataError("corrected image is not a JPEG stream")
+    segments = _segments(original, source)
+    body = corrected[2:]
+    for seg in _segments(corrected, "corrected image"):  # drop the encoder's own JFIF header
+        if body.startswith(seg):
+            body = body[len(seg):]
+    new_segments = []
+    for seg in segments:
+        if seg[1] == 0xE1 and seg[4:10] == b"Exif\x00\x00":
+            exif = piexif.load(seg[4:])
+            ex, zeroth = exif.setdefault("Exif", {}), exif.setdefault("0th", {})
+            old_w = ex.get(piexif.ExifIFD.PixelXDimension) or zeroth.get(piexif.ImageIFD.ImageWidth) or width
+            old_h = ex.get(piexif.ExifIFD.PixelYDimension) or zeroth.get(piexif.ImageIFD.ImageLength) or height
+            focal = _ratio(ex.get(piexif.ExifIFD.FocalLength))
+            if focal:
+                ex[piexif.ExifIFD.FocalLength] = _rational(focal * focal_scale)
+            f35 = ex.get(piexif.ExifIFD.FocalLengthIn35mmFilm)
+            if f35:
+                diag_ratio = math.hypot(old_w, old_h) / math.hypot(width, height)
+                ex[piexif.ExifIFD.FocalLengthIn35mmFilm] = max(1, round(f35 * focal_scale * diag_ratio))
+            ex[piexif.ExifIFD.PixelXDimension] = int(width)
+            ex[piexif.ExifIFD.PixelYDimension] = int(height)
+            for tag in (piexif.ImageIFD.ImageWidth, piexif.ImageIFD.ImageLength):
+                zeroth.pop(tag, None)
+            exif["1st"], exif["thumbnail"] = {}, None
+            try:
+                payload = piexif.dump(exif)
+            except Exception:  # some maker notes do not survive a re-dump; keep the rest
+                ex.pop(piexif.ExifIFD.MakerNote, None)
+                payload = piexif.dump(exif)
+            seg = b"\xff\xe1" + (len(payload) + 2).to_bytes(2, "big") + payload
+        new_segments.append(seg)
+    return _SOI + b"".join(new_segments) + body
