@@ -172,8 +172,9 @@ def render_ground(texture: GroundTexture, camera: Camera, pose: CameraPose, *,
         level = max(0, int(math.floor(math.log2(ratio)))) if ratio > 1.0 else 0
     src = texture.level(level)
     scale = 2.0 ** level
-    map_x = np.where(inside, (col + 0.5) / scale - 0.5, -10.0).astype(np.float32)
-    map_y = np.where(inside, (row + 0.5) / scale - 0.5, -10.0).astype(np.float32)
+    # cv2.pyrDown centres level-L texel i on level-0 texel 2^L * i (not on 2^L * (i + 0.5) - 0.5).
+    map_x = np.where(inside, col / scale, -10.0).astype(np.float32)
+    map_y = np.where(inside, row / scale, -10.0).astype(np.float32)
     img = cv2.remap(src, map_x, map_y, interpolation=cv2.INTER_LINEAR,
                     borderMode=cv2.BORDER_REPLICATE)
     if img.ndim == 3:
