@@ -1,0 +1,136 @@
+"""Follow one target across frames: predict, search a region of interest, gate, smooth size.
+
+The tracker keeps an alpha-beta filter on the centroid (pixels, pixels/s) and on the
+logarithm of the apparent size. Each frame it searches only a window around the
+prediction (fast), accepts the detection nearest the prediction inside the gate, and
+falls back to a full-frame search after ``max_misses`` frames without one. Smoothing
+the size averages pixel noise over frames; it cannot remove a bias that stays fixed
+while the target keeps its heading.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from skyfix import validate
+from skyfix.crps.detection import Detection, Detector
+from skyfix.errors import InputError
+
+__all__ = ["Tracker", "TrackerConfig"]
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Settings of :class:`Tracker`."""
+
+    gate_px: float = 25.0  # accept detections within this distance of the prediction, plus one target extent
+    roi_scale: float = 2.5  # search window half-size = roi_scale * extent + gate_px
+    alpha: float = 0.6  # position gain of the alpha-beta filter
+    beta: float = 0.2  # velocity gain
+    size_alpha: float = 0.25  # gain on log apparent size (lower = smoother)
+    max_misses: int = 5  # consecutive misses before the track is dropped
+
+    def __post_init__(self) -> None:
+        for name in ("gate_px", "roi_scale"):
+            validate.positive_scalar(f"TrackerConfig.{name}", getattr(self, name))
+        for name in ("alpha", "beta", "size_alpha"):
+            value = validate.finite_scalar(f"TrackerConfig.{name}", getattr(self, name))
+            if not 0.0 < value <= 1.0:
+                raise InputError(f"TrackerConfig.{name} must be in (0, 1], got {value}")
+        if not isinstance(self.max_misses, int) or self.max_misses < 1:
+            raise InputError(f"TrackerConfig.max_misses must be a positive integer, got {self.max_misses!r}")
+
+
+class Tracker:
+    """Track one target with any :class:`~skyfix.crps.detection.Detector`."""
+
+    def __init__(self, detector: Detector, config: TrackerConfig | None = None) -> None:
+        if not callable(detector):
+            raise InputError(f"detector must be callable (the Detector protocol), got {type(detector).__name__}")
+        self.detector = detector
+        self.config = config if config is not None else TrackerConfig()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the track; the next frame is searched in full."""
+        self._uv: np.ndarray | None = None
+        self._vel = np.zeros(2)
+        self._log_size = 0.0
+        self._log_size_rate = 0.0
+        self._time_s = 0.0
+        self.misses = 0
+
+    @property
+    def tracking(self) -> bool:
+        """True while a track exists (the next search is a region of interest)."""
+        return self._uv is not None
+
+    def roi(self, width: int, height: int, time_s: float) -> tuple[int, int, int, int] | None:
+        """Search window (u0, v0, u1, v1) predicted for ``time_s``, or None for a full-frame search."""
+        if self._uv is None:
+            return None
+        dt = time_s - self._time_s
+        pred = self._uv + self._vel * dt
+        extent = math.exp(self._log_size + self._log_size_rate * dt)
+        half = self.config.roi_scale * extent + self.config.gate_px * (1 + self.misses)
+        u0, v0 = int(pred[0] - half), int(pred[1] - half)
+        u1, v1 = int(math.ceil(pred[0] + half)) + 1, int(math.ceil(pred[1] + half)) + 1
+        u0, v0, u1, v1 = max(u0, 0), max(v0, 0), min(u1, width), min(v1, height)
+        if u1 - u0 < 16 or v1 - v0 < 16:
+            return None
+        return u0, v0, u1, v1
+
+    def update(self, image: np.ndarray, time_s: float) -> Detection | None:
+        """Process one frame; the accepted detection with a smoothed size, or None."""
+        t = validate.finite_scalar("time_s", time_s)
+        h, w = np.shape(image)[:2]
+        roi = self.roi(w, h, t)
+        found = self.detector(image, roi)
+        if self._uv is None:
+            if not found:
+                return None
+            best = max(found, key=lambda d: d.score)
+            self._start(best, t)
+            return replace(best, time_s=t)
+        dt = t - self._time_s
+        if dt <= 0:
+            raise InputError(f"time_s must increase from frame to frame: {t} after {self._time_s}")
+        pred = self._uv + self._vel * dt
+        pred_log = self._log_size + self._log_size_rate * dt
+        gate = self.config.gate_px * (1 + self.misses) + math.exp(pred_log)
+        near = [d for d in found if np.linalg.norm(d.centroid_uv - pred) <= gate]
+        if not near:
+            self.misses += 1
+            if self.misses >= self.config.max_misses:
+                self.reset()
+            return None
+        det = min(near, key=lambda d: float(np.linalg.norm(d.centroid_uv - pred)))
+        cfg = self.config
+        resid = det.centroid_uv - pred
+        self._uv = pred + cfg.alpha * resid
+        self._vel = self._vel + cfg.beta * resid / dt
+        size_resid = math.log(max(det.extent_px, 1e-6)) - pred_log
+        self._log_size = pred_log + cfg.size_alpha * size_resid
+        self._log_size_rate = self._log_size_rate + 0.5 * cfg.size_alpha ** 2 * size_resid / dt
+        self._time_s = t
+        self.misses = 0
+        return _with_size(det, math.exp(self._log_size), t)
+
+    def _start(self, det: Detection, t: float) -> None:
+        self._uv = det.centroid_uv.copy()
+        self._vel = np.zeros(2)
+        self._log_size = math.log(max(det.extent_px, 1e-6))
+        self._log_size_rate = 0.0
+        self._time_s = t
+        self.misses = 0
+
+
+def _with_size(det: Detection, extent_px: float, time_s: float) -> Detection:
+    """``det`` rescaled so that its extent is ``extent_px`` (centroid untouched)."""
+    factor = extent_px / det.extent_px
+    if det.kind == "silhouette":
+        return replace(det, moments_px2=det.moments_px2 * factor ** 2, time_s=time_s)
+    return replace(det, size_px=det.size_px * factor, size_sigma_px=det.size_sigma_px * factor, time_s=time_s)
