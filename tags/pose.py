@@ -1,0 +1,242 @@
+"""Camera pose from floor points, with the IMU's roll/pitch as a prior, and ``TagFix``.
+
+Frames: field x east, y north, z up (metres, floor at z = 0); vehicle attitude aerospace
+Z-Y-X in degrees relative to field NED (yaw 0 = field north, clockwise); the camera is
+fixed to the body by ``mount_r_frd_from_cam``. Pixels are ideal (undistorted) pinhole
+pixels of ``K``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from skyfix import validate
+from skyfix.camera import CameraPose
+from skyfix.errors import EstimationError, InputError
+from skyfix.rotation import R_ENU_FROM_NED, euler_zyx_from_r_ned_from_frd
+
+#: Straight-down hard mount (camera top towards the nose), as ``CameraPose`` defines it.
+DOWN_MOUNT = CameraPose(0.0, 0.0, 0.0, gimbal_pitch_deg=-90.0, stabilized=False).r_ned_from_cam()
+
+
+@dataclass(frozen=True)
+class AttitudePrior:
+    """IMU roll and pitch, degrees, with their 1-sigma in degrees."""
+
+    roll_deg: float
+    pitch_deg: float
+    sigma_deg: float = 1.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "roll_deg", validate.finite_scalar("roll_deg", self.roll_deg))
+        object.__setattr__(self, "pitch_deg", validate.finite_scalar("pitch_deg", self.pitch_deg))
+        object.__setattr__(self, "sigma_deg", validate.positive_scalar("sigma_deg", self.sigma_deg))
+
+
+@dataclass(frozen=True)
+class TagFix:
+    """Vehicle (camera centre) position and heading from floor tags.
+
+    ``x_m``/``y_m``/``z_m`` in the field frame (x east, y north, z up above the floor);
+    ``yaw_deg`` heading, 0 = field north, clockwise; ``covariance`` ``(4, 4)`` over
+    (x_m, y_m, z_m, yaw_deg) in m^2, m*deg, deg^2; ``n_tags`` tags used; ``rejected``
+    decoded tags dropped (unknown value or inconsistent with the layout);
+    ``roll_deg``/``pitch_deg`` the estimated attitude; ``reprojection_rms_px``;
+    ``ambiguity`` in [0, 1], the ratio of the best to the second planar-pose solution's
+    reprojection error (near 1 = the image alone cannot tell the two apart);
+    ``motion_blur_px`` estimated streak length; ``flags`` e.g. ``"motion_blur"``,
+    ``"ambiguous"``, ``"flip_resolved_by_imu"``.
+    """
+
+    x_m: float
+    y_m: float
+    z_m: float
+    yaw_deg: float
+    covariance: np.ndarray
+    n_tags: int
+    rejected: int
+    roll_deg: float = 0.0
+    pitch_deg: float = 0.0
+    reprojection_rms_px: float = 0.0
+    ambiguity: float = 0.0
+    motion_blur_px: float = 0.0
+    flags: tuple[str, ...] = field(default=())
+    time_s: float = 0.0
+    source_id: str = ""
+
+    @property
+    def sigma_xy_m(self) -> float:
+        """Largest horizontal 1-sigma, metres."""
+        return float(np.sqrt(np.linalg.eigvalsh(self.covariance[:2, :2]).max()))
+
+    @property
+    def sigma_yaw_deg(self) -> float:
+        return float(np.sqrt(self.covariance[3, 3]))
+
+
+def _rotations(yaw: float, pitch: float, roll: float, mount: np.ndarray):
+    """R_enu_from_cam ``(3, 3)`` and its derivatives by yaw, pitch, roll (per degree)."""
+    cy, sy = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
+    cp, sp = math.cos(math.radians(pitch)), math.sin(math.radians(pitch))
+    cr, sr = math.cos(math.radians(roll)), math.sin(math.radians(roll))
+    rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
+    ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+    drz = np.array([[-sy, -cy, 0.0], [cy, -sy, 0.0], [0.0, 0.0, 0.0]])
+    dry = np.array([[-sp, 0.0, cp], [0.0, 0.0, 0.0], [-cp, 0.0, -sp]])
+    drx = np.array([[0.0, 0.0, 0.0], [0.0, -sr, -cr], [0.0, cr, -sr]])
+    a, b = R_ENU_FROM_NED, mount
+    k = math.pi / 180.0
+    r = a @ rz @ ry @ rx @ b
+    return r, (k * a @ drz @ ry @ rx @ b, k * a @ rz @ dry @ rx @ b, k * a @ rz @ ry @ drx @ b)
+
+
+def _project(state: np.ndarray, ground: np.ndarray, k: np.ndarray, mount: np.ndarray,
+             with_jacobian: bool = False):
+    """Ideal pixels ``(N, 2)`` of floor points ``(N, 3)``; optionally d(uv)/d(state) ``(N, 2, 6)``."""
+    r, dr = _rotations(state[3], state[4], state[5], mount)
+    rel = ground - state[:3]
+    pc = rel @ r
+    z = pc[:, 2]
+    if np.any(z <= 1e-6):
+        return (np.full((len(ground), 2), np.nan), None) if with_jacobian else np.full((len(ground), 2), np.nan)
+    fx, fy = k[0, 0], k[1, 1]
+    uv = np.stack((fx * pc[:, 0] / z + k[0, 2], fy * pc[:, 1] / z + k[1, 2]), 1)
+    if not with_jacobian:
+        return uv
+    # d pc / d state: -R^T for the centre, dR^T (X - C) for each angle.
+    dpc = np.empty((len(ground), 3, 6))
+    dpc[:, :, :3] = -r.T[None]
+    for j, d in enumerate(dr):
+        dpc[:, :, 3 + j] = rel @ d
+    jac = np.empty((len(ground), 2, 6))
+    jac[:, 0] = fx * (dpc[:, 0] * z[:, None] - pc[:, 0:1] * dpc[:, 2]) / (z ** 2)[:, None]
+    jac[:, 1] = fy * (dpc[:, 1] * z[:, None] - pc[:, 1:2] * dpc[:, 2]) / (z ** 2)[:, None]
+    return uv, jac
+
+
+def _state_from_cv(rvec: np.ndarray, tvec: np.ndarray, mount: np.ndarray) -> np.ndarray:
+    r_cv, _ = cv2.Rodrigues(rvec)
+    centre = -r_cv.T @ tvec.ravel()
+    r_ned_from_frd_ = R_ENU_FROM_NED @ r_cv.T @ mount.T
+    yaw, pitch, roll = euler_zyx_from_r_ned_from_frd(r_ned_from_frd_)
+    return np.array([*centre, yaw, pitch, roll])
+
+
+def _residuals(state, ground, uv, k, mount, w_px, prior):
+    """Weighted residual vector and its Jacobian by the state."""
+    proj, jp = _project(state, ground, k, mount, with_jacobian=True)
+    r = ((proj - uv) * w_px[:, None]).ravel()
+    if jp is None:
+        return r, None
+    jac = (jp * w_px[:, None, None]).reshape(-1, 6)
+    if prior is not None:
+        r = np.concatenate((r, [(_wrap(state[5] - prior.roll_deg)) / prior.sigma_deg,
+                                (state[4] - prior.pitch_deg) / prior.sigma_deg]))
+        jp_prior = np.zeros((2, 6))
+        jp_prior[0, 5] = jp_prior[1, 4] = 1.0 / prior.sigma_deg
+        jac = np.concatenate((jac, jp_prior))
+    return r, jac
+
+
+def _wrap(angle_deg: float) -> float:
+    return (angle_deg + 180.0) % 360.0 - 180.0
+
+
+@dataclass(frozen=True)
+class PoseSolution:
+    """State (x, y, z, yaw, pitch, roll) ``(6,)``, its covariance ``(6, 6)``, fit quality."""
+
+    state: np.ndarray
+    covariance: np.ndarray
+    rms_px: float
+    ambiguity: float
+    flags: tuple[str, ...]
+
+
+def solve_pose(ground_xy: np.ndarray, uv: np.ndarray, k: np.ndarray, *,
+               prior: AttitudePrior | None = None, mount: np.ndarray = DOWN_MOUNT,
+               sigma_px: np.ndarray | float = 0.5, iterations: int = 3) -> PoseSolution:
+    """Planar PnP (IPPE, both solutions kept) then Gauss-Newton with the attitude prior.
+
+    ``ground_xy`` ``(N, 2)`` floor points (metres), ``uv`` ``(N, 2)`` ideal pixels,
+    ``sigma_px`` per-point (``(N,)``) or common pixel 1-sigma (a floor: the fit's own
+    residual scatter is used when larger).
+    """
+    g2 = validate.points("ground_xy", ground_xy, 2)
+    uv = validate.points("uv", uv, 2)
+    if len(g2) != len(uv) or len(g2) < 4:
+        raise InputError(f"need >= 4 matching points, got {len(g2)} floor and {len(uv)} image points")
+    sig = np.broadcast_to(np.asarray(sigma_px, float), (len(uv),)).copy()
+    ground = np.concatenate((g2, np.zeros((len(g2), 1))), axis=1)
+    n_sol, rvecs, tvecs, errs = cv2.solvePnPGeneric(ground, uv.reshape(-1, 1, 2), k, None,
+                                                    flags=cv2.SOLVEPNP_IPPE)
+    if n_sol == 0:
+        raise EstimationError("planar PnP found no pose for the matched tag points")
+    states = [_state_from_cv(r, t, mount) for r, t in zip(rvecs, tvecs, strict=True)]
+    errs = np.asarray(errs, float).ravel()
+    ambiguity = float(errs.min() / max(errs.max(), 1e-12)) if len(errs) > 1 else 0.0
+    flags: list[str] = []
+    # Costs: reprojection (per point, px^2 / sigma^2) plus the IMU prior.
+    costs = []
+    for s, e in zip(states, errs, strict=True):
+        c = len(uv) * e ** 2 / float(np.mean(sig)) ** 2
+        if prior is not None:
+            c += ((_wrap(s[5] - prior.roll_deg)) ** 2 + (s[4] - prior.pitch_deg) ** 2) / prior.sigma_deg ** 2
+        costs.append(c)
+    pick = int(np.argmin(costs))
+    if pick != int(np.argmin(errs)):
+        flags.append("flip_resolved_by_imu")
+    elif prior is None and ambiguity > 0.6:
+        flags.append("ambiguous")
+    state = states[pick]
+    if prior is not None and len(states) > 1:
+        other = states[1 - pick]
+        if (abs(_wrap(other[5] - prior.roll_deg)) < 3 * prior.sigma_deg
+                and abs(other[4] - prior.pitch_deg) < 3 * prior.sigma_deg and ambiguity > 0.6):
+            flags.append("ambiguous")   # the IMU cannot separate the two either
+    w = 1.0 / sig
+    # IPPE's answer is already near the optimum: a few Gauss-Newton steps add the prior.
+    for _ in range(iterations):
+        r0, jac = _residuals(state, ground, uv, k, mount, w, prior)
+        if jac is None:
+            raise EstimationError("pose refinement left the floor points behind the camera")
+        dx, *_ = np.linalg.lstsq(jac, -r0, rcond=None)
+        state = state + dx
+        if np.all(np.abs(dx[:3]) < 1e-5) and np.all(np.abs(dx[3:]) < 1e-4):
+            break
+    r0, jac = _residuals(state, ground, uv, k, mount, w, prior)
+    if jac is None:
+        raise EstimationError("pose refinement left the floor points behind the camera")
+    res = r0[:2 * len(uv)].reshape(-1, 2) / w[:, None]
+    rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
+    dof = max(2 * len(uv) - 6, 1)
+    chi2 = float(np.sum(r0[:2 * len(uv)] ** 2)) / dof
+    try:
+        cov = np.linalg.inv(jac.T @ jac) * max(chi2, 1.0)
+    except np.linalg.LinAlgError as exc:
+        raise EstimationError("tag points do not constrain the pose (degenerate geometry)") from exc
+    state[3] = _wrap(state[3])
+    if "ambiguous" in flags:
+        cov = cov * 100.0  # the mirror pose is as good: say so in the covariance
+    return PoseSolution(state, cov, rms, ambiguity, tuple(flags))
+
+
+def make_fix(sol: PoseSolution, n_tags: int, rejected: int, motion_blur_px: float,
+             blur_flag_px: float, time_s: float = 0.0, source_id: str = "") -> TagFix:
+    """Assemble a :class:`TagFix` from a pose solution (covariance of x, y, z, yaw)."""
+    sel = [0, 1, 2, 3]
+    cov = sol.covariance[np.ix_(sel, sel)].copy()
+    flags = list(sol.flags)
+    if motion_blur_px > blur_flag_px:
+        flags.append("motion_blur")
+    cov.setflags(write=False)
+    x, y, z, yaw, pitch, roll = (float(v) for v in sol.state)
+    if not all(math.isfinite(v) for v in (x, y, z, yaw)):
+        raise EstimationError("pose is not finite")
+    return TagFix(x, y, z, yaw, cov, n_tags, rejected, roll, pitch, sol.rms_px, sol.ambiguity,
+                  float(motion_blur_px), tuple(flags), time_s, source_id)

@@ -1,0 +1,77 @@
+"""Reference mapping: keep only tags whose decoded value agrees with the known layout.
+
+Each decoded tag says where it is on the floor. A tag whose value was misread claims a
+place that does not fit its neighbours. Every tag proposes the plane-to-image homography
+of its own tiles; the proposal that explains the most other tags' image positions wins
+(a RANSAC over tags); a least-squares homography over the winners then checks every
+tile of every tag, which also catches tags read in the wrong orientation.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def _apply(h: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Homographies ``(..., 3, 3)`` applied to points ``(..., N, 2)`` -> ``(..., N, 2)``."""
+    p = xy @ np.swapaxes(h[..., :2, :2], -1, -2) + h[..., None, :2, 2]
+    w = xy @ h[..., 2, :2][..., :, None] + h[..., 2, 2][..., None, None]
+    return p / w
+
+
+def homographies_4pt(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Batched exact homographies ``(T, 3, 3)`` mapping 4 points ``(T, 4, 2)`` src -> dst."""
+    t = len(src)
+    a = np.zeros((t, 8, 8))
+    x, y = src[..., 0], src[..., 1]
+    u, v = dst[..., 0], dst[..., 1]
+    a[:, 0::2, 0], a[:, 0::2, 1], a[:, 0::2, 2] = x, y, 1.0
+    a[:, 1::2, 3], a[:, 1::2, 4], a[:, 1::2, 5] = x, y, 1.0
+    a[:, 0::2, 6], a[:, 0::2, 7] = -u * x, -u * y
+    a[:, 1::2, 6], a[:, 1::2, 7] = -v * x, -v * y
+    b = np.stack((u, v), axis=2).reshape(t, 8)
+    sol = np.ones((t, 9))
+    try:
+        sol[:, :8] = np.linalg.solve(a, b[..., None])[..., 0]
+    except np.linalg.LinAlgError:   # a degenerate (collinear) tag somewhere: solve one by one
+        for i in range(t):
+            sol[i, :8] = np.linalg.lstsq(a[i], b[i], rcond=None)[0]
+    return sol.reshape(t, 3, 3)
+
+
+def consistent_tags(ground_xy: np.ndarray, image_uv: np.ndarray, spacing_m: float, pitch_m: float,
+                    *, min_support: int = 2) -> np.ndarray:
+    """Mask ``(T,)`` of tags consistent with the layout.
+
+    ``ground_xy`` ``(T, n, 2)`` field positions of each tag's tiles (metres) implied by
+    its decoded value; ``image_uv`` ``(T, n, 2)`` the tiles' ideal (undistorted) pixels.
+    A proposal must explain at least ``min_support`` tags (itself included).
+    """
+    t = len(ground_xy)
+    keep = np.zeros(t, bool)
+    if t < min_support or t == 0:
+        return keep
+    hs = homographies_4pt(ground_xy[:, :4], image_uv[:, :4])
+    g_c = ground_xy.mean(axis=1)
+    u_c = image_uv.mean(axis=1)
+    # Local image scale of each tag, px per metre, from its own tiles.
+    px_per_m = (np.linalg.norm(image_uv - u_c[:, None], axis=2).mean(axis=1)
+                / np.linalg.norm(ground_xy - g_c[:, None], axis=2).mean(axis=1))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pred = _apply(hs, np.broadcast_to(g_c, (t, t, 2)))                 # (hyp, tag, 2)
+        err = np.linalg.norm(pred - u_c[None], axis=2)
+    inlier = err < 0.25 * spacing_m * px_per_m[None, :]
+    inlier &= np.isfinite(err)
+    support = inlier.sum(axis=1)
+    best = int(np.argmax(support + 1e-6 * -np.nan_to_num(err, nan=1e9).sum(axis=1)))
+    keep = inlier[best]
+    for _ in range(2):
+        if keep.sum() < min_support:
+            return np.zeros(t, bool)
+        h, _ = cv2.findHomography(ground_xy[keep].reshape(-1, 2), image_uv[keep].reshape(-1, 2), 0)
+        if h is None:
+            return np.zeros(t, bool)
+        resid = np.linalg.norm(_apply(h, ground_xy) - image_uv, axis=2).max(axis=1)
+        keep = resid < 0.25 * pitch_m * px_per_m
+    return keep if keep.sum() >= min_support else np.zeros(t, bool)
