@@ -1,1 +1,4 @@
-"""skyfix.drivers (see DESIGN.md); filled in by its issue."""
+"""skyfix.drivers: MAVLink connection, telemetry, commands, missions, position injection
+and the safety gate, on pymavlink, for ArduPilot and PX4."""
+
+from skyfix.drivers import mav as _mav  # noqa: F401  (pins MAVLink 2 before any pymavlink import)

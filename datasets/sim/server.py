@@ -1,0 +1,615 @@
+"""The MAVLink face of one simulated vehicle: parses what ground stations send, answers
+like ArduPilot Copter or PX4, and emits telemetry streams at the requested rates.
+
+Telemetry intervals run on simulated time (as SITL's do), so a simulator running at
+``speed`` x real time also streams ``speed`` x faster. Mission-protocol retries run on
+wall time, because they recover lost packets, not simulated events.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import socket
+import time
+from collections import deque
+from collections.abc import Callable
+
+import numpy as np
+
+from skyfix.datasets.sim.vehicle import (
+    FORCE_MAGIC,
+    MAV_RESULT_DENIED,
+    MissionItem,
+    Refusal,
+    SimVehicle,
+)
+from skyfix.drivers.mav import mavlink
+from skyfix.drivers.modes import custom_mode_of, mode_name
+
+log = logging.getLogger(__name__)
+
+M = mavlink
+ACCEPTED, UNSUPPORTED = M.MAV_RESULT_ACCEPTED, M.MAV_RESULT_UNSUPPORTED
+
+#: Streams sent without being asked (interval in simulated seconds), as a stock autopilot does.
+DEFAULT_INTERVALS_S: dict[str, float] = {
+    "HEARTBEAT": 1.0, "SYS_STATUS": 1.0, "GLOBAL_POSITION_INT": 0.25, "ATTITUDE": 0.25,
+    "GPS_RAW_INT": 0.5, "VFR_HUD": 0.5, "BATTERY_STATUS": 1.0, "EXTENDED_SYS_STATE": 1.0,
+    "MISSION_CURRENT": 1.0, "HOME_POSITION": 5.0, "LOCAL_POSITION_NED": 0.0,
+}
+#: REQUEST_DATA_STREAM groups (ArduPilot's SRx_ mapping) -> message names.
+DATA_STREAMS: dict[int, tuple[str, ...]] = {
+    M.MAV_DATA_STREAM_EXTENDED_STATUS: ("SYS_STATUS", "GPS_RAW_INT", "MISSION_CURRENT",
+                                        "BATTERY_STATUS", "EXTENDED_SYS_STATE"),
+    M.MAV_DATA_STREAM_POSITION: ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED"),
+    M.MAV_DATA_STREAM_EXTRA1: ("ATTITUDE",),
+    M.MAV_DATA_STREAM_EXTRA2: ("VFR_HUD",),
+}
+_MSG_NAME_BY_ID = {cls.id: cls.msgname for cls in M.mavlink_map.values()}
+_MISSION_RETRY_S = 0.03  # re-request a missing item after this much silence (loopback)
+_MISSION_GIVE_UP = 60
+
+
+class VehicleServer:
+    """MAVLink endpoint of one :class:`SimVehicle` over one UDP socket.
+
+    ``gcs_address``: where telemetry goes before anybody talks (SITL's ``--out``);
+    every address that sends a valid packet is answered too. ``loss_rate`` drops that
+    fraction of datagrams in each direction (packet-loss injection for tests).
+    """
+
+    def __init__(self, vehicle: SimVehicle, sock: socket.socket, *,
+                 gcs_address: tuple[str, int] | None, loss_rate: float = 0.0,
+                 rng: np.random.Generator | None = None) -> None:
+        self.vehicle = vehicle
+        self.sock = sock
+        self.gcs_address = gcs_address
+        self.loss_rate = float(loss_rate)
+        self._rng = rng or np.random.default_rng(vehicle.config.seed + 7)
+        self.mav = M.MAVLink(None, srcSystem=vehicle.config.system_id, srcComponent=1)
+        self.mav.robust_parsing = True
+        self.peers: dict[tuple[str, int], float] = {}
+        self.intervals_s = dict(DEFAULT_INTERVALS_S)
+        self._next_due_s: dict[str, float] = {}
+        self._upload: dict | None = None
+        self._last_upload_count = -1
+        #: (monotonic time, kind, payload) of sent positions and received mode requests
+        self.log: deque[tuple[float, str, tuple]] = deque(maxlen=50000)
+        self.bad_packets = 0
+        self.packets_in = 0
+        self.gps_input_ignored = 0
+        self._handlers: dict[str, Callable] = {
+            "HEARTBEAT": lambda m, a: None,
+            "COMMAND_LONG": self._on_command, "COMMAND_INT": self._on_command,
+            "SET_MODE": self._on_set_mode, "REQUEST_DATA_STREAM": self._on_request_data_stream,
+            "PARAM_REQUEST_LIST": self._on_param_list, "PARAM_REQUEST_READ": self._on_param_read,
+            "PARAM_SET": self._on_param_set,
+            "SET_POSITION_TARGET_GLOBAL_INT": self._on_target_global,
+            "SET_POSITION_TARGET_LOCAL_NED": self._on_target_local,
+            "GPS_INPUT": self._on_gps_input, "VISION_POSITION_ESTIMATE": self._on_vision,
+            "ODOMETRY": self._on_odometry, "SET_GPS_GLOBAL_ORIGIN": self._on_set_origin,
+            "MISSION_COUNT": self._on_mission_count, "MISSION_ITEM_INT": self._on_mission_item,
+            "MISSION_ITEM": self._on_mission_item, "MISSION_REQUEST_LIST": self._on_mission_list,
+            "MISSION_REQUEST_INT": self._on_mission_request, "MISSION_REQUEST": self._on_mission_request,
+            "MISSION_CLEAR_ALL": self._on_mission_clear, "MISSION_SET_CURRENT": self._on_mission_set_current,
+            "MISSION_ACK": lambda m, a: None,
+        }
+
+    @property
+    def system_id(self) -> int:
+        return self.vehicle.config.system_id
+
+    # ------------------------------------------------------------------ I/O
+    def send(self, msg, to: tuple[str, int] | None = None) -> None:
+        """Pack and send to one address, or to the GCS address and every live peer."""
+        buf = msg.pack(self.mav)
+        if to is not None:
+            targets = [to]
+        else:
+            now = time.monotonic()
+            targets = [a for a, seen in self.peers.items() if now - seen < 10.0]
+            if self.gcs_address and self.gcs_address not in self.peers:
+                targets.append(self.gcs_address)
+        for addr in targets:
+            if self.loss_rate and self._rng.random() < self.loss_rate:
+                continue
+            try:
+                self.sock.sendto(buf, addr)
+            except OSError:  # nobody listening (ICMP port unreachable): keep going
+                pass
+
+    def handle_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
+        """Parse one datagram and act on every message addressed to this vehicle."""
+        if self.loss_rate and self._rng.random() < self.loss_rate:
+            return
+        try:
+            msgs = self.mav.parse_buffer(data) or []
+        except Exception as exc:  # malformed input must never stop the autopilot
+            self.bad_packets += 1
+            log.debug("sim %d: unparsable datagram from %s: %s", self.system_id, addr, exc)
+            return
+        for msg in msgs:
+            if msg.get_type() == "BAD_DATA":
+                self.bad_packets += 1
+                continue
+            target = getattr(msg, "target_system", 0)
+            if target not in (0, self.system_id):
+                continue
+            self.packets_in += 1
+            self.peers[addr] = time.monotonic()
+            handler = self._handlers.get(msg.get_type())
+            if handler is None:
+                continue
+            try:
+                handler(msg, addr)
+            except Exception:
+                self.bad_packets += 1
+                log.exception("sim %d: failed to handle %s", self.system_id, msg.get_type())
+
+    # ------------------------------------------------------------- periodic
+    def after_step(self) -> None:
+        """Send due telemetry and queued events; called after each physics step."""
+        v = self.vehicle
+        while v.events:
+            self._send_event(v.events.popleft())
+        t = v.t_s
+        for name, interval in self.intervals_s.items():
+            if interval <= 0:
+                continue
+            due = self._next_due_s.get(name, 0.0)
+            if t + 1e-9 >= due:
+                self._next_due_s[name] = due + interval if t - due < interval else t + interval
+                self.send_message_named(name)
+        self._service_upload()
+
+    def send_message_named(self, name: str, to: tuple[str, int] | None = None) -> bool:
+        builder = getattr(self, "_msg_" + name.lower(), None)
+        if builder is None:
+            return False
+        msg = builder()
+        if msg is not None:
+            self.send(msg, to)
+        return True
+
+    def _send_event(self, ev: tuple) -> None:
+        v = self.vehicle
+        kind = ev[0]
+        if kind == "statustext":
+            self.statustext(ev[2], ev[1])
+        elif kind == "reached":
+            self.send(M.MAVLink_mission_item_reached_message(ev[1]))
+        elif kind == "current":
+            self.send(self._msg_mission_current())
+        elif kind == "home":
+            self.send(self._msg_home_position())
+        elif kind == "origin":
+            self.send(self._msg_gps_global_origin())
+        elif kind == "mode":
+            self.send(self._msg_heartbeat())
+        elif kind == "camera":
+            lat, lon, alt = v.geodetic(v.pos_enu_m)
+            if v.flavour == "ardupilot":
+                self.send(M.MAVLink_camera_feedback_message(
+                    int(v.t_s * 1e6), 0, 0, ev[1], int(lat * 1e7), int(lon * 1e7), alt,
+                    v.altitude_rel_m(), v.roll_deg, v.pitch_deg, v.yaw_deg, 0.0, 0, ev[1]))
+            else:
+                self.send(M.MAVLink_camera_trigger_message(int(v.t_s * 1e6), ev[1]))
+
+    def statustext(self, text: str, severity: int = M.MAV_SEVERITY_INFO) -> None:
+        """STATUSTEXT, split into 50-byte chunks with a shared id when longer."""
+        raw = text.encode("ascii", "replace")
+        chunks = [raw[i:i + 50] for i in range(0, len(raw), 50)] or [b""]
+        msg_id = (hash(text) & 0x7FFF) + 1 if len(chunks) > 1 else 0
+        for i, chunk in enumerate(chunks):
+            self.send(M.MAVLink_statustext_message(severity, chunk, msg_id, i))
+
+    # ------------------------------------------------------------- messages
+    def _base_mode(self) -> int:
+        base = M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | M.MAV_MODE_FLAG_STABILIZE_ENABLED
+        if self.vehicle.behaviour in ("guided", "mission", "rtl", "land", "hold", "takeoff"):
+            base |= M.MAV_MODE_FLAG_GUIDED_ENABLED
+        if self.vehicle.armed:
+            base |= M.MAV_MODE_FLAG_SAFETY_ARMED
+        return base
+
+    def _msg_heartbeat(self):
+        v = self.vehicle
+        autopilot = M.MAV_AUTOPILOT_PX4 if v.flavour == "px4" else M.MAV_AUTOPILOT_ARDUPILOTMEGA
+        status = M.MAV_STATE_ACTIVE if v.armed else M.MAV_STATE_STANDBY
+        return M.MAVLink_heartbeat_message(M.MAV_TYPE_QUADROTOR, autopilot, self._base_mode(),
+                                           custom_mode_of(v.flavour, v.mode), status, 3)
+
+    def _boot_ms(self) -> int:
+        return int(self.vehicle.t_s * 1000) & 0xFFFFFFFF
+
+    def _msg_global_position_int(self):
+        v = self.vehicle
+        est = v.est_pos_enu_m
+        lat, lon, alt = v.geodetic(est)
+        rel = v.altitude_rel_m()
+        vel = v.vel_enu_mps
+        self.log.append((time.monotonic(), "position", (lat, lon, rel)))
+        return M.MAVLink_global_position_int_message(
+            self._boot_ms(), int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
+            int(round(rel * 1000)), int(round(vel[1] * 100)), int(round(vel[0] * 100)),
+            int(round(-vel[2] * 100)), int(round(v.yaw_deg * 100)) % 36000)
+
+    def _msg_local_position_ned(self):
+        v = self.vehicle
+        ned = v.enu_to_local_ned(v.est_pos_enu_m)
+        vel = v.vel_enu_mps
+        return M.MAVLink_local_position_ned_message(self._boot_ms(), *ned, vel[1], vel[0], -vel[2])
+
+    def _msg_attitude(self):
+        v = self.vehicle
+        yaw = math.radians(((v.yaw_deg + 180.0) % 360.0) - 180.0)
+        return M.MAVLink_attitude_message(self._boot_ms(), math.radians(v.roll_deg),
+                                          math.radians(v.pitch_deg), yaw, 0.0, 0.0, 0.0)
+
+    def _msg_gps_raw_int(self):
+        v = self.vehicle
+        r = v.gps_report()
+        if r is None or r.fix_type < 2 or not np.all(np.isfinite(r.pos_enu_m)):
+            return M.MAVLink_gps_raw_int_message(int(v.t_s * 1e6), 1 if r else 0, 0, 0, 0, 65535,
+                                                 65535, 65535, 65535, 0, 0, 0, 0, 0, 0, 0)
+        lat, lon, alt = v.geodetic(r.pos_enu_m)
+        speed = float(np.hypot(*r.vel_enu_mps[:2]))
+        cog = (math.degrees(math.atan2(r.vel_enu_mps[0], r.vel_enu_mps[1])) + 360.0) % 360.0
+        return M.MAVLink_gps_raw_int_message(
+            int(v.t_s * 1e6), r.fix_type, int(round(lat * 1e7)), int(round(lon * 1e7)),
+            int(round(alt * 1000)), min(int(r.eph_m * 100), 65534), min(int(r.epv_m * 100), 65534),
+            int(speed * 100), int(cog * 100), r.satellites, int(round(alt * 1000)),
+            int(r.eph_m * 1000), int(r.epv_m * 1000), 100, 0, 0)
+
+    def _msg_sys_status(self):
+        v = self.vehicle
+        sensors = (M.MAV_SYS_STATUS_SENSOR_3D_GYRO | M.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+                   | M.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE | M.MAV_SYS_STATUS_SENSOR_GPS)
+        health = sensors if v.position_ok else sensors & ~M.MAV_SYS_STATUS_SENSOR_GPS
+        return M.MAVLink_sys_status_message(
+            sensors, sensors, health, 200, int(v.battery_voltage_v() * 1000),
+            int(v.battery_current_a * 100), int(v.battery_remaining_pct()), 0, 0, 0, 0, 0, 0, 0, 0, 0)
+
+    def _msg_battery_status(self):
+        v = self.vehicle
+        cells = [int(v.battery_voltage_v() * 1000)] + [65535] * 9
+        return M.MAVLink_battery_status_message(
+            0, M.MAV_BATTERY_FUNCTION_ALL, M.MAV_BATTERY_TYPE_LIPO, 2500, cells,
+            int(v.battery_current_a * 100), int(v.battery_used_mah), -1,
+            int(v.battery_remaining_pct()), 0, 0, [0, 0, 0, 0], 0, 0)
+
+    def _msg_vfr_hud(self):
+        v = self.vehicle
+        speed = float(np.hypot(*v.vel_enu_mps[:2]))
+        lat, lon, alt = v.geodetic(v.est_pos_enu_m)
+        return M.MAVLink_vfr_hud_message(speed, speed, int(v.yaw_deg) % 360,
+                                         50 if v.armed and not v.landed else 0, alt, v.vel_enu_mps[2])
+
+    def _msg_extended_sys_state(self):
+        v = self.vehicle
+        if v.landed:
+            state = M.MAV_LANDED_STATE_ON_GROUND
+        elif v.vel_enu_mps[2] < -0.3 and v.behaviour == "land":
+            state = M.MAV_LANDED_STATE_LANDING
+        else:
+            state = M.MAV_LANDED_STATE_IN_AIR
+        return M.MAVLink_extended_sys_state_message(M.MAV_VTOL_STATE_MC, state)
+
+    def _msg_mission_current(self):
+        v = self.vehicle
+        total = len(v.mission)
+        state = M.MISSION_STATE_NO_MISSION if not total else (
+            M.MISSION_STATE_ACTIVE if v.behaviour == "mission" and v.mission_seq < total
+            else M.MISSION_STATE_COMPLETE if v.mission_seq >= total else M.MISSION_STATE_NOT_STARTED)
+        return M.MAVLink_mission_current_message(min(v.mission_seq, 65535), total, state,
+                                                 1 if v.behaviour == "mission" else 0)
+
+    def _msg_home_position(self):
+        v = self.vehicle
+        if not v.home_set:
+            return None
+        lat, lon, alt = v.geodetic(v.home_enu_m)
+        ned = v.enu_to_local_ned(v.home_enu_m)
+        return M.MAVLink_home_position_message(int(round(lat * 1e7)), int(round(lon * 1e7)),
+                                               int(round(alt * 1000)), *ned, [1.0, 0.0, 0.0, 0.0],
+                                               0.0, 0.0, 0.0, int(v.t_s * 1e6))
+
+    def _msg_gps_global_origin(self):
+        o = self.vehicle.ekf_origin
+        if o is None:
+            return None
+        return M.MAVLink_gps_global_origin_message(int(round(o[0] * 1e7)), int(round(o[1] * 1e7)),
+                                                   int(round(o[2] * 1000)), int(self.vehicle.t_s * 1e6))
+
+    # ------------------------------------------------------------- commands
+    def _ack(self, msg, command: int, result: int, addr) -> None:
+        self.send(M.MAVLink_command_ack_message(command, result, 0, 0, msg.get_srcSystem(),
+                                                msg.get_srcComponent()), addr)
+
+    def _on_command(self, msg, addr) -> None:
+        v = self.vehicle
+        cmd = msg.command
+        p = [msg.param1, msg.param2, msg.param3, msg.param4]
+        if msg.get_type() == "COMMAND_INT":
+            p += [msg.x / 1e7, msg.y / 1e7, msg.z]
+        else:
+            p += [msg.param5, msg.param6, msg.param7]
+        try:
+            result = self._execute(cmd, p, msg, addr)
+        except Refusal as refusal:
+            self.statustext(refusal.text, M.MAV_SEVERITY_WARNING)
+            result = refusal.result
+        if result is not None:
+            self._ack(msg, cmd, result, addr)
+        while v.events:  # mode changes etc. go out right behind the ACK
+            self._send_event(v.events.popleft())
+
+    def _execute(self, cmd: int, p: list[float], msg, addr) -> int | None:
+        v = self.vehicle
+        if cmd == M.MAV_CMD_COMPONENT_ARM_DISARM:
+            force = int(round(p[1])) == FORCE_MAGIC
+            v.arm(force) if p[0] >= 0.5 else v.disarm(force)
+            return ACCEPTED
+        if cmd == M.MAV_CMD_DO_SET_MODE:
+            if v.flavour == "px4":
+                name = mode_name("px4", (int(p[1]) << 16) | (int(p[2]) << 24))
+            else:
+                name = mode_name("ardupilot", int(p[1]))
+            self.log.append((time.monotonic(), "mode_request", (name,)))
+            v.set_mode(name)
+            return ACCEPTED
+        if cmd == M.MAV_CMD_NAV_TAKEOFF:
+            if v.flavour == "px4":
+                alt_amsl = p[6] if math.isfinite(p[6]) else \
+                    v.home_enu_m[2] + v.world.alt0_m + v.param("MIS_TAKEOFF_ALT")
+                up = alt_amsl - v.world.alt0_m
+            else:
+                if not math.isfinite(p[6]) or p[6] <= 0:
+                    raise Refusal(M.MAV_RESULT_DENIED, "Takeoff: altitude must be > 0")
+                up = v.home_enu_m[2] + p[6] if v.home_set else v.est_pos_enu_m[2] + p[6]
+            v.takeoff(up)
+            return ACCEPTED
+        if cmd in (M.MAV_CMD_NAV_LAND, M.MAV_CMD_NAV_RETURN_TO_LAUNCH):
+            name = ("AUTO.LAND" if v.flavour == "px4" else "LAND") if cmd == M.MAV_CMD_NAV_LAND \
+                else ("AUTO.RTL" if v.flavour == "px4" else "RTL")
+            self.log.append((time.monotonic(), "mode_request", (name,)))
+            v.set_mode(name)
+            return ACCEPTED
+        if cmd == M.MAV_CMD_MISSION_START:
+            if p[0] > 0:
+                v.set_mission_current(int(p[0]))
+            v.set_mode("AUTO.MISSION" if v.flavour == "px4" else "AUTO")
+            return ACCEPTED
+        if cmd == M.MAV_CMD_SET_MESSAGE_INTERVAL:
+            name = _MSG_NAME_BY_ID.get(int(p[0]))
+            if name is None or not hasattr(self, "_msg_" + name.lower()):
+                return UNSUPPORTED
+            interval_us = p[1]
+            self.intervals_s[name] = (DEFAULT_INTERVALS_S.get(name, 0.0) if interval_us == 0
+                                      else 0.0 if interval_us < 0 else interval_us / 1e6)
+            self._next_due_s[name] = v.t_s
+            return ACCEPTED
+        if cmd in (M.MAV_CMD_REQUEST_MESSAGE, M.MAV_CMD_GET_HOME_POSITION):
+            msg_id = 242 if cmd == M.MAV_CMD_GET_HOME_POSITION else int(p[0])
+            name = _MSG_NAME_BY_ID.get(msg_id, "")
+            if name == "HOME_POSITION" and not v.home_set:
+                raise Refusal(M.MAV_RESULT_FAILED, "Home position not set")
+            self._ack(msg, cmd, ACCEPTED, addr)
+            return None if self.send_message_named(name, addr) else UNSUPPORTED
+        if cmd == M.MAV_CMD_DO_SET_CAM_TRIGG_DIST:
+            v.cam_trigger_dist_m = max(0.0, p[0])
+            v._cam_dist_acc_m = 0.0
+            return ACCEPTED
+        if cmd == M.MAV_CMD_DO_CHANGE_SPEED:
+            v.speed_override_mps = p[1] if p[1] > 0 else None
+            return ACCEPTED
+        if cmd == M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
+            if v.armed:
+                raise Refusal(MAV_RESULT_DENIED, "Reboot: disarm first")
+            self.statustext("Reboot requested: simulated settings apply immediately")
+            return ACCEPTED
+        if cmd == M.MAV_CMD_DO_SET_HOME:
+            if p[0] >= 0.5:
+                v.home_enu_m = v.est_pos_enu_m.copy()
+            else:
+                v.home_enu_m = v.enu(p[4], p[5], p[6])
+            v.home_set = True
+            v.events.append(("home",))
+            return ACCEPTED
+        return UNSUPPORTED
+
+    def _on_set_mode(self, msg, addr) -> None:
+        v = self.vehicle
+        name = mode_name(v.flavour, msg.custom_mode)
+        self.log.append((time.monotonic(), "mode_request", (name,)))
+        try:
+            v.set_mode(name)
+            result = ACCEPTED
+        except Refusal as refusal:
+            self.statustext(refusal.text, M.MAV_SEVERITY_WARNING)
+            result = refusal.result
+        self._ack(msg, M.MAVLINK_MSG_ID_SET_MODE, result, addr)
+        while v.events:
+            self._send_event(v.events.popleft())
+
+    def _on_request_data_stream(self, msg, addr) -> None:
+        ids = list(DATA_STREAMS) if msg.req_stream_id == M.MAV_DATA_STREAM_ALL else [msg.req_stream_id]
+        for sid in ids:
+            for name in DATA_STREAMS.get(sid, ()):
+                on = msg.start_stop and msg.req_message_rate > 0
+                self.intervals_s[name] = 1.0 / msg.req_message_rate if on else 0.0
+                self._next_due_s[name] = self.vehicle.t_s
+
+    # ------------------------------------------------------------- parameters
+    def _param_value(self, name: str):
+        names = list(self.vehicle.params)
+        return M.MAVLink_param_value_message(name.encode(), float(self.vehicle.params[name]),
+                                             M.MAV_PARAM_TYPE_REAL32, len(names), names.index(name))
+
+    def _on_param_list(self, msg, addr) -> None:
+        for name in list(self.vehicle.params):
+            self.send(self._param_value(name), addr)
+
+    def _on_param_read(self, msg, addr) -> None:
+        names = list(self.vehicle.params)
+        name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")
+        name = name.rstrip("\x00")
+        if msg.param_index >= 0:
+            if msg.param_index >= len(names):
+                return
+            name = names[msg.param_index]
+        if name in self.vehicle.params:
+            self.send(self._param_value(name), addr)
+
+    def _on_param_set(self, msg, addr) -> None:
+        name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")
+        name = name.rstrip("\x00")
+        if name not in self.vehicle.params or not math.isfinite(msg.param_value):
+            self.statustext(f"Param set failed: {name}", M.MAV_SEVERITY_WARNING)
+            return
+        self.vehicle.params[name] = float(msg.param_value)
+        self.send(self._param_value(name))
+
+    # ------------------------------------------------------------- setpoints
+    def _on_target_global(self, msg, addr) -> None:
+        v = self.vehicle
+        mask = msg.type_mask
+        values = [msg.lat_int, msg.lon_int, msg.alt, msg.vx, msg.vy, msg.vz]
+        if not all(math.isfinite(x) for x in values):
+            self.statustext("Guided: ignored a non-finite setpoint", M.MAV_SEVERITY_WARNING)
+            return
+        if not mask & 0x7:
+            frame = msg.coordinate_frame
+            target = v.global_target_enu(frame, msg.lat_int / 1e7, msg.lon_int / 1e7, msg.alt)
+            v.position_target(target, None)
+        elif not mask & 0x38:
+            v.position_target(None, np.array([msg.vy, msg.vx, -msg.vz]))
+
+    def _on_target_local(self, msg, addr) -> None:
+        v = self.vehicle
+        if not all(math.isfinite(x) for x in (msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz)):
+            self.statustext("Guided: ignored a non-finite setpoint", M.MAV_SEVERITY_WARNING)
+            return
+        if not msg.type_mask & 0x7 and msg.coordinate_frame == M.MAV_FRAME_LOCAL_NED:
+            v.position_target(v.local_ned_to_enu(msg.x, msg.y, msg.z), None)
+        elif not msg.type_mask & 0x38:
+            v.position_target(None, np.array([msg.vy, msg.vx, -msg.vz]))
+
+    # ------------------------------------------------------------- external position
+    def _on_gps_input(self, msg, addr) -> None:
+        if not all(math.isfinite(x) for x in (msg.alt, msg.horiz_accuracy, msg.hdop)):
+            return
+        eph = msg.horiz_accuracy if msg.horiz_accuracy > 0 else max(msg.hdop, 0.5) * 1.5
+        epv = msg.vert_accuracy if msg.vert_accuracy > 0 else 1.5 * eph
+        if not self.vehicle.gps_input(msg.lat / 1e7, msg.lon / 1e7, msg.alt, msg.fix_type,
+                                      msg.satellites_visible, eph, epv):
+            self.gps_input_ignored += 1  # silently, as the real autopilot does
+
+    def _on_vision(self, msg, addr) -> None:
+        cov0 = msg.covariance[0] if msg.covariance and math.isfinite(msg.covariance[0]) else 0.01
+        if all(math.isfinite(x) for x in (msg.x, msg.y, msg.z)):
+            self.vehicle.vision_position(msg.x, msg.y, msg.z, math.sqrt(max(cov0, 1e-6)))
+
+    def _on_odometry(self, msg, addr) -> None:
+        cov0 = msg.pose_covariance[0] if math.isfinite(msg.pose_covariance[0]) else 0.01
+        if msg.frame_id in (M.MAV_FRAME_LOCAL_NED, M.MAV_FRAME_LOCAL_FRD) and \
+                all(math.isfinite(x) for x in (msg.x, msg.y, msg.z)):
+            self.vehicle.vision_position(msg.x, msg.y, msg.z, math.sqrt(max(cov0, 1e-6)))
+
+    def _on_set_origin(self, msg, addr) -> None:
+        self.vehicle.set_origin(msg.latitude / 1e7, msg.longitude / 1e7, msg.altitude / 1000.0)
+        self.send(self._msg_gps_global_origin())
+
+    # ------------------------------------------------------------- mission protocol
+    def _mission_ack(self, addr, result: int, msg=None) -> None:
+        sys_id, comp = (msg.get_srcSystem(), msg.get_srcComponent()) if msg else (255, 0)
+        self.send(M.MAVLink_mission_ack_message(sys_id, comp, result, 0), addr)
+
+    def _request_item(self) -> None:
+        up = self._upload
+        up["last_tx"] = time.monotonic()
+        self.send(M.MAVLink_mission_request_int_message(up["sys"], up["comp"], up["next"], 0), up["addr"])
+
+    def _on_mission_count(self, msg, addr) -> None:
+        if getattr(msg, "mission_type", 0) != 0:
+            self._mission_ack(addr, M.MAV_MISSION_UNSUPPORTED, msg)
+            return
+        if msg.count == 0:
+            self.vehicle.set_mission([])
+            self._upload = None
+            self._mission_ack(addr, M.MAV_MISSION_ACCEPTED, msg)
+            return
+        self._upload = {"count": msg.count, "items": [None] * msg.count, "next": 0, "addr": addr,
+                        "sys": msg.get_srcSystem(), "comp": msg.get_srcComponent(), "tries": 0}
+        self._request_item()
+
+    def _on_mission_item(self, msg, addr) -> None:
+        up = self._upload
+        if up is None:
+            # the GCS missed our final ACK and resends its last item: acknowledge again
+            if msg.seq == self._last_upload_count - 1:
+                self._mission_ack(addr, M.MAV_MISSION_ACCEPTED, msg)
+            return
+        if msg.seq != up["next"]:
+            self._request_item()  # duplicate or out of order: ask again for what we need
+            return
+        if msg.get_type() == "MISSION_ITEM":
+            x, y = int(round(msg.x * 1e7)), int(round(msg.y * 1e7))
+        else:
+            x, y = msg.x, msg.y
+        up["items"][msg.seq] = MissionItem(msg.seq, msg.frame, msg.command, msg.param1, msg.param2,
+                                           msg.param3, msg.param4, x, y, msg.z, msg.autocontinue)
+        up["next"] += 1
+        up["tries"] = 0
+        if up["next"] == up["count"]:
+            self.vehicle.set_mission(up["items"])
+            self._last_upload_count = up["count"]
+            self._upload = None
+            self._mission_ack(addr, M.MAV_MISSION_ACCEPTED, msg)
+            self.statustext(f"Mission: {up['count']} items received")
+        else:
+            self._request_item()
+
+    def _service_upload(self) -> None:
+        up = self._upload
+        if up is None or time.monotonic() - up["last_tx"] < _MISSION_RETRY_S:
+            return
+        up["tries"] += 1
+        if up["tries"] > _MISSION_GIVE_UP:
+            self._upload = None
+            self._mission_ack(up["addr"], M.MAV_MISSION_OPERATION_CANCELLED)
+            self.statustext("Mission upload timed out", M.MAV_SEVERITY_WARNING)
+            return
+        self._request_item()
+
+    def _on_mission_list(self, msg, addr) -> None:
+        if getattr(msg, "mission_type", 0) != 0:
+            self.send(M.MAVLink_mission_count_message(msg.get_srcSystem(), msg.get_srcComponent(), 0,
+                                                      msg.mission_type), addr)
+            return
+        self.send(M.MAVLink_mission_count_message(msg.get_srcSystem(), msg.get_srcComponent(),
+                                                  len(self.vehicle.mission), 0), addr)
+
+    def _on_mission_request(self, msg, addr) -> None:
+        v = self.vehicle
+        if not 0 <= msg.seq < len(v.mission):
+            self._mission_ack(addr, M.MAV_MISSION_INVALID_SEQUENCE, msg)
+            return
+        it = v.mission[msg.seq]
+        x, y, z, frame = it.x, it.y, it.z, it.frame
+        if v.flavour == "ardupilot" and msg.seq == 0:  # item 0 is the current home
+            lat, lon, alt = v.geodetic(v.home_enu_m)
+            x, y, z, frame = int(round(lat * 1e7)), int(round(lon * 1e7)), alt, M.MAV_FRAME_GLOBAL_INT
+        self.send(M.MAVLink_mission_item_int_message(
+            msg.get_srcSystem(), msg.get_srcComponent(), it.seq, frame, it.command,
+            1 if it.seq == v.mission_seq else 0, it.autocontinue, it.param1, it.param2, it.param3,
+            it.param4, x, y, z, 0), addr)
+
+    def _on_mission_clear(self, msg, addr) -> None:
+        self.vehicle.set_mission([])
+        self._mission_ack(addr, M.MAV_MISSION_ACCEPTED, msg)
+
+    def _on_mission_set_current(self, msg, addr) -> None:
+        self.vehicle.set_mission_current(msg.seq)
+        self.send(self._msg_mission_current())

@@ -1,0 +1,229 @@
+"""Missions over the MAVLink mission protocol (MISSION_ITEM_INT), with loss recovery.
+
+Upload: the vehicle pulls items one by one (MISSION_REQUEST_INT); skyfix answers
+each request with exactly the item asked for, so a lost item is retransmitted alone,
+and when the vehicle goes quiet it resends the last packet (COUNT or item). ArduPilot
+stores home as item 0 and flies from item 1: skyfix inserts a placeholder on upload
+and drops item 0 on download, so callers see the same list on both autopilots.
+"""
+
+from __future__ import annotations
+
+import queue
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from skyfix import validate
+from skyfix.drivers.mav import mavlink
+from skyfix.errors import CommandRejected, InputError, SkyfixTimeout
+
+if TYPE_CHECKING:
+    from skyfix.drivers.vehicle import Vehicle
+
+M = mavlink
+_RESULTS = {v: k for k, v in vars(M).items() if k.startswith("MAV_MISSION_") and isinstance(v, int)
+            and k not in ("MAV_MISSION_TYPE_MISSION", "MAV_MISSION_RESULT_ENUM_END")}
+
+
+@dataclass(frozen=True)
+class MissionItem:
+    """One mission item. ``lat_deg``/``lon_deg`` WGS84 (0, 0 = here), ``alt_m`` in ``frame``
+    (default MAV_FRAME_GLOBAL_RELATIVE_ALT_INT: metres above home); params per MAV_CMD."""
+
+    command: int
+    lat_deg: float = 0.0
+    lon_deg: float = 0.0
+    alt_m: float = 0.0
+    param1: float = 0.0
+    param2: float = 0.0
+    param3: float = 0.0
+    param4: float = 0.0
+    frame: int = M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+    autocontinue: bool = True
+
+    def __post_init__(self) -> None:
+        validate.latitude("MissionItem.lat_deg", validate.finite_scalar("MissionItem.lat_deg", self.lat_deg))
+        validate.longitude("MissionItem.lon_deg", validate.finite_scalar("MissionItem.lon_deg", self.lon_deg))
+        validate.finite_scalar("MissionItem.alt_m", self.alt_m)
+        for name in ("param1", "param2", "param3"):
+            validate.finite_scalar(f"MissionItem.{name}", getattr(self, name))
+
+    @classmethod
+    def waypoint(cls, lat_deg: float, lon_deg: float, alt_m: float, *, hold_s: float = 0.0,
+                 acceptance_m: float = 0.0) -> MissionItem:
+        """Fly to a point ``alt_m`` above home; hold ``hold_s``; reached within ``acceptance_m``."""
+        return cls(M.MAV_CMD_NAV_WAYPOINT, lat_deg, lon_deg, alt_m, hold_s, acceptance_m)
+
+    @classmethod
+    def takeoff(cls, alt_m: float) -> MissionItem:
+        return cls(M.MAV_CMD_NAV_TAKEOFF, 0.0, 0.0, validate.positive_scalar("alt_m", alt_m))
+
+    @classmethod
+    def land(cls, lat_deg: float = 0.0, lon_deg: float = 0.0) -> MissionItem:
+        return cls(M.MAV_CMD_NAV_LAND, lat_deg, lon_deg, 0.0)
+
+    @classmethod
+    def rtl(cls) -> MissionItem:
+        return cls(M.MAV_CMD_NAV_RETURN_TO_LAUNCH)
+
+    @classmethod
+    def camera_trigger_distance(cls, distance_m: float) -> MissionItem:
+        """Trigger the camera every ``distance_m`` metres from here on (0 stops)."""
+        if validate.finite_scalar("distance_m", distance_m) < 0:
+            raise InputError(f"distance_m must be >= 0, got {distance_m}")
+        return cls(M.MAV_CMD_DO_SET_CAM_TRIGG_DIST, param1=float(distance_m), param3=1.0,
+                   frame=M.MAV_FRAME_MISSION)
+
+    @classmethod
+    def change_speed(cls, speed_mps: float) -> MissionItem:
+        return cls(M.MAV_CMD_DO_CHANGE_SPEED, param1=1.0,
+                   param2=validate.positive_scalar("speed_mps", speed_mps), param3=-1.0,
+                   frame=M.MAV_FRAME_MISSION)
+
+    def to_message(self, seq: int, target_system: int, target_component: int):
+        return M.MAVLink_mission_item_int_message(
+            target_system, target_component, seq, self.frame, self.command, 0, int(self.autocontinue),
+            self.param1, self.param2, self.param3, self.param4, int(round(self.lat_deg * 1e7)),
+            int(round(self.lon_deg * 1e7)), float(self.alt_m), M.MAV_MISSION_TYPE_MISSION)
+
+    @classmethod
+    def from_message(cls, msg) -> MissionItem:
+        scale = 1e7 if msg.get_type() == "MISSION_ITEM_INT" else 1.0
+        return cls(msg.command, msg.x / scale, msg.y / scale, msg.z, msg.param1, msg.param2, msg.param3,
+                   msg.param4, msg.frame, bool(msg.autocontinue))
+
+
+@dataclass(frozen=True)
+class TransferStats:
+    """How a mission transfer went: items, wall seconds, packets we had to resend."""
+
+    items: int
+    elapsed_s: float
+    retransmissions: int
+
+
+def _wire_items(vehicle: Vehicle, items: Sequence[MissionItem]) -> list[MissionItem]:
+    items = list(items)
+    for i, it in enumerate(items):
+        if not isinstance(it, MissionItem):
+            raise InputError(f"mission item {i} must be a MissionItem, got {type(it).__name__}")
+    if vehicle.autopilot == "ardupilot" and items:
+        home = vehicle.state.home
+        placeholder = MissionItem(M.MAV_CMD_NAV_WAYPOINT, home.lat_deg if home else 0.0,
+                                  home.lon_deg if home else 0.0, 0.0, frame=M.MAV_FRAME_GLOBAL_INT)
+        items.insert(0, placeholder)
+    return items
+
+
+def upload(vehicle: Vehicle, items: Sequence[MissionItem], *, progress: Callable[[int, int], None] | None = None,
+           item_timeout_s: float = 0.25, timeout_s: float = 60.0) -> TransferStats:
+    """Upload ``items``; ``progress(done, total)`` after each item sent for the first time.
+
+    Raises CommandRejected when the vehicle refuses (MAV_MISSION_* result named) and
+    SkyfixTimeout when it stops answering for ``timeout_s``.
+    """
+    wire = _wire_items(vehicle, items)
+    n = len(wire)
+    sysid, comp = vehicle.system_id, vehicle.component_id
+    count_msg = M.MAVLink_mission_count_message(sysid, comp, n, M.MAV_MISSION_TYPE_MISSION)
+    t0 = time.monotonic()
+    resent = 0
+    highest = -1
+
+    def wanted(m) -> bool:
+        return m.get_type() in ("MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK") \
+            and getattr(m, "mission_type", 0) == M.MAV_MISSION_TYPE_MISSION
+
+    with vehicle.subscribe(wanted) as q:
+        last = count_msg
+        vehicle.send(count_msg)
+        quiet_since = time.monotonic()
+        while True:
+            try:
+                msg, _ = q.get(timeout=item_timeout_s)
+            except queue.Empty:
+                if time.monotonic() - quiet_since > timeout_s:
+                    raise SkyfixTimeout(f"vehicle {sysid}: mission upload stalled at item "
+                                        f"{highest + 1}/{n} for {timeout_s:.0f} s") from None
+                vehicle.send(last)
+                resent += 1
+                continue
+            quiet_since = time.monotonic()
+            if msg.get_type() == "MISSION_ACK":
+                if msg.type == M.MAV_MISSION_ACCEPTED and (highest == n - 1 or n == 0):
+                    return TransferStats(len(items), time.monotonic() - t0, resent)
+                if msg.type != M.MAV_MISSION_ACCEPTED:
+                    name = _RESULTS.get(msg.type, str(msg.type))
+                    raise CommandRejected(f"vehicle {sysid} rejected the mission upload ({name}) "
+                                          f"at item {highest + 1}/{n}{vehicle._reasons(t0)}",
+                                          command="MISSION_COUNT", result=msg.type)
+                continue  # a stale ACK from an earlier transaction
+            seq = msg.seq
+            if not 0 <= seq < n:
+                continue
+            last = wire[seq].to_message(seq, sysid, comp)
+            vehicle.send(last)
+            if seq > highest:
+                highest = seq
+                if progress is not None:
+                    progress(seq + 1, n)
+            else:
+                resent += 1
+
+
+def download(vehicle: Vehicle, *, item_timeout_s: float = 0.25, timeout_s: float = 60.0) -> list[MissionItem]:
+    """Read the vehicle's mission; lost requests or items are asked for again."""
+    sysid, comp = vehicle.system_id, vehicle.component_id
+    deadline = time.monotonic() + timeout_s
+
+    def wanted(m) -> bool:
+        return m.get_type() in ("MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ITEM")
+
+    with vehicle.subscribe(wanted) as q:
+        req = M.MAVLink_mission_request_list_message(sysid, comp, M.MAV_MISSION_TYPE_MISSION)
+        count = _ask(vehicle, q, req, lambda m: m.get_type() == "MISSION_COUNT", item_timeout_s,
+                     deadline).count
+        items = []
+        for seq in range(count):
+            req = M.MAVLink_mission_request_int_message(sysid, comp, seq, M.MAV_MISSION_TYPE_MISSION)
+            msg = _ask(vehicle, q, req, lambda m, s=seq: m.get_type() != "MISSION_COUNT" and m.seq == s,
+                       item_timeout_s, deadline)
+            items.append(MissionItem.from_message(msg))
+        vehicle.send(M.MAVLink_mission_ack_message(sysid, comp, M.MAV_MISSION_ACCEPTED,
+                                                   M.MAV_MISSION_TYPE_MISSION))
+    return items[1:] if vehicle.autopilot == "ardupilot" and items else items
+
+
+def _ask(vehicle: Vehicle, q: queue.Queue, request, match: Callable, item_timeout_s: float, deadline: float):
+    while time.monotonic() < deadline:
+        vehicle.send(request)
+        end = time.monotonic() + item_timeout_s
+        while (left := end - time.monotonic()) > 0:
+            try:
+                msg, _ = q.get(timeout=left)
+            except queue.Empty:
+                break
+            if match(msg):
+                return msg
+    raise SkyfixTimeout(f"vehicle {vehicle.system_id} stopped answering {request.get_type()} during "
+                        "mission download")
+
+
+def clear(vehicle: Vehicle, *, timeout_s: float = 1.0, retries: int = 3) -> None:
+    """Delete the vehicle's mission (MISSION_CLEAR_ALL, acknowledged)."""
+    sysid, comp = vehicle.system_id, vehicle.component_id
+    with vehicle.subscribe(lambda m: m.get_type() == "MISSION_ACK") as q:
+        for _ in range(retries + 1):
+            vehicle.send(M.MAVLink_mission_clear_all_message(sysid, comp, M.MAV_MISSION_TYPE_MISSION))
+            try:
+                msg, _ = q.get(timeout=timeout_s)
+            except queue.Empty:
+                continue
+            if msg.type == M.MAV_MISSION_ACCEPTED:
+                return
+            raise CommandRejected(f"vehicle {sysid} refused to clear its mission "
+                                  f"({_RESULTS.get(msg.type, msg.type)})", command="MISSION_CLEAR_ALL",
+                                  result=msg.type)
+    raise SkyfixTimeout(f"vehicle {sysid} did not acknowledge MISSION_CLEAR_ALL")

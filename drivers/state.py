@@ -1,0 +1,129 @@
+"""Typed, timestamped vehicle state as reported by the autopilot.
+
+Every record carries ``time_s``: UNIX time at which skyfix received the message.
+Altitudes: ``alt_amsl_m`` above mean sea level as the autopilot reports it,
+``alt_rel_m`` above home. Velocities in local NED, m/s. Angles in degrees.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class Position:
+    """Fused position (GLOBAL_POSITION_INT)."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    alt_rel_m: float
+    time_s: float
+
+
+@dataclass(frozen=True)
+class Velocity:
+    """Ground velocity in local NED (GLOBAL_POSITION_INT), m/s."""
+
+    north_mps: float
+    east_mps: float
+    down_mps: float
+    time_s: float
+
+    @property
+    def speed_mps(self) -> float:
+        return math.sqrt(self.north_mps ** 2 + self.east_mps ** 2 + self.down_mps ** 2)
+
+    @property
+    def ground_speed_mps(self) -> float:
+        return math.hypot(self.north_mps, self.east_mps)
+
+
+@dataclass(frozen=True)
+class Attitude:
+    """Aerospace Z-Y-X attitude of the body FRD frame in local NED (ATTITUDE), degrees."""
+
+    roll_deg: float
+    pitch_deg: float
+    yaw_deg: float
+    time_s: float
+
+
+@dataclass(frozen=True)
+class GpsStatus:
+    """Raw GNSS receiver report (GPS_RAW_INT): GPS_FIX_TYPE, satellites, accuracies in metres."""
+
+    fix_type: int
+    satellites: int
+    eph_m: float
+    epv_m: float
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    time_s: float
+
+
+@dataclass(frozen=True)
+class Battery:
+    """Battery (SYS_STATUS / BATTERY_STATUS); NaN when the autopilot does not know."""
+
+    voltage_v: float
+    current_a: float
+    remaining_pct: float
+    time_s: float
+
+
+@dataclass(frozen=True)
+class Home:
+    """Home position (HOME_POSITION)."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    time_s: float
+
+
+@dataclass(frozen=True)
+class VehicleEvent:
+    """Something that happened: ``kind`` is e.g. ``"statustext"``, ``"mode"``, ``"armed"``,
+    ``"link_lost"``, ``"mission_item_reached"``, ``"camera_trigger"``, ``"safety_violation"``."""
+
+    kind: str
+    time_s: float
+    text: str = ""
+    data: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """A consistent snapshot of everything known about one vehicle."""
+
+    system_id: int
+    autopilot: str = ""
+    mode: str = ""
+    armed: bool = False
+    landed_state: str = "UNDEFINED"
+    link_ok: bool = False
+    heartbeat_time_s: float = math.nan
+    position: Position | None = None
+    velocity: Velocity | None = None
+    attitude: Attitude | None = None
+    gps: GpsStatus | None = None
+    battery: Battery | None = None
+    home: Home | None = None
+    mission_seq: int = -1
+    mission_count: int = 0
+
+    def summary(self) -> str:
+        """One line for logs and error messages."""
+        parts = [f"sys {self.system_id} {self.autopilot} {self.mode}",
+                 "armed" if self.armed else "disarmed", self.landed_state.lower()]
+        if self.position:
+            p = self.position
+            parts.append(f"at {p.lat_deg:.7f},{p.lon_deg:.7f} rel {p.alt_rel_m:.1f} m")
+        if self.gps:
+            parts.append(f"gps fix {self.gps.fix_type} sats {self.gps.satellites}")
+        if not self.link_ok:
+            parts.append("LINK LOST")
+        return ", ".join(parts)

@@ -1,0 +1,690 @@
+"""``Vehicle``: one autopilot (ArduPilot or PX4) reached over a :class:`MavlinkLink`.
+
+Telemetry is kept as typed, timestamped records (:mod:`skyfix.drivers.state`) updated by
+the link's reader thread. Commands block until the autopilot acknowledges them, retry a
+bounded number of times on silence, and raise :mod:`skyfix.errors` exceptions whose
+messages carry the autopilot's own STATUSTEXT explanation.
+
+Altitude conventions: ``alt_m`` arguments of :meth:`takeoff` and :meth:`goto` are metres
+above home; ``alt_amsl_m`` values are above mean sea level.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import queue
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import replace
+
+from skyfix import validate
+from skyfix.drivers import injection, mission
+from skyfix.drivers.link import MavlinkLink
+from skyfix.drivers.mav import command_name, mavlink, result_name
+from skyfix.drivers.modes import PX4_MODES, custom_mode_of, flavour_of, mode_name, role_mode
+from skyfix.drivers.safety import SafetyGate
+from skyfix.drivers.state import (
+    Attitude,
+    Battery,
+    GpsStatus,
+    Home,
+    Position,
+    VehicleEvent,
+    VehicleState,
+    Velocity,
+)
+from skyfix.errors import CommandRejected, InputError, LinkError, SafetyViolation, SkyfixTimeout
+
+log = logging.getLogger(__name__)
+M = mavlink
+
+#: Message -> rate (Hz) requested at connect with MAV_CMD_SET_MESSAGE_INTERVAL.
+DEFAULT_STREAM_RATES_HZ: dict[str, float] = {
+    "GLOBAL_POSITION_INT": 10.0, "ATTITUDE": 10.0, "GPS_RAW_INT": 5.0, "SYS_STATUS": 2.0,
+    "BATTERY_STATUS": 1.0, "EXTENDED_SYS_STATE": 2.0, "MISSION_CURRENT": 2.0, "HOME_POSITION": 0.5,
+}
+_LANDED = {0: "UNDEFINED", 1: "ON_GROUND", 2: "IN_AIR", 3: "TAKEOFF", 4: "LANDING"}
+_POSITION_ONLY_MASK = 0x0FF8  # SET_POSITION_TARGET type_mask: use x/y/z only
+_VELOCITY_ONLY_MASK = 0x0FC7  # use vx/vy/vz only
+
+
+class _Subscription:
+    def __init__(self, predicate: Callable) -> None:
+        self.predicate = predicate
+        self.queue: queue.Queue = queue.Queue()
+
+
+class Vehicle:
+    """One autopilot on a link. Create with :meth:`connect` (or :meth:`connect_all`)."""
+
+    def __init__(self, link: MavlinkLink, system_id: int, component_id: int, autopilot: int) -> None:
+        self.link = link
+        self.system_id = int(system_id)
+        self.component_id = int(component_id)
+        self.autopilot = flavour_of(autopilot)
+        self.stream_rates_hz: dict[str, float] = dict(DEFAULT_STREAM_RATES_HZ)
+        self._lock = threading.Condition()
+        self._state = VehicleState(system_id=self.system_id, autopilot=self.autopilot, link_ok=True)
+        self._hb_mono = time.monotonic()
+        self._subs: list[_Subscription] = []
+        self.statustexts: deque[tuple[float, int, str]] = deque(maxlen=200)
+        self._chunks: dict[int, list[str]] = {}
+        self.events: deque[VehicleEvent] = deque(maxlen=1000)
+        self._listeners: list[Callable[[VehicleEvent], None]] = []
+        self.params: dict[str, float] = {}
+        self.ekf_origin: tuple[float, float, float] | None = None
+        self.safety: SafetyGate | None = None
+        self._safety_latched = False
+        #: (detection latency s from telemetry receipt to action sent, reason) per violation
+        self.safety_log: deque[tuple[float, str]] = deque(maxlen=1000)
+        self._setpoint: mavlink.MAVLink_message | None = None
+        self._setpoint_thread: threading.Thread | None = None
+        self._setpoint_stop = threading.Event()
+        self.setpoint_rate_hz = 10.0
+        self.injector: injection.PositionInjector | None = None
+        self._injection_checked: set[str] = set()
+
+    # ------------------------------------------------------------------ connecting
+    @classmethod
+    def connect(cls, url: str, *, timeout_s: float = 10.0, system_id: int | None = None,
+                heartbeat_timeout_s: float = 3.0, stream_rates_hz: dict[str, float] | None = None,
+                source_system: int = 255) -> Vehicle:
+        """Open ``url`` (udpin/udpout/tcp/serial), wait for the autopilot's HEARTBEAT and
+        request telemetry streams. ``system_id`` picks one vehicle on a shared link."""
+        validate.positive_scalar("timeout_s", timeout_s)
+        link = MavlinkLink(url, source_system=source_system, heartbeat_timeout_s=heartbeat_timeout_s)
+        link.vehicle_factory = cls
+        try:
+            vehicle = link.wait_vehicle(system_id, timeout_s)
+        except LinkError:
+            link.close()
+            raise
+        if stream_rates_hz:
+            vehicle.stream_rates_hz.update(stream_rates_hz)
+        vehicle.request_streams()
+        return vehicle
+
+    @classmethod
+    def connect_all(cls, url: str, count: int, *, timeout_s: float = 10.0,
+                    heartbeat_timeout_s: float = 3.0) -> list[Vehicle]:
+        """Every vehicle on one shared link (one :class:`Vehicle` per system id)."""
+        link = MavlinkLink(url, heartbeat_timeout_s=heartbeat_timeout_s)
+        link.vehicle_factory = cls
+        try:
+            vehicles = link.wait_vehicles(int(count), timeout_s)
+        except LinkError:
+            link.close()
+            raise
+        for v in vehicles:
+            v.request_streams()
+        return vehicles
+
+    def close(self) -> None:
+        """Stop streams and injection, and close the link (shared links close for all)."""
+        self._stop_setpoints()
+        if self.injector is not None:
+            self.injector.stop()
+        self.link.close()
+
+    def __enter__(self) -> Vehicle:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def request_streams(self) -> None:
+        """Ask for each telemetry message at ``stream_rates_hz`` (fire and forget)."""
+        for name, rate in self.stream_rates_hz.items():
+            msg_id = getattr(M, f"MAVLINK_MSG_ID_{name}", None)
+            if msg_id is None:
+                continue
+            interval_us = 1e6 / rate if rate > 0 else -1
+            self._send_command_long(M.MAV_CMD_SET_MESSAGE_INTERVAL, [msg_id, interval_us], 0)
+        self._send_command_long(M.MAV_CMD_REQUEST_MESSAGE, [M.MAVLINK_MSG_ID_HOME_POSITION], 0)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def state(self) -> VehicleState:
+        """The latest consistent snapshot."""
+        with self._lock:
+            return self._state
+
+    def on_event(self, callback: Callable[[VehicleEvent], None]) -> None:
+        """Call ``callback(event)`` for every event (from the reader thread: keep it short)."""
+        self._listeners.append(callback)
+
+    def _emit(self, kind: str, text: str = "", **data) -> None:
+        ev = VehicleEvent(kind, time.time(), text, data)
+        self.events.append(ev)
+        for cb in list(self._listeners):
+            try:
+                cb(ev)
+            except Exception:
+                log.exception("event listener failed on %s", kind)
+
+    def wait_until(self, predicate: Callable[[VehicleState], bool], timeout_s: float, *,
+                   what: str = "condition") -> VehicleState:
+        """Block until ``predicate(state)`` is true; SkyfixTimeout after ``timeout_s``,
+        LinkError as soon as the autopilot's heartbeat is lost."""
+        validate.positive_scalar("timeout_s", timeout_s)
+        deadline = time.monotonic() + timeout_s
+        with self._lock:
+            while True:
+                st = self._state
+                if predicate(st):
+                    return st
+                if not st.link_ok:
+                    raise LinkError(f"lost the heartbeat of vehicle {self.system_id} while waiting "
+                                    f"for {what}; last state: {st.summary()}")
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise SkyfixTimeout(f"vehicle {self.system_id}: {what} not reached within "
+                                        f"{timeout_s:.1f} s; state: {st.summary()}{self._reasons(deadline - timeout_s)}")
+                self._lock.wait(min(left, 0.1))
+
+    def _update(self, **fields) -> None:
+        with self._lock:
+            self._state = replace(self._state, **fields)
+            self._lock.notify_all()
+
+    # ------------------------------------------------------------------ reader side
+    def _on_message(self, msg, t_mono: float) -> None:
+        mtype = msg.get_type()
+        now = time.time()
+        handler = getattr(self, "_rx_" + mtype.lower(), None)
+        if handler is not None:
+            handler(msg, now, t_mono)
+        for sub in list(self._subs):
+            try:
+                if sub.predicate(msg):
+                    sub.queue.put((msg, t_mono))
+            except Exception:
+                log.exception("subscription predicate failed")
+
+    def _rx_heartbeat(self, msg, now: float, t_mono: float) -> None:
+        if msg.get_srcComponent() != self.component_id:
+            return
+        self._hb_mono = t_mono
+        old = self._state
+        mode = mode_name(self.autopilot, msg.custom_mode)
+        armed = bool(msg.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
+        self._update(mode=mode, armed=armed, heartbeat_time_s=now, link_ok=True)
+        if not old.link_ok:
+            log.warning("vehicle %d: heartbeat back", self.system_id)
+            self._emit("link_restored", f"heartbeat of vehicle {self.system_id} is back")
+            self.request_streams()  # an autopilot that rebooted forgot our rates
+        if old.mode and old.mode != mode:
+            self._emit("mode", mode, old=old.mode, new=mode)
+        if old.armed != armed:
+            self._emit("armed" if armed else "disarmed")
+            if not armed:
+                self._stop_setpoints()
+
+    def _check_heartbeat(self, now_mono: float, timeout_s: float) -> None:
+        if self._state.link_ok and now_mono - self._hb_mono > timeout_s:
+            self._update(link_ok=False)
+            log.warning("vehicle %d: no heartbeat for %.1f s", self.system_id, now_mono - self._hb_mono)
+            self._emit("link_lost", f"no HEARTBEAT from vehicle {self.system_id} for "
+                       f"{now_mono - self._hb_mono:.1f} s")
+
+    def _rx_global_position_int(self, msg, now: float, t_mono: float) -> None:
+        pos = Position(msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0, msg.relative_alt / 1000.0, now)
+        vel = Velocity(msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0, now)
+        self._update(position=pos, velocity=vel)
+        if self.safety is not None:
+            self._check_safety(pos, vel, t_mono)
+
+    def _rx_attitude(self, msg, now: float, t_mono: float) -> None:
+        self._update(attitude=Attitude(math.degrees(msg.roll), math.degrees(msg.pitch),
+                                       math.degrees(msg.yaw) % 360.0, now))
+
+    def _rx_gps_raw_int(self, msg, now: float, t_mono: float) -> None:
+        eph = msg.eph / 100.0 if msg.eph != 65535 else math.inf
+        epv = msg.epv / 100.0 if msg.epv != 65535 else math.inf
+        self._update(gps=GpsStatus(msg.fix_type, msg.satellites_visible, eph, epv, msg.lat / 1e7,
+                                   msg.lon / 1e7, msg.alt / 1000.0, now))
+
+    def _rx_sys_status(self, msg, now: float, t_mono: float) -> None:
+        self._update(battery=Battery(
+            msg.voltage_battery / 1000.0 if msg.voltage_battery != 65535 else math.nan,
+            msg.current_battery / 100.0 if msg.current_battery >= 0 else math.nan,
+            float(msg.battery_remaining) if msg.battery_remaining >= 0 else math.nan, now))
+
+    def _rx_home_position(self, msg, now: float, t_mono: float) -> None:
+        self._update(home=Home(msg.latitude / 1e7, msg.longitude / 1e7, msg.altitude / 1000.0, now))
+
+    def _rx_extended_sys_state(self, msg, now: float, t_mono: float) -> None:
+        self._update(landed_state=_LANDED.get(msg.landed_state, "UNDEFINED"))
+
+    def _rx_mission_current(self, msg, now: float, t_mono: float) -> None:
+        old = self._state.mission_seq
+        self._update(mission_seq=msg.seq, mission_count=getattr(msg, "total", 0))
+        if old != msg.seq:
+            self._emit("mission_current", str(msg.seq), seq=msg.seq)
+
+    def _rx_mission_item_reached(self, msg, now: float, t_mono: float) -> None:
+        self._emit("mission_item_reached", str(msg.seq), seq=msg.seq)
+
+    def _rx_camera_feedback(self, msg, now: float, t_mono: float) -> None:
+        self._emit("camera_trigger", str(msg.img_idx), index=msg.img_idx, lat_deg=msg.lat / 1e7,
+                   lon_deg=msg.lng / 1e7, alt_amsl_m=msg.alt_msl)
+
+    def _rx_camera_trigger(self, msg, now: float, t_mono: float) -> None:
+        self._emit("camera_trigger", str(msg.seq), index=msg.seq)
+
+    def _rx_gps_global_origin(self, msg, now: float, t_mono: float) -> None:
+        self.ekf_origin = (msg.latitude / 1e7, msg.longitude / 1e7, msg.altitude / 1000.0)
+        self._emit("origin", "", lat_deg=self.ekf_origin[0], lon_deg=self.ekf_origin[1],
+                   alt_amsl_m=self.ekf_origin[2])
+
+    def _rx_param_value(self, msg, now: float, t_mono: float) -> None:
+        name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")
+        self.params[name.rstrip("\x00")] = float(msg.param_value)
+
+    def _rx_statustext(self, msg, now: float, t_mono: float) -> None:
+        text = msg.text if isinstance(msg.text, str) else msg.text.decode(errors="replace")
+        text = text.rstrip("\x00")
+        if getattr(msg, "id", 0):  # chunked: assemble until a chunk shorter than 50 bytes
+            parts = self._chunks.setdefault(msg.id, [])
+            parts.append(text)
+            if len(text) == 50:
+                return
+            text = "".join(self._chunks.pop(msg.id))
+        self.statustexts.append((t_mono, msg.severity, text))
+        log.info("vehicle %d says: %s", self.system_id, text)
+        self._emit("statustext", text, severity=msg.severity)
+
+    def _reasons(self, since_mono: float, limit: int = 3) -> str:
+        """The autopilot's recent warnings since ``since_mono``, for error messages."""
+        lines = [t for (tm, sev, t) in self.statustexts if tm >= since_mono and sev <= 5]
+        if not lines:
+            lines = [t for (tm, sev, t) in self.statustexts if tm >= since_mono]
+        return ("; autopilot says: " + " | ".join(lines[-limit:])) if lines else ""
+
+    @contextlib.contextmanager
+    def subscribe(self, predicate: Callable) -> Iterator[queue.Queue]:
+        """Queue of ``(msg, t_mono)`` for incoming messages matching ``predicate`` while open."""
+        sub = _Subscription(predicate)
+        self._subs.append(sub)
+        try:
+            yield sub.queue
+        finally:
+            self._subs.remove(sub)
+
+    def send(self, msg) -> None:
+        self.link.send(msg)
+
+    # ------------------------------------------------------------------ commands
+    def _send_command_long(self, command: int, params: list[float], confirmation: int) -> None:
+        p = [float(x) for x in params] + [0.0] * (7 - len(params))
+        self.send(M.MAVLink_command_long_message(self.system_id, self.component_id, command,
+                                                 confirmation, *p))
+
+    def command(self, command: int, *params: float, timeout_s: float = 1.0, retries: int = 3) -> int:
+        """Send COMMAND_LONG and wait for its COMMAND_ACK, resending up to ``retries`` times.
+
+        Returns the MAV_RESULT (ACCEPTED). Raises CommandRejected (with the autopilot's
+        STATUSTEXT reason), SkyfixTimeout, or LinkError when the heartbeat is lost.
+        """
+        if len(params) > 7:
+            raise InputError(f"a COMMAND_LONG takes at most 7 params, got {len(params)}")
+        for i, p in enumerate(params):
+            if isinstance(p, float) and math.isinf(p):
+                raise InputError(f"param{i + 1} of {command_name(command)} must be finite or NaN, got {p}")
+        name = command_name(command)
+        t0 = time.monotonic()
+
+        def is_ack(m) -> bool:
+            return m.get_type() == "COMMAND_ACK" and m.command == command
+
+        with self.subscribe(is_ack) as acks:
+            for attempt in range(retries + 1):
+                self._send_command_long(command, list(params), attempt)
+                deadline = time.monotonic() + timeout_s
+                while True:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        break
+                    try:
+                        ack, _ = acks.get(timeout=left)
+                    except queue.Empty:
+                        break
+                    if ack.result == M.MAV_RESULT_IN_PROGRESS:
+                        deadline = time.monotonic() + timeout_s
+                        continue
+                    if ack.result == M.MAV_RESULT_ACCEPTED:
+                        return ack.result
+                    if ack.result == M.MAV_RESULT_TEMPORARILY_REJECTED and attempt < retries:
+                        time.sleep(0.1)
+                        break
+                    time.sleep(0.02)  # a STATUSTEXT explaining the refusal may trail the ACK
+                    reason = self._reasons(t0 - 0.5)
+                    raise CommandRejected(
+                        f"vehicle {self.system_id} rejected {name} ({result_name(ack.result)}){reason}",
+                        command=name, result=ack.result, reason=reason.removeprefix("; autopilot says: "))
+                if not self._state.link_ok:
+                    raise LinkError(f"vehicle {self.system_id}: no heartbeat; {name} not acknowledged")
+        raise SkyfixTimeout(f"vehicle {self.system_id}: no COMMAND_ACK for {name} after "
+                            f"{retries + 1} attempts of {timeout_s:.1f} s")
+
+    def arm(self, *, force: bool = False, timeout_s: float = 3.0) -> None:
+        """Arm the motors and wait until the heartbeat shows it."""
+        self.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1, 21196 if force else 0)
+        self.wait_until(lambda s: s.armed, timeout_s, what="armed")
+
+    def disarm(self, *, force: bool = False, timeout_s: float = 3.0) -> None:
+        """Disarm (the autopilot refuses in flight unless ``force``) and wait for it."""
+        self.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196 if force else 0)
+        self.wait_until(lambda s: not s.armed, timeout_s, what="disarmed")
+
+    def set_mode(self, name: str, *, timeout_s: float = 3.0) -> None:
+        """Switch flight mode by name (``GUIDED``, ``AUTO.MISSION``, ``OFFBOARD``...) and wait
+        for the heartbeat to report it. PX4 OFFBOARD gets a setpoint stream first."""
+        name = str(name).upper()
+        custom = custom_mode_of(self.autopilot, name)
+        if self.autopilot == "px4":
+            if name == "OFFBOARD" and self._setpoint is None:
+                self._start_setpoints(self._hold_setpoint())
+            if name == "OFFBOARD":
+                time.sleep(max(0.0, 3.0 / self.setpoint_rate_hz))  # PX4 wants a live stream
+            main, sub = PX4_MODES[name]
+            params = [M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub]
+        else:
+            params = [M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom]
+        if name not in ("OFFBOARD", "GUIDED"):
+            self._stop_setpoints()
+        self.command(M.MAV_CMD_DO_SET_MODE, *params)
+        self.wait_until(lambda s: s.mode == name, timeout_s, what=f"mode {name}")
+
+    def _ensure_guided(self) -> None:
+        mode = role_mode(self.autopilot, "guided")
+        if self._state.mode != mode:
+            self.set_mode(mode)
+
+    def takeoff(self, alt_m: float, *, wait: bool = True, timeout_s: float | None = None) -> None:
+        """Take off to ``alt_m`` metres above home (ArduPilot: in GUIDED; PX4: AUTO.TAKEOFF).
+        The vehicle must be armed. With ``wait`` block until within 0.5 m of the altitude."""
+        alt_m = validate.positive_scalar("alt_m", alt_m)
+        if self.safety is not None:
+            pos = self._state.position
+            if pos is not None:
+                self.safety.check_position_setpoint(pos.lat_deg, pos.lon_deg, alt_m)
+        if self.autopilot == "px4":
+            home = self._state.home or self.wait_until(lambda s: s.home is not None, 3.0, what="home").home
+            self.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan,
+                         home.alt_amsl_m + alt_m)
+        else:
+            if self._state.mode != "GUIDED":
+                self.set_mode("GUIDED")
+            self.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, alt_m)
+        if wait:
+            self.wait_until(lambda s: s.position is not None and s.position.alt_rel_m >= alt_m - 0.5,
+                            timeout_s or alt_m / 0.5 + 10.0, what=f"takeoff to {alt_m:.1f} m")
+
+    def goto(self, lat_deg: float, lon_deg: float, alt_m: float, *, wait: bool = False,
+             tolerance_m: float = 1.5, timeout_s: float | None = None) -> None:
+        """Fly to (lat, lon) at ``alt_m`` above home with SET_POSITION_TARGET_GLOBAL_INT,
+        switching to GUIDED/OFFBOARD if needed. The safety gate checks the target first."""
+        lat = float(validate.latitude("lat_deg", validate.finite_scalar("lat_deg", lat_deg)))
+        lon = float(validate.longitude("lon_deg", validate.finite_scalar("lon_deg", lon_deg)))
+        alt = validate.finite_scalar("alt_m", alt_m)
+        if self.safety is not None:
+            self.safety.check_position_setpoint(lat, lon, alt)
+        msg = M.MAVLink_set_position_target_global_int_message(
+            0, self.system_id, self.component_id, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+            _POSITION_ONLY_MASK, int(round(lat * 1e7)), int(round(lon * 1e7)), alt, 0, 0, 0, 0, 0, 0, 0, 0)
+        self._start_setpoints(msg)
+        self._ensure_guided()
+        if wait:
+            from skyfix.geo import inverse
+            pos = self._state.position
+            dist = float(inverse(pos.lat_deg, pos.lon_deg, lat, lon)[1]) if pos else 100.0
+
+            def arrived(s: VehicleState) -> bool:
+                if s.position is None:
+                    return False
+                d = float(inverse(s.position.lat_deg, s.position.lon_deg, lat, lon)[1])
+                return d <= tolerance_m and abs(s.position.alt_rel_m - alt) <= max(tolerance_m, 1.0)
+
+            self.wait_until(arrived, timeout_s or dist / 1.0 + 15.0,
+                            what=f"arrival at {lat:.7f},{lon:.7f} {alt:.1f} m")
+
+    def velocity(self, north_mps: float, east_mps: float, down_mps: float) -> None:
+        """Fly at a NED velocity (m/s); the command is streamed until another setpoint,
+        mode change or :meth:`hold` replaces it."""
+        vn, ve, vd = (validate.finite_scalar(n, v) for n, v in
+                      (("north_mps", north_mps), ("east_mps", east_mps), ("down_mps", down_mps)))
+        if self.safety is not None:
+            self.safety.check_velocity_setpoint(vn, ve, vd)
+        msg = M.MAVLink_set_position_target_global_int_message(
+            0, self.system_id, self.component_id, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+            _VELOCITY_ONLY_MASK, 0, 0, 0, vn, ve, vd, 0, 0, 0, 0, 0)
+        self._start_setpoints(msg)
+        self._ensure_guided()
+
+    def hold(self) -> None:
+        """Stop and hold position (LOITER / AUTO.LOITER)."""
+        self.set_mode(role_mode(self.autopilot, "hold"))
+
+    def land(self, *, wait: bool = False, timeout_s: float = 120.0) -> None:
+        """Land where the vehicle is; with ``wait`` block until it has disarmed."""
+        self.set_mode(role_mode(self.autopilot, "land"))
+        if wait:
+            self.wait_until(lambda s: not s.armed, timeout_s, what="landed and disarmed")
+
+    def rtl(self, *, wait: bool = False, timeout_s: float = 300.0) -> None:
+        """Return to launch; with ``wait`` block until landed and disarmed."""
+        self.set_mode(role_mode(self.autopilot, "rtl"))
+        if wait:
+            self.wait_until(lambda s: not s.armed, timeout_s, what="return home and disarm")
+
+    # ------------------------------------------------------------------ setpoint stream
+    def _hold_setpoint(self):
+        pos = self._state.position
+        if pos is None:
+            raise InputError("cannot build a hold setpoint before the first position report")
+        return M.MAVLink_set_position_target_global_int_message(
+            0, self.system_id, self.component_id, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+            _POSITION_ONLY_MASK, int(round(pos.lat_deg * 1e7)), int(round(pos.lon_deg * 1e7)),
+            pos.alt_rel_m, 0, 0, 0, 0, 0, 0, 0, 0)
+
+    def _start_setpoints(self, msg) -> None:
+        """Send ``msg`` now and keep re-sending it at ``setpoint_rate_hz`` (PX4 offboard needs a
+        live stream, ArduPilot drops velocity targets after 3 s, and either may lose a packet)."""
+        self._setpoint = msg
+        self.send(msg)
+        if self._setpoint_thread is None or not self._setpoint_thread.is_alive():
+            self._setpoint_stop.clear()
+            self._setpoint_thread = threading.Thread(target=self._setpoint_loop, daemon=True,
+                                                     name=f"skyfix-setpoints-{self.system_id}")
+            self._setpoint_thread.start()
+
+    def _stop_setpoints(self) -> None:
+        self._setpoint = None
+        self._setpoint_stop.set()
+
+    def _setpoint_loop(self) -> None:
+        period = 1.0 / self.setpoint_rate_hz
+        while not self._setpoint_stop.wait(period):
+            msg = self._setpoint
+            if msg is None or self.link.closed:
+                return
+            try:
+                self.send(msg)
+            except LinkError:
+                return
+
+    # ------------------------------------------------------------------ safety
+    def set_safety(self, gate: SafetyGate | None) -> None:
+        """Install (or remove) the safety gate checked on setpoints and telemetry."""
+        self.safety = gate
+        self._safety_latched = False
+
+    def _check_safety(self, pos: Position, vel: Velocity, t_mono: float) -> None:
+        st = self._state
+        if not st.armed:
+            self._safety_latched = False
+            return
+        why = self.safety.violation(pos.lat_deg, pos.lon_deg, pos.alt_rel_m, vel.speed_mps)
+        if not why:
+            self._safety_latched = False
+            return
+        if self._safety_latched:
+            return
+        self._safety_latched = True
+        self._stop_setpoints()
+        mode = role_mode(self.autopilot, self.safety.action)
+        custom = custom_mode_of(self.autopilot, mode)
+        if self.autopilot == "px4":
+            main, sub = PX4_MODES[mode]
+            params = [M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub]
+        else:
+            params = [M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom]
+        self._send_command_long(M.MAV_CMD_DO_SET_MODE, params, 0)
+        latency_s = time.monotonic() - t_mono
+        self.safety_log.append((latency_s, why))
+        log.warning("vehicle %d safety violation: %s -> %s (%.1f ms after telemetry)",
+                    self.system_id, why, mode, latency_s * 1e3)
+        self._emit("safety_violation", why, action=mode, latency_s=latency_s)
+        threading.Thread(target=self._confirm_safety_action, args=(mode, params), daemon=True).start()
+
+    def _confirm_safety_action(self, mode: str, params: list[float]) -> None:
+        try:
+            self.command(M.MAV_CMD_DO_SET_MODE, *params, timeout_s=0.5, retries=4)
+            self.wait_until(lambda s: s.mode == mode, 3.0, what=f"safety action {mode}")
+        except Exception as exc:  # fall back to landing: the envelope is already breached
+            log.error("vehicle %d: safety action %s failed (%s); landing", self.system_id, mode, exc)
+            self._emit("safety_action_failed", str(exc), action=mode)
+            with contextlib.suppress(Exception):
+                self.command(M.MAV_CMD_NAV_LAND, timeout_s=0.5, retries=4)
+
+    # ------------------------------------------------------------------ parameters
+    def get_param(self, name: str, *, timeout_s: float = 1.0, retries: int = 3) -> float:
+        """Read one autopilot parameter (PARAM_REQUEST_READ -> PARAM_VALUE)."""
+        if not isinstance(name, str) or not 0 < len(name) <= 16:
+            raise InputError(f"parameter name must be a string of 1-16 characters, got {name!r}")
+
+        def match(m) -> bool:
+            if m.get_type() != "PARAM_VALUE":
+                return False
+            pid = m.param_id if isinstance(m.param_id, str) else m.param_id.decode(errors="replace")
+            return pid.rstrip("\x00") == name
+
+        with self.subscribe(match) as q:
+            for _ in range(retries + 1):
+                self.send(M.MAVLink_param_request_read_message(self.system_id, self.component_id,
+                                                               name.encode(), -1))
+                try:
+                    msg, _ = q.get(timeout=timeout_s)
+                    return float(msg.param_value)
+                except queue.Empty:
+                    continue
+        raise SkyfixTimeout(f"vehicle {self.system_id} did not report parameter {name} "
+                            f"(it may not exist on this {self.autopilot} firmware)")
+
+    def set_param(self, name: str, value: float, *, timeout_s: float = 1.0, retries: int = 3) -> None:
+        """Write one parameter and wait for the autopilot's PARAM_VALUE echo."""
+        value = validate.finite_scalar(f"value of {name}", value)
+
+        def match(m) -> bool:
+            if m.get_type() != "PARAM_VALUE":
+                return False
+            pid = m.param_id if isinstance(m.param_id, str) else m.param_id.decode(errors="replace")
+            return pid.rstrip("\x00") == name
+
+        with self.subscribe(match) as q:
+            for _ in range(retries + 1):
+                self.send(M.MAVLink_param_set_message(self.system_id, self.component_id, name.encode(),
+                                                      value, M.MAV_PARAM_TYPE_REAL32))
+                try:
+                    msg, _ = q.get(timeout=timeout_s)
+                except queue.Empty:
+                    continue
+                if abs(msg.param_value - value) <= 1e-6 * max(1.0, abs(value)):
+                    return
+                raise CommandRejected(f"vehicle {self.system_id} kept {name}={msg.param_value} "
+                                      f"instead of {value}", command="PARAM_SET")
+        raise SkyfixTimeout(f"vehicle {self.system_id} did not confirm {name}={value}"
+                            f"{self._reasons(time.monotonic() - 5)}")
+
+    # ------------------------------------------------------------------ missions
+    def upload_mission(self, items: list[mission.MissionItem], *,
+                       progress: Callable[[int, int], None] | None = None,
+                       item_timeout_s: float = 0.25, timeout_s: float = 60.0) -> mission.TransferStats:
+        """Upload a mission (MISSION_ITEM_INT protocol); see :func:`mission.upload`."""
+        return mission.upload(self, items, progress=progress, item_timeout_s=item_timeout_s,
+                              timeout_s=timeout_s)
+
+    def download_mission(self, *, item_timeout_s: float = 0.25,
+                         timeout_s: float = 60.0) -> list[mission.MissionItem]:
+        """The mission stored on the vehicle (ArduPilot's home item 0 removed)."""
+        return mission.download(self, item_timeout_s=item_timeout_s, timeout_s=timeout_s)
+
+    def clear_mission(self, *, timeout_s: float = 1.0) -> None:
+        mission.clear(self, timeout_s=timeout_s)
+
+    def start_mission(self) -> None:
+        """Switch to the mission mode (AUTO / AUTO.MISSION); the vehicle must be armed."""
+        self.set_mode(role_mode(self.autopilot, "mission"))
+
+    def set_camera_trigger_distance(self, distance_m: float) -> None:
+        """Trigger the camera every ``distance_m`` metres travelled (0 stops)."""
+        d = validate.finite_scalar("distance_m", distance_m)
+        if d < 0:
+            raise InputError(f"distance_m must be >= 0, got {d}")
+        self.command(M.MAV_CMD_DO_SET_CAM_TRIGG_DIST, d, 0, 1)
+
+    # ------------------------------------------------------------------ external position
+    def check_injection(self, kind: str) -> None:
+        """Raise ConfigurationError naming the setting that makes the autopilot ignore
+        ``kind`` (``"gps"`` for GPS_INPUT, ``"vision"`` for VISION_POSITION_ESTIMATE)."""
+        injection.check_settings(self, kind)
+        self._injection_checked.add(kind)
+
+    def inject_gps(self, lat_deg: float, lon_deg: float, alt_amsl_m: float, *, h_acc_m: float,
+                   v_acc_m: float | None = None, vel_ned_mps: tuple[float, float, float] | None = None,
+                   satellites: int = 12, fix_type: int = 3, time_s: float | None = None) -> None:
+        """Send one GPS_INPUT (checks the autopilot's GPS settings on first use)."""
+        if "gps" not in self._injection_checked:
+            self.check_injection("gps")
+        self.send(injection.gps_input_message(lat_deg, lon_deg, alt_amsl_m, h_acc_m=h_acc_m,
+                                              v_acc_m=v_acc_m, vel_ned_mps=vel_ned_mps,
+                                              satellites=satellites, fix_type=fix_type, time_s=time_s))
+
+    def inject_vision(self, north_m: float, east_m: float, down_m: float, *, sigma_m: float,
+                      roll_deg: float = 0.0, pitch_deg: float = 0.0, yaw_deg: float = 0.0,
+                      time_s: float | None = None, odometry: bool = False) -> None:
+        """Send one VISION_POSITION_ESTIMATE (or ODOMETRY) in local NED about the EKF origin."""
+        if "vision" not in self._injection_checked:
+            self.check_injection("vision")
+        self.send(injection.vision_message(north_m, east_m, down_m, sigma_m=sigma_m, roll_deg=roll_deg,
+                                           pitch_deg=pitch_deg, yaw_deg=yaw_deg, time_s=time_s,
+                                           odometry=odometry))
+
+    def start_gps_injection(self, source: Callable[[], injection.GeoFix | None], *,
+                            rate_hz: float = 5.0, geoid_height_m: float = 0.0) -> injection.PositionInjector:
+        """Inject ``source()`` fixes as GPS_INPUT at a steady ``rate_hz`` on a thread."""
+        self.check_injection("gps")
+        if self.injector is not None:
+            self.injector.stop()
+        self.injector = injection.PositionInjector(self, source, rate_hz=rate_hz,
+                                                   geoid_height_m=geoid_height_m)
+        return self.injector.start()
+
+    def set_origin(self, lat_deg: float, lon_deg: float, alt_amsl_m: float, *,
+                   timeout_s: float = 1.0, retries: int = 3) -> None:
+        """Set the EKF origin (SET_GPS_GLOBAL_ORIGIN) and wait for GPS_GLOBAL_ORIGIN to confirm."""
+        injection.set_origin(self, lat_deg, lon_deg, alt_amsl_m, timeout_s=timeout_s, retries=retries)
+
+    def require_violation_free(self) -> None:
+        """Raise SafetyViolation when the latest telemetry is outside the safety envelope."""
+        st = self._state
+        if self.safety is not None and st.position is not None:
+            why = self.safety.violation(st.position.lat_deg, st.position.lon_deg, st.position.alt_rel_m,
+                                        st.velocity.speed_mps if st.velocity else 0.0)
+            if why:
+                raise SafetyViolation(f"vehicle {self.system_id}: {why}")
