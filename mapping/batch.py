@@ -125,11 +125,30 @@ class _Worker:
 
     def decode(self, src: Path) -> tuple[bytes, np.ndarray]:
         data = src.read_bytes()
+        if not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
+            raise DataError(f"{src}: corrupt JPEG (truncated: no end-of-image marker)")
         read_metadata(data, str(src), require_exif=self.spec.require_exif)
         image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
         if image is None:
-            raise DataError(f"{src}: corrupt or unreadable JPEG image data")
+            raise DataError(f"{src}: corrupt JPEG (image data could not be decoded)")
         return data, image
+
+    def output_camera(self, src: Path, data: bytes, tables: Undistortion) -> dict:
+        """Intrinsics of the corrected photo; the focal length comes from the calibration or,
+        for a barrel model, from the photo's EXIF (None when EXIF lacks it)."""
+        out = tables.output
+        fx = fy = None
+        if self.spec.camera is not None:
+            fx, fy = out.fx, out.fy
+        else:
+            try:
+                raw_f = read_metadata(data, str(src), require_exif=False).focal_length_px(
+                    tables.source.width, tables.source.height)
+                fx = fy = raw_f * tables.focal_scale
+            except DataError:
+                pass
+        return {"width": out.width, "height": out.height, "fx_px": fx, "fy_px": fy,
+                "cx_px": out.cx, "cy_px": out.cy, "focal_scale": tables.focal_scale}
 
     def finish(self, src: Path, dst: Path, data: bytes, corrected: np.ndarray, tables: Undistortion) -> PhotoResult:
         ok, encoded = cv2.imencode(".jpg", corrected, [cv2.IMWRITE_JPEG_QUALITY, self.spec.jpeg_quality])
@@ -141,9 +160,7 @@ class _Worker:
         tmp = dst.with_name(dst.name + ".part")
         tmp.write_bytes(blob)
         os.replace(tmp, dst)
-        camera = {"width": out.width, "height": out.height, "fx_px": out.fx, "fy_px": out.fy,
-                  "cx_px": out.cx, "cy_px": out.cy, "focal_scale": tables.focal_scale}
-        return PhotoResult(str(src), str(dst), None, camera)
+        return PhotoResult(str(src), str(dst), None, self.output_camera(src, data, tables))
 
     def __call__(self, job: tuple[Path, Path]) -> PhotoResult:
         src, dst = job

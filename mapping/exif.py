@@ -77,7 +77,7 @@ def _load(data: bytes, source: str) -> dict:
     try:
         return piexif.load(data)
     except Exception as exc:  # piexif raises bare ValueError/struct.error on damaged EXIF
-        raise DataError(f"{source}: unreadable EXIF ({exc})") from exc
+        raise DataError(f"{source}: corrupt JPEG or unreadable EXIF ({exc})") from exc
 
 
 def read_metadata(data: bytes, source: str = "photo", require_exif: bool = True) -> PhotoMetadata:
