@@ -189,15 +189,18 @@ def solve_pose(ground_xy: np.ndarray, uv: np.ndarray, k: np.ndarray, *,
             c += ((_wrap(s[5] - prior.roll_deg)) ** 2 + (s[4] - prior.pitch_deg) ** 2) / prior.sigma_deg ** 2
         costs.append(c)
     pick = int(np.argmin(costs))
+    # The mirror pose is plausible when its reprojection error is within what pixel noise
+    # explains (3 sigma): then only the IMU can tell the two apart.
+    mirror_plausible = len(errs) > 1 and float(errs.max()) < 3.0 * float(np.mean(sig))
     if pick != int(np.argmin(errs)):
         flags.append("flip_resolved_by_imu")
-    elif prior is None and ambiguity > 0.6:
+    elif prior is None and mirror_plausible:
         flags.append("ambiguous")
     state = states[pick]
-    if prior is not None and len(states) > 1:
+    if prior is not None and mirror_plausible:
         other = states[1 - pick]
         if (abs(_wrap(other[5] - prior.roll_deg)) < 3 * prior.sigma_deg
-                and abs(other[4] - prior.pitch_deg) < 3 * prior.sigma_deg and ambiguity > 0.6):
+                and abs(other[4] - prior.pitch_deg) < 3 * prior.sigma_deg):
             flags.append("ambiguous")   # the IMU cannot separate the two either
     w = 1.0 / sig
     # IPPE's answer is already near the optimum: a few Gauss-Newton steps add the prior.
