@@ -7,6 +7,7 @@ Vehicle attitude is aerospace Z-Y-X relative to local NED; see :mod:`skyfix.rota
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -179,10 +180,20 @@ class CameraPose:
         return R_ENU_FROM_NED @ self.r_ned_from_cam()
 
     def in_frame(self, frame: LocalFrame) -> tuple[np.ndarray, np.ndarray]:
-        """(camera position ``(3,)`` ENU metres, rotation frame-ENU <- camera) in ``frame``."""
-        e, n, u = frame.to_enu(self.lat, self.lon, self.alt_m)
-        rotation = frame.enu_rotation_at(self.lat, self.lon) @ self.r_enu_from_cam()
-        return np.array([float(e), float(n), float(u)]), rotation
+        """(camera position ``(3,)`` ENU metres, rotation frame-ENU <- camera) in ``frame``.
+
+        Returns fresh arrays; results are cached per (pose, frame) because one frame's
+        processing asks for them several times.
+        """
+        cam_enu, rotation = _pose_in_frame(self, frame)
+        return cam_enu.copy(), rotation.copy()
+
+
+@functools.lru_cache(maxsize=64)
+def _pose_in_frame(pose: CameraPose, frame: LocalFrame) -> tuple[np.ndarray, np.ndarray]:
+    e, n, u = frame.to_enu(pose.lat, pose.lon, pose.alt_m)
+    rotation = frame.enu_rotation_at(pose.lat, pose.lon) @ pose.r_enu_from_cam()
+    return np.array([float(e), float(n), float(u)]), rotation
 
 
 def ground_intersection(camera: Camera, pose: CameraPose, uv: np.ndarray, ground_alt_m: float,

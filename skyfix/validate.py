@@ -38,7 +38,7 @@ def finite_array(name: str, value: Any) -> np.ndarray:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise InputError(f"{name} must be numeric, got {type(value).__name__}") from None
-    if not np.all(np.isfinite(arr)):
+    if not np.isfinite(arr).all():  # method form: this check runs on every hot path
         bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
         raise InputError(f"{name} contains {bad} NaN or infinite value(s)")
     return arr
@@ -60,7 +60,7 @@ def points(name: str, value: Any, ncols: int) -> np.ndarray:
 def latitude(name: str, value: Any) -> np.ndarray:
     """Return latitudes in degrees as a finite array, raising outside [-90, 90]."""
     arr = finite_array(name, value)
-    if np.any(np.abs(arr) > 90.0):
+    if (np.abs(arr) > 90.0).any():
         raise InputError(f"{name} must be within [-90, 90] degrees, got {arr[np.abs(arr) > 90.0].ravel()[:3]}")
     return arr
 
@@ -68,7 +68,7 @@ def latitude(name: str, value: Any) -> np.ndarray:
 def longitude(name: str, value: Any) -> np.ndarray:
     """Return longitudes in degrees as a finite array, raising outside [-180, 360]."""
     arr = finite_array(name, value)
-    if np.any((arr < -180.0) | (arr > 360.0)):
+    if ((arr < -180.0) | (arr > 360.0)).any():
         raise InputError(f"{name} must be within [-180, 360] degrees, got {arr.ravel()[:3]}")
     return arr
 
@@ -78,8 +78,10 @@ def covariance(name: str, value: Any, dim: int) -> np.ndarray:
     arr = finite_array(name, value)
     if arr.shape != (dim, dim):
         raise InputError(f"{name} must have shape ({dim}, {dim}), got {arr.shape}")
-    if not np.allclose(arr, arr.T, rtol=1e-9, atol=1e-12 * max(1.0, float(np.abs(arr).max()))):
+    scale = max(1.0, float(np.abs(arr).max()))
+    # Same test as np.allclose(arr, arr.T, rtol=1e-9, atol=1e-12 * scale), without its overhead.
+    if (np.abs(arr - arr.T) > 1e-12 * scale + 1e-9 * np.abs(arr.T)).any():
         raise InputError(f"{name} must be symmetric")
-    if np.linalg.eigvalsh(arr).min() < -1e-9 * max(1.0, float(np.abs(arr).max())):
+    if np.linalg.eigvalsh(arr).min() < -1e-9 * scale:
         raise InputError(f"{name} must be positive semi-definite")
     return arr
