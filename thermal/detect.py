@@ -173,22 +173,27 @@ def detect_hotspots(frame: np.ndarray, *, threshold: float | None = None, palett
                          f"got {min_area_px!r}")
     kpc = validate.positive_scalar("kelvin_per_count", kelvin_per_count)
     work, thr, units, scale = _to_work(frame, palette, threshold, kpc)
-    lo, hi, _, _ = cv2.minMaxLoc(work)
-    if math.isnan(lo) or math.isnan(hi):
-        raise InputError("frame has no valid pixel (all NaN)")
-    if lo == hi:
-        raise InputError(f"frame is constant ({lo!r} everywhere): dropped, frozen or blank frame")
     if units == "level":
         warnings.warn("8-bit/palette frame: no temperature scale, detection is relative "
                       "(use radiometric counts or deg C frames for absolute thresholds)",
                       RelativeTemperatureWarning, stacklevel=2)
         thr = auto_threshold_u8(work) if thr is None else validate.finite_scalar("threshold", thr)
-    if hi <= thr:
-        return []
-    mask = (work > thr).view(np.uint8)
+    # work > thr as 0/1 (NaN -> 0), by whichever is faster for the dtype.
+    if work.dtype == np.uint16:
+        mask = cv2.threshold(work, thr, 1, cv2.THRESH_BINARY)[1]
+    else:
+        mask = (work > thr).view(np.uint8)
+    regions = _candidate_regions(mask, min_area_px)
+    if not regions or cv2.countNonZero(mask) == mask.size:
+        # Only frames with nothing (or everything) hot can be blank: check them fully.
+        lo, hi, _, _ = cv2.minMaxLoc(work)
+        if math.isnan(lo) or math.isnan(hi):
+            raise InputError("frame has no valid pixel (all NaN)")
+        if lo == hi:
+            raise InputError(f"frame is constant ({lo!r} everywhere): dropped, frozen or blank frame")
     out = []
-    for r0, r1, c0, c1 in _candidate_regions(mask, min_area_px):
-        sub = mask[r0:r1, c0:c1]
+    for r0, r1, c0, c1 in regions:
+        sub = mask[r0:r1, c0:c1].astype(np.uint8)
         n, labels, stats, _ = cv2.connectedComponentsWithStats(sub, connectivity=8, ltype=cv2.CV_32S)
         for k in range(1, n):
             if stats[k, cv2.CC_STAT_AREA] < min_area_px:
@@ -205,24 +210,25 @@ _BLOCK_PX = 16
 
 def _candidate_regions(mask: np.ndarray, min_area_px: int) -> list[tuple[int, int, int, int]]:
     """Pixel windows (r0, r1, c0, c1) around groups of touching 16x16 blocks that hold at
-    least ``min_area_px`` hot pixels; scanning only these keeps sparse frames fast."""
+    least ``min_area_px`` hot pixels; scanning only these keeps sparse frames fast.
+    ``mask`` is 0/1 in any dtype."""
     b = _BLOCK_PX
     h, w = mask.shape
     nbr, nbc = -(-h // b), -(-w // b)
     padded = mask
     if nbr * b != h or nbc * b != w:
         padded = cv2.copyMakeBorder(mask, 0, nbr * b - h, 0, nbc * b - w, cv2.BORDER_CONSTANT, value=0)
-    counts = padded.reshape(nbr, b, nbc * b).sum(axis=1, dtype=np.int32)
-    counts = counts.reshape(nbr, nbc, b).sum(axis=2)
-    occupied = (counts > 0).view(np.uint8) if counts.dtype == np.bool_ else (counts > 0).astype(np.uint8)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(occupied, connectivity=8, ltype=cv2.CV_32S)
-    if n <= 1:
-        return []
-    per_label = np.bincount(labels.ravel(), weights=counts.ravel(), minlength=n)
+    occupied = padded.reshape(nbr, b, nbc * b).max(axis=1).reshape(nbr, nbc, b).max(axis=2)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(occupied.astype(np.uint8), connectivity=8,
+                                                          ltype=cv2.CV_32S)
     regions = []
-    for k in np.flatnonzero(per_label[1:] >= min_area_px) + 1:
+    for k in range(1, n):
         c0, r0, cw, rh = (int(x) for x in stats[k, :4])
-        regions.append((r0 * b, min((r0 + rh) * b, h), c0 * b, min((c0 + cw) * b, w)))
+        win = (r0 * b, min((r0 + rh) * b, h), c0 * b, min((c0 + cw) * b, w))
+        # A lone block can hold only stray pixels (dead pixels): count before labelling.
+        if stats[k, cv2.CC_STAT_AREA] == 1 and cv2.countNonZero(mask[win[0]:win[1], win[2]:win[3]]) < min_area_px:
+            continue
+        regions.append(win)
     return regions
 
 
@@ -244,17 +250,15 @@ def _measure(work: np.ndarray, labels: np.ndarray, stat: np.ndarray, k: int, thr
     lr0, lc0 = b0 - r_off, a0 - c_off
     sub = labels[max(lr0, 0):b1 - r_off, max(lc0, 0):a1 - c_off] == k
     mine[max(-lr0, 0):max(-lr0, 0) + sub.shape[0], max(-lc0, 0):max(-lc0, 0) + sub.shape[1]] = sub
-    smooth = cv2.medianBlur(np.ascontiguousarray(patch), 3).astype(np.float64)
-    excess = np.where(mine, smooth - thr, 0.0)
-    excess[excess < 0.0] = 0.0
-    area = int(np.count_nonzero(excess))
+    smooth = cv2.medianBlur(np.ascontiguousarray(patch), 3)
+    excess = np.where(mine, smooth.astype(np.float32) - np.float32(thr), np.float32(0.0))
+    np.maximum(excess, 0.0, out=excess)
+    area = cv2.countNonZero(excess)
     if area < min_area_px:
         return None
-    total = excess.sum()
-    vv, uu = np.nonzero(excess)
-    wts = excess[vv, uu]
-    u = a0 + float(wts @ uu) / total
-    v = b0 + float(wts @ vv) / total
+    m = cv2.moments(excess)
+    u = a0 + m["m10"] / m["m00"]
+    v = b0 + m["m01"] / m["m00"]
     peak = float(smooth[mine].max())
     return u, v, area, peak, (u0, v0, w, h)
 

@@ -19,7 +19,7 @@ import numpy as np
 from skyfix import validate
 from skyfix.camera import Camera, CameraPose
 from skyfix.errors import InputError
-from skyfix.geo import LocalFrame
+from skyfix.geo import LocalFrame, ecef_to_enu_rotation
 from skyfix.thermal.detect import Hotspot
 from skyfix.thermal.ground import DemGround, FlatGround, as_ground, frame_near, intersect
 from skyfix.thermal.pose import PoseUncertainty
@@ -61,32 +61,31 @@ def locate_in_frame(camera: Camera, pose: CameraPose, uv: np.ndarray, ground: Fl
     d, d_du, d_dv = rays[:n], rays[n:2 * n] - rays[:n], rays[2 * n:] - rays[:n]
     height = cam_enu[2] - pts[:, 2]
     dz = d[:, 2]
-    # Horizontal ground point g = C_h + height * d_h / (-d_z): Jacobian w.r.t. the ray d.
+    slope = d[:, :2] / dz[:, None]  # horizontal shift of the ground point per metre of height
+    # Horizontal ground point g = C_h + height * d_h / (-d_z); its Jacobian w.r.t. the ray d:
     j_d = np.zeros((n, 2, 3))
     j_d[:, 0, 0] = j_d[:, 1, 1] = height / -dz
-    j_d[:, :, 2] = (height / dz ** 2)[:, None] * d[:, :2]
+    j_d[:, :, 2] = (height / dz)[:, None] * slope
+    # Ray perturbations: a small rotation delta about E, N, U moves d by delta x d = -[d]x delta
+    # (columns 0-2); one pixel right / down moves it by d_du / d_dv (columns 3-4).
+    ray_moves = np.zeros((n, 3, 5))
+    ray_moves[:, 0, 1], ray_moves[:, 0, 2] = d[:, 2], -d[:, 1]
+    ray_moves[:, 1, 0], ray_moves[:, 1, 2] = -d[:, 2], d[:, 0]
+    ray_moves[:, 2, 0], ray_moves[:, 2, 1] = d[:, 1], -d[:, 0]
+    ray_moves[:, :, 3], ray_moves[:, :, 4] = d_du, d_dv
+    # All error sources in one Jacobian (n, 2, 9): ray (5), camera E, N, U (3), ground height (1).
+    jac = np.empty((n, 2, 9))
+    jac[:, :, :5] = j_d @ ray_moves
+    jac[:, :, 5:7] = np.eye(2)
+    jac[:, :, 7] = -slope
+    jac[:, :, 8] = slope
     tilt = np.radians(uncertainty.tilt_sigma_deg) ** 2
     yaw = np.radians(uncertainty.heading_deg) ** 2
-    # A small rotation delta (about E, N, U) moves the ray by delta x d = -[d]x delta.
-    skew = np.zeros((n, 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2] = d[:, 2], -d[:, 1]
-    skew[:, 1, 0], skew[:, 1, 2] = -d[:, 2], d[:, 0]
-    skew[:, 2, 0], skew[:, 2, 1] = d[:, 1], -d[:, 0]
-    j_att = j_d @ skew
-    j_px = j_d @ np.stack((d_du, d_dv), axis=2)
-    slope = d[:, :2] / dz[:, None]  # horizontal shift per metre of height, sign below
-    j_pos = np.zeros((n, 2, 3))
-    j_pos[:, 0, 0] = j_pos[:, 1, 1] = 1.0
-    j_pos[:, :, 2] = -slope
-    s_pos = np.diag([uncertainty.position_sigma_m ** 2] * 2 + [uncertainty.vertical_m ** 2])
-    s_att = np.diag([tilt, tilt, yaw])
-    ground_var = ground.sigma_m ** 2
-    cov_h = (j_pos @ s_pos @ j_pos.transpose(0, 2, 1)
-             + j_att @ s_att @ j_att.transpose(0, 2, 1)
-             + uncertainty.pixel_sigma_px ** 2 * j_px @ j_px.transpose(0, 2, 1)
-             + ground_var * slope[:, :, None] * slope[:, None, :])
+    px = uncertainty.pixel_sigma_px ** 2
+    pos, vert, ground_var = uncertainty.position_sigma_m ** 2, uncertainty.vertical_m ** 2, ground.sigma_m ** 2
+    variances = np.array([tilt, tilt, yaw, px, px, pos, pos, vert, ground_var])
     cov = np.zeros((n, 3, 3))
-    cov[:, :2, :2] = cov_h
+    cov[:, :2, :2] = (jac * variances) @ jac.transpose(0, 2, 1)
     cov[:, :2, 2] = cov[:, 2, :2] = ground_var * slope
     cov[:, 2, 2] = ground_var
     return pts, cov
@@ -106,9 +105,10 @@ def geolocate_many(hotspots_or_uv, camera: Camera, pose: CameraPose,
         frame = frame_near(pose.lat, pose.lon, ground.alt_m)
     pts, cov = locate_in_frame(camera, pose, uv, ground, frame, uncertainty)
     lat, lon, alt = frame.to_geodetic(pts[:, 0], pts[:, 1], pts[:, 2])
+    r_frame_from_ecef = ecef_to_enu_rotation(frame.lat0_deg, frame.lon0_deg)
     fixes = []
     for i in range(uv.shape[0]):
-        r = frame.enu_rotation_at(lat[i], lon[i])  # fix ENU axes -> frame axes
+        r = r_frame_from_ecef @ ecef_to_enu_rotation(lat[i], lon[i]).T  # fix ENU axes -> frame axes
         fixes.append(GeoFix(lat[i], lon[i], alt[i], r.T @ cov[i] @ r, time_s, source_id))
     return fixes
 

@@ -146,7 +146,6 @@ def as_ground(ground: float | FlatGround | DemGround) -> FlatGround | DemGround:
                      f"DemGround, got {type(ground).__name__}")
 
 
-@functools.lru_cache(maxsize=64)
 def frame_near(lat_deg: float, lon_deg: float, alt_m: float) -> LocalFrame:
     """A cached local ENU frame with its origin rounded to ~1 km / 10 m near the point.
 
@@ -154,7 +153,12 @@ def frame_near(lat_deg: float, lon_deg: float, alt_m: float) -> LocalFrame:
     successive frames of one flight share it. Axes differences between a vehicle and a
     frame origin 1 km away are handled exactly by the foundation (``enu_rotation_at``).
     """
-    return LocalFrame(round(lat_deg, 2), round(lon_deg, 2), round(alt_m, -1))
+    return _frame_at(round(lat_deg, 2), round(lon_deg, 2), round(alt_m, -1))
+
+
+@functools.lru_cache(maxsize=64)
+def _frame_at(lat_deg: float, lon_deg: float, alt_m: float) -> LocalFrame:
+    return LocalFrame(lat_deg, lon_deg, alt_m)
 
 
 def intersect(camera: Camera, pose: CameraPose, uv: np.ndarray, ground: FlatGround | DemGround,
