@@ -66,7 +66,8 @@ def check_settings(vehicle: Vehicle, kind: str) -> None:
         src = _param(vehicle, "EK3_SRC1_POSXY")
         if kind == "gps":
             types = {n: _param(vehicle, n) for n in ("GPS_TYPE", "GPS2_TYPE")}
-            if 14 not in [int(v) for v in types.values() if v is not None]:
+            types = {n: (int(v) if v is not None else "unreadable") for n, v in types.items()}
+            if 14 not in types.values():
                 raise ConfigurationError(
                     f"vehicle {sysid} (ArduPilot) ignores GPS_INPUT: GPS_TYPE={types['GPS_TYPE']}, "
                     f"GPS2_TYPE={types['GPS2_TYPE']}; set GPS_TYPE=14 (MAV), or GPS2_TYPE=14 with "
@@ -79,12 +80,14 @@ def check_settings(vehicle: Vehicle, kind: str) -> None:
             viso = _param(vehicle, "VISO_TYPE")
             if not viso:
                 raise ConfigurationError(
-                    f"vehicle {sysid} (ArduPilot) ignores vision positions: VISO_TYPE={viso}; "
+                    f"vehicle {sysid} (ArduPilot) ignores vision positions: VISO_TYPE="
+                    f"{int(viso) if viso is not None else 'unreadable'}; "
                     "set VISO_TYPE=1 (MAVLink) and reboot")
             if src is None or int(src) != 6:
                 raise ConfigurationError(
                     f"vehicle {sysid} (ArduPilot) EKF does not use external navigation: "
-                    f"EK3_SRC1_POSXY={src}; set EK3_SRC1_POSXY=6 (ExternalNav)")
+                    f"EK3_SRC1_POSXY={int(src) if src is not None else 'unreadable'}; "
+                    "set EK3_SRC1_POSXY=6 (ExternalNav)")
         return
     if kind == "gps":
         ctrl = _param(vehicle, "EKF2_GPS_CTRL")

@@ -649,21 +649,23 @@ class Vehicle:
                    v_acc_m: float | None = None, vel_ned_mps: tuple[float, float, float] | None = None,
                    satellites: int = 12, fix_type: int = 3, time_s: float | None = None) -> None:
         """Send one GPS_INPUT (checks the autopilot's GPS settings on first use)."""
+        msg = injection.gps_input_message(lat_deg, lon_deg, alt_amsl_m, h_acc_m=h_acc_m,
+                                          v_acc_m=v_acc_m, vel_ned_mps=vel_ned_mps,
+                                          satellites=satellites, fix_type=fix_type, time_s=time_s)
         if "gps" not in self._injection_checked:
             self.check_injection("gps")
-        self.send(injection.gps_input_message(lat_deg, lon_deg, alt_amsl_m, h_acc_m=h_acc_m,
-                                              v_acc_m=v_acc_m, vel_ned_mps=vel_ned_mps,
-                                              satellites=satellites, fix_type=fix_type, time_s=time_s))
+        self.send(msg)
 
     def inject_vision(self, north_m: float, east_m: float, down_m: float, *, sigma_m: float,
                       roll_deg: float = 0.0, pitch_deg: float = 0.0, yaw_deg: float = 0.0,
                       time_s: float | None = None, odometry: bool = False) -> None:
         """Send one VISION_POSITION_ESTIMATE (or ODOMETRY) in local NED about the EKF origin."""
+        msg = injection.vision_message(north_m, east_m, down_m, sigma_m=sigma_m, roll_deg=roll_deg,
+                                       pitch_deg=pitch_deg, yaw_deg=yaw_deg, time_s=time_s,
+                                       odometry=odometry)
         if "vision" not in self._injection_checked:
             self.check_injection("vision")
-        self.send(injection.vision_message(north_m, east_m, down_m, sigma_m=sigma_m, roll_deg=roll_deg,
-                                           pitch_deg=pitch_deg, yaw_deg=yaw_deg, time_s=time_s,
-                                           odometry=odometry))
+        self.send(msg)
 
     def start_gps_injection(self, source: Callable[[], injection.GeoFix | None], *,
                             rate_hz: float = 5.0, geoid_height_m: float = 0.0) -> injection.PositionInjector:

@@ -41,6 +41,7 @@ class SimulatorConfig:
     vehicles: int = 1  # number of vehicles; vehicle i gets system id i + 1
     flavour: str = "ardupilot"  # "ardupilot" (Copter) or "px4"
     base_port: int | None = None  # vehicle i sends to 127.0.0.1:base_port+i; None: only answers
+    share_gcs_port: bool = False  # all vehicles send to base_port (one link, several system ids)
     bind_ports: Sequence[int] | None = None  # own UDP ports; None: ephemeral
     home: tuple[float, float, float] | None = None  # lat_deg, lon_deg, alt_amsl_m of vehicle 0
     spacing_m: float = 5.0  # vehicles start this far apart along east
@@ -89,7 +90,7 @@ class Simulator:
             vcfg = SimVehicleConfig(flavour=cfg.flavour, system_id=i + 1,
                                     start_enu_m=(i * cfg.spacing_m, 0.0, 0.0), seed=cfg.seed * 100 + i,
                                     params=dict(cfg.params))
-            gcs = (LOOPBACK, int(cfg.base_port) + i) if cfg.base_port is not None else None
+            gcs = (LOOPBACK, int(cfg.base_port) + (0 if cfg.share_gcs_port else i)) if cfg.base_port is not None else None
             self.servers.append(VehicleServer(SimVehicle(vcfg, self.world, cfg.wind), sock,
                                               gcs_address=gcs, loss_rate=cfg.loss_rate,
                                               rng=np.random.default_rng(rng.integers(1 << 31))))
