@@ -665,13 +665,13 @@ class SimVehicle:
         drag = cfg.drag_per_s * (wind - self.vel_enu_mps)
         drag[2] = 0.0
         err = v_cmd - self.vel_enu_mps
-        self._vel_integral += 1.5 * err * dt_s
-        self._vel_integral = np.clip(self._vel_integral, -3.0, 3.0)
         a_ctrl = 4.0 * err + self._vel_integral
         a_xy = float(np.hypot(a_ctrl[0], a_ctrl[1]))
         a_lim = min(cfg.max_accel_mps2, G_MPS2 * math.tan(math.radians(cfg.max_tilt_deg)))
         if a_xy > a_lim:
             a_ctrl[:2] *= a_lim / a_xy
+        else:  # integrate only when not saturated (anti-windup)
+            self._vel_integral = np.clip(self._vel_integral + 1.5 * err * dt_s, -3.0, 3.0)
         a_ctrl[2] = float(np.clip(a_ctrl[2], -4.0, 4.0))
         self.vel_enu_mps += (a_ctrl + drag) * dt_s
         self.pos_enu_m += self.vel_enu_mps * dt_s
@@ -679,7 +679,7 @@ class SimVehicle:
             self.pos_enu_m[2] = self.ground_up_m
             self.vel_enu_mps[2] = max(0.0, self.vel_enu_mps[2])
         # attitude: the rotor thrust tilts to produce the horizontal force the controller asks for
-        a_body = a_ctrl - drag
+        a_body = a_ctrl  # the rotors' horizontal force; drag acts on the airframe separately
         yaw = math.radians(self.yaw_deg)
         fwd = a_body[0] * math.sin(yaw) + a_body[1] * math.cos(yaw)
         right = a_body[0] * math.cos(yaw) - a_body[1] * math.sin(yaw)
