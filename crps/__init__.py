@@ -6,17 +6,35 @@ user's own model) finds the target in pixels; :class:`Tracker` follows it with a
 of interest; :func:`observe` turns a detection into a :class:`skyfix.types.RelativeObservation`
 (bearing in ENU, range, covariance) and :func:`locate` fuses several helpers' observations
 into a :class:`skyfix.types.GeoFix`.
+
+Names are imported on first use so that ``skyfix --help`` does not load OpenCV.
 """
 
-from skyfix.crps.detection import BoxDetector, Detection, Detector, to_gray
-from skyfix.crps.marker import MarkerDetector
-from skyfix.crps.model import DroneModel, ShapeTable, shape_table
-from skyfix.crps.observe import angular_jacobian, locate, observe
-from skyfix.crps.ranging import range_from_reference, range_from_size
-from skyfix.crps.silhouette import SilhouetteConfig, SilhouetteDetector, estimate_noise_sigma
-from skyfix.crps.track import Tracker, TrackerConfig
+from __future__ import annotations
 
-__all__ = ["BoxDetector", "Detection", "Detector", "DroneModel", "MarkerDetector", "ShapeTable",
-           "SilhouetteConfig", "SilhouetteDetector", "Tracker", "TrackerConfig", "angular_jacobian",
-           "estimate_noise_sigma", "locate", "observe", "range_from_reference", "range_from_size",
-           "shape_table", "to_gray"]
+import importlib
+from typing import Any
+
+_EXPORTS = {
+    "BoxDetector": "detection", "Detection": "detection", "Detector": "detection", "to_gray": "detection",
+    "MarkerDetector": "marker",
+    "DroneModel": "model", "ShapeTable": "model", "shape_table": "model",
+    "angular_jacobian": "observe", "locate": "observe", "observe": "observe", "shape_consistent": "observe",
+    "range_from_reference": "ranging", "range_from_size": "ranging",
+    "SilhouetteConfig": "silhouette", "SilhouetteDetector": "silhouette", "estimate_noise_sigma": "silhouette",
+    "Tracker": "track", "TrackerConfig": "track",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(f"skyfix.crps.{_EXPORTS[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'skyfix.crps' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return __all__

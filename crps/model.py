@@ -151,18 +151,27 @@ class ShapeTable:
 
     ``elevation_deg`` ascending grid in [-90, 90] (positive: seen from above);
     ``ratio_mean``/``ratio_std`` the mean and standard deviation over yaw and tilt of
-    ``sqrt(largest eigenvalue of the silhouette second moments) / span``.
+    ``sqrt(largest eigenvalue of the silhouette second moments) / span``;
+    ``aspect_mean``/``aspect_std`` the same for ``sqrt(smallest / largest eigenvalue)``.
     """
 
     elevation_deg: np.ndarray
     ratio_mean: np.ndarray
     ratio_std: np.ndarray
+    aspect_mean: np.ndarray
+    aspect_std: np.ndarray
 
     def ratio(self, elevation_deg) -> tuple[np.ndarray, np.ndarray]:
         """Interpolated (mean, std) ratio at ``elevation_deg`` (array-like, degrees)."""
         e = np.clip(validate.finite_array("elevation_deg", elevation_deg), -90.0, 90.0)
         return (np.interp(e, self.elevation_deg, self.ratio_mean),
                 np.interp(e, self.elevation_deg, self.ratio_std))
+
+    def aspect(self, elevation_deg) -> tuple[np.ndarray, np.ndarray]:
+        """Interpolated (mean, std) minor/major RMS ratio at ``elevation_deg`` (degrees)."""
+        e = np.clip(validate.finite_array("elevation_deg", elevation_deg), -90.0, 90.0)
+        return (np.interp(e, self.elevation_deg, self.aspect_mean),
+                np.interp(e, self.elevation_deg, self.aspect_std))
 
 
 def _view_rotation(elevation_deg: float, azimuth_deg: float) -> np.ndarray:
@@ -196,10 +205,9 @@ def shape_table(model: DroneModel, tilt_sigma_deg: float = 5.0, canvas_px: int =
     # Orthographic silhouettes from +e and -e are mirror images: measure e >= 0 only,
     # densely near edge-on where the yaw dependence changes fastest.
     upper = np.concatenate((np.arange(0.0, 10.0, 2.0), np.arange(10.0, 20.0, 2.5), np.arange(20.0, 90.1, 10.0)))
-    mean_up = np.empty(upper.size)
-    std_up = np.empty(upper.size)
+    stats_up = np.empty((upper.size, 4))
     for i, el in enumerate(upper):
-        ratios = []
+        ratios, aspects = [], []
         for az in np.arange(0.0, 360.0, 15.0):
             view = _view_rotation(float(el), float(az))
             for pitch, roll in tilts:
@@ -208,12 +216,13 @@ def shape_table(model: DroneModel, tilt_sigma_deg: float = 5.0, canvas_px: int =
                 cover, _ = rasterize_convex_parts(uv, [1.0] * len(uv), (canvas_px, canvas_px))
                 m = cv2.moments(cover)
                 cov = np.array([[m["mu20"], m["mu11"]], [m["mu11"], m["mu02"]]]) / m["m00"]
-                ratios.append(math.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0)) / scale)
-        mean_up[i] = float(np.mean(ratios))
-        std_up[i] = float(np.std(ratios))
+                ev = np.maximum(np.linalg.eigvalsh(cov), 0.0)
+                ratios.append(math.sqrt(ev[-1]) / scale)
+                aspects.append(math.sqrt(ev[0] / ev[-1]))
+        stats_up[i] = (np.mean(ratios), np.std(ratios), np.mean(aspects), np.std(aspects))
     elevations = np.concatenate((-upper[:0:-1], upper))
-    mean = np.concatenate((mean_up[:0:-1], mean_up))
-    std = np.concatenate((std_up[:0:-1], std_up))
-    for arr in (elevations, mean, std):
+    stats = np.concatenate((stats_up[:0:-1], stats_up))
+    cols = [np.ascontiguousarray(stats[:, j]) for j in range(4)]
+    for arr in (elevations, *cols):
         arr.setflags(write=False)
-    return ShapeTable(elevations, mean, std)
+    return ShapeTable(elevations, *cols)

@@ -29,7 +29,7 @@ from skyfix.errors import EstimationError, GeometryError, InputError
 from skyfix.geo import LocalFrame
 from skyfix.types import GeoFix, RelativeObservation
 
-__all__ = ["angular_jacobian", "locate", "observe"]
+__all__ = ["angular_jacobian", "locate", "observe", "shape_consistent"]
 
 
 def angular_jacobian(camera: Camera, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -59,6 +59,32 @@ def _silhouette_size(detection: Detection, jac: np.ndarray, elevation_deg: float
     rms_rad = math.sqrt(max(float(np.linalg.eigvalsh(ang)[-1]), 0.0))
     k_mean, k_std = (float(x) for x in shape_table(model.scaled_to(1.0)).ratio(abs(elevation_deg)))
     return rms_rad / k_mean, math.hypot(detection.moments_sigma_rel, k_std / k_mean)
+
+
+def _elevation_deg(camera: Camera, helper_pose: CameraPose, uv: np.ndarray) -> float:
+    bearing = helper_pose.r_enu_from_cam() @ camera.pixel_to_ray(uv)[0]
+    return math.degrees(math.asin(float(np.clip(-bearing[2] / np.linalg.norm(bearing), -1.0, 1.0))))
+
+
+def shape_consistent(camera: Camera, helper_pose: CameraPose, detection: Detection,
+                     model: DroneModel | None = None, *, max_z: float = 3.5) -> bool:
+    """Whether a silhouette's minor/major axis ratio fits a level ``model`` seen along its ray.
+
+    A drone seen from elevation e looks about sin(e) as tall as wide (plus its
+    thickness); blobs of another aspect are clutter. The tolerance combines the model's
+    spread over yaw and tilt, the measurement noise and a 0.05 floor. Non-silhouette
+    detections always pass.
+    """
+    if detection.kind != "silhouette":
+        return True
+    elev = _elevation_deg(camera, helper_pose, detection.centroid_uv)
+    table = shape_table((model or DroneModel.quad()).scaled_to(1.0))
+    mean, std = (float(x) for x in table.aspect(abs(elev)))
+    _, _, jac = angular_jacobian(camera, detection.centroid_uv)
+    ev = np.maximum(np.linalg.eigvalsh(jac @ detection.moments_px2 @ jac.T), 0.0)
+    aspect = math.sqrt(ev[0] / ev[1]) if ev[1] > 0 else 0.0
+    sigma = math.sqrt(std ** 2 + (2.0 * detection.moments_sigma_rel) ** 2 + 0.05 ** 2)
+    return abs(aspect - mean) <= max_z * sigma
 
 
 def observe(camera: Camera, helper_pose: CameraPose, detection: Detection, target_size_m: float, *,

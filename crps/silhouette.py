@@ -35,10 +35,11 @@ class SilhouetteConfig:
     """Settings of :class:`SilhouetteDetector`."""
 
     psf_sigma_px: float = 0.7  # camera optical blur (Gaussian 1-sigma, px), without the pixel footprint
+    psf_var_sigma_px2: float = 0.1  # uncertainty of the blur variance (focus, motion blur), px^2
     threshold_sigma: float = 6.0  # per-pixel contrast / local clutter to seed a candidate
     min_snr: float = 12.0  # integrated contrast / its noise, to report a detection
     min_clutter_ratio: float = 8.0  # median target contrast / background-ring RMS
-    polarity: Literal["dark", "bright", "both"] = "both"  # target darker or brighter than background
+    polarity: Literal["dark", "bright", "both"] = "dark"  # target darker (drones against sky) or brighter
     box_px: int = 21  # background box at each pyramid level, px
     levels: int = 4  # pyramid levels searched (level L finds targets up to about box_px * 2^L / 2)
     min_area_px: int = 3  # seed pixels per component at its level
@@ -46,7 +47,7 @@ class SilhouetteConfig:
     max_size_px: float = 400.0  # largest target extent searched, px
 
     def __post_init__(self) -> None:
-        for name in ("psf_sigma_px",):
+        for name in ("psf_sigma_px", "psf_var_sigma_px2"):
             if validate.finite_scalar(name, getattr(self, name)) < 0:
                 raise InputError(f"SilhouetteConfig.{name} must be >= 0")
         for name in ("threshold_sigma", "min_snr", "min_clutter_ratio", "max_size_px"):
@@ -203,7 +204,7 @@ class SilhouetteDetector:
         g = x * x - evals[-1]
         var_m2 = (noise ** 2 * float((g * g).sum()) + ring_rms ** 2 / max(int(keep.sum()), 1)
                   * float(g.sum()) ** 2) / m0 ** 2
-        sigma_rel = 0.5 * math.sqrt(var_m2) / true_evals[-1]
+        sigma_rel = 0.5 * math.sqrt(var_m2 + cfg.psf_var_sigma_px2 ** 2) / true_evals[-1]
         cen_cov = noise ** 2 * np.array([[(du * du).sum(), (du * dv).sum()],
                                          [(du * dv).sum(), (dv * dv).sum()]]) / m0 ** 2
         cen_cov = cen_cov + np.eye(2) * 1e-6
