@@ -15,7 +15,8 @@ with an automatic threshold unless one is given in 8-bit levels, and a
 A hotspot is a connected component (8-connectivity) of pixels above the threshold
 with at least ``min_area_px`` such pixels; isolated hot or dead pixels and pairs of
 them never qualify. Each component is median-filtered (3x3) within its bounding box
-before its centroid is taken, so a stuck pixel touching a fire does not pull it. The
+before its centroid is taken, so a stuck pixel touching a fire does not pull it; the
+reported peak is the hottest pixel not hotter than its hottest neighbour. The
 centroid is weighted by the excess over the threshold, which makes it vary
 continuously as the fire moves across pixels (sub-pixel accuracy).
 """
@@ -151,7 +152,8 @@ def auto_threshold_u8(work: np.ndarray) -> float:
     mu = np.cumsum(hist * levels) / total
     with np.errstate(divide="ignore", invalid="ignore"):
         between = (mu[-1] * w0 - mu) ** 2 / (w0 * (1.0 - w0))
-    otsu = float(np.nanargmax(np.where(np.isfinite(between), between, np.nan))) + 0.5
+    finite = np.isfinite(between)
+    otsu = float(np.argmax(np.where(finite, between, -1.0))) + 0.5 if finite.any() else median
     return max(otsu, median + max(AUTO_SIGMAS * sigma, AUTO_MIN_CONTRAST_LEVELS))
 
 
@@ -259,7 +261,13 @@ def _measure(work: np.ndarray, labels: np.ndarray, stat: np.ndarray, k: int, thr
     m = cv2.moments(excess)
     u = a0 + m["m10"] / m["m00"]
     v = b0 + m["m01"] / m["m00"]
-    peak = float(smooth[mine].max())
+    # Peak: a pixel's excess may be at most twice its hottest neighbour's, so a stuck
+    # pixel on the edge of a fire cannot be its peak while a real peak stays intact.
+    ring = np.ones((3, 3), np.uint8)
+    ring[1, 1] = 0
+    raw = patch.astype(np.float64)
+    neighbour = cv2.dilate(raw, ring)
+    peak = float(np.minimum(raw, 2.0 * neighbour - thr)[mine].max())
     return u, v, area, peak, (u0, v0, w, h)
 
 

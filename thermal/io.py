@@ -1,7 +1,8 @@
 """Files of a thermal flight: camera JSON, pose CSV, frames, GeoJSON output.
 
-Pose CSV: a header row, one row per frame. Required columns: ``frame`` (path relative
-to the CSV), ``time_s``, ``lat_deg``, ``lon_deg``, one altitude column
+Pose CSV: a header row, one row per frame. Required columns: ``frame`` (the frame's
+file name; any directory part is ignored and the file is looked up in the frames
+directory given to the command), ``time_s``, ``lat_deg``, ``lon_deg``, one altitude column
 (``alt_ellipsoid_m``, or ``alt_amsl_m`` with a geoid undulation given separately),
 ``roll_deg``, ``pitch_deg``, ``yaw_deg``, ``gimbal_pitch_deg``, one gimbal-yaw column
 (``gimbal_yaw_body_deg`` relative to the nose, or ``gimbal_yaw_north_deg`` absolute),
@@ -19,7 +20,7 @@ import cv2
 import numpy as np
 
 from skyfix.camera import Camera, CameraPose
-from skyfix.errors import DataError, InputError
+from skyfix.errors import DataError
 from skyfix.thermal.pose import camera_pose
 
 POSE_COLUMNS = ("frame", "time_s", "lat_deg", "lon_deg", "alt_ellipsoid_m", "roll_deg", "pitch_deg",
@@ -50,8 +51,8 @@ def camera_from_json(path: str | Path) -> Camera:
 
 
 def read_poses(path: str | Path, *, geoid_undulation_m: float | None = None
-               ) -> list[tuple[Path, float, CameraPose]]:
-    """(frame path, time_s, pose) per CSV row (see module docstring)."""
+               ) -> list[tuple[str, float, CameraPose]]:
+    """(frame name as written, time_s, pose) per CSV row (see module docstring)."""
     path = Path(path)
     try:
         with open(path, newline="") as fh:
@@ -82,7 +83,7 @@ def read_poses(path: str | Path, *, geoid_undulation_m: float | None = None
                 gimbal_yaw_deg=float(r[yaw_cols[0]]),
                 gimbal_yaw_reference="vehicle" if yaw_cols[0] == "gimbal_yaw_body_deg" else "north",
                 stabilized=bool(int(float(r["stabilized"]))))
-            out.append((path.parent / r["frame"], float(r["time_s"]), pose))
+            out.append((r["frame"], float(r["time_s"]), pose))
         except (KeyError, ValueError, TypeError) as exc:
             raise DataError(f"pose file {path} line {i}: {exc}") from None
     return out
@@ -125,8 +126,6 @@ def fires_geojson(fires, *, track: np.ndarray | None = None) -> dict:
     return {"type": "FeatureCollection", "features": feats}
 
 
-def check_frame_path(path: Path) -> Path:
-    """Raise :class:`InputError` when ``path`` does not exist."""
-    if not path.exists():
-        raise InputError(f"frame {path} does not exist")
-    return path
+def frame_path(frames_dir: str | Path, name: str) -> Path:
+    """Where frame ``name`` (from the pose CSV) lives in ``frames_dir``."""
+    return Path(frames_dir) / Path(name).name

@@ -1,0 +1,338 @@
+"""``skyfix thermal ...``: detect, locate and simulate fire hotspots from the command line.
+
+- ``skyfix thermal detect FRAMES... --pose CSV --camera JSON --ground-alt M -o OUT.geojson``:
+  every hotspot of every frame, geolocated on its own (no fusion).
+- ``skyfix thermal locate FRAMES_DIR --poses CSV --camera JSON --ground-alt M -o fires.geojson``:
+  a whole flight through :class:`FireTracker`; fused fires.
+- ``skyfix thermal simulate OUT_DIR``: a synthetic flight (frames, poses, camera, truth)
+  that ``locate`` reads.
+
+Every command writes GeoJSON plus PNGs to look at (annotated frame, map of fires).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+_GROUND_HELP = ("ground height in metres above the WGS84 ellipsoid (not AMSL: use --ground-amsl "
+                "with --geoid-undulation)")
+
+
+def _add_ground_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("ground (choose one; all heights end up ellipsoidal)")
+    g.add_argument("--ground-alt", type=float, metavar="M", help=_GROUND_HELP)
+    g.add_argument("--ground-amsl", type=float, metavar="M", help="ground height above mean sea level, metres")
+    g.add_argument("--dem", type=Path, metavar="GEOTIFF", help="elevation model (band 1, metres)")
+    g.add_argument("--dem-datum", choices=("ellipsoid", "amsl"), default="ellipsoid",
+                   help="vertical datum of --dem (default: ellipsoid)")
+    g.add_argument("--geoid-undulation", type=float, metavar="M",
+                   help="geoid height above the ellipsoid at the site (needed for AMSL inputs), metres")
+    g.add_argument("--ground-sigma", type=float, default=0.0, metavar="M",
+                   help="1-sigma ground height error for flat ground, metres (default 0)")
+
+
+def _add_frame_args(p: argparse.ArgumentParser) -> None:
+    d = p.add_argument_group("frames")
+    d.add_argument("--camera", type=Path, required=True,
+                   help="camera JSON: width, height and fx, fy, cx, cy, or hfov_deg")
+    d.add_argument("--threshold", type=float, default=None,
+                   help="hot threshold: deg C for radiometric frames (default 100), 8-bit level for "
+                        "8-bit frames (default automatic)")
+    d.add_argument("--palette", default="white-hot",
+                   help="palette of 8-bit frames: white-hot, black-hot, ironbow, arctic (default white-hot)")
+    d.add_argument("--kelvin-per-count", type=float, default=0.01,
+                   help="scale of 16-bit radiometric frames, K per count (default 0.01)")
+    d.add_argument("--min-area", type=int, default=4, help="minimum hot pixels per hotspot (default 4)")
+    u = p.add_argument_group("pose uncertainty (1-sigma, per frame)")
+    u.add_argument("--position-sigma", type=float, default=1.5, help="horizontal position, m (default 1.5)")
+    u.add_argument("--altitude-sigma", type=float, default=None, help="vertical position, m (default: horizontal)")
+    u.add_argument("--attitude-sigma", type=float, default=0.5, help="roll/pitch, deg (default 0.5)")
+    u.add_argument("--yaw-sigma", type=float, default=None, help="heading, deg (default: attitude)")
+    u.add_argument("--pixel-sigma", type=float, default=0.5, help="centroid, px (default 0.5)")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``skyfix thermal`` and its subcommands."""
+    top = subparsers.add_parser("thermal", help="fire hotspots: detect, geolocate, track, simulate",
+                                description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = top.add_subparsers(dest="thermal_command", metavar="SUBCOMMAND", title="subcommands")
+    top.set_defaults(func=lambda args: (top.print_help(), 2)[1])
+
+    p = sub.add_parser("detect", help="geolocate every hotspot of each frame on its own",
+                       description="Detect hotspots in each frame and geolocate each one on its own "
+                                   "(no fusion). Frames are matched to pose rows by file name.")
+    p.add_argument("frames", nargs="+", type=Path, metavar="FRAME",
+                   help="frames: 16-bit PNG/TIFF counts, 8-bit PNG (grey or palette RGB), .npy deg C")
+    p.add_argument("--pose", type=Path, required=True, help="pose CSV (see skyfix.thermal.io for columns)")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output GeoJSON of hotspots")
+    _add_frame_args(p)
+    _add_ground_args(p)
+    p.set_defaults(func=run_detect)
+
+    p = sub.add_parser("locate", help="track and fuse fires over a whole flight",
+                       description="Run a flight through the fire tracker: detections are associated "
+                                   "across frames and fused; writes fires as GeoJSON, an annotated PNG of "
+                                   "the last frame and a map PNG of fires and camera track.")
+    p.add_argument("frames_dir", type=Path, metavar="FRAMES_DIR", help="directory holding the frames")
+    p.add_argument("--poses", type=Path, required=True, help="pose CSV, one row per frame")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output GeoJSON of fires")
+    p.add_argument("--min-observations", type=int, default=2, help="frames before a fire is reported (default 2)")
+    _add_frame_args(p)
+    _add_ground_args(p)
+    p.set_defaults(func=run_locate)
+
+    p = sub.add_parser("simulate", help="write a synthetic thermal flight that 'locate' can read",
+                       description="Render a forest with fires from an orbiting drone and write frames/, "
+                                   "poses.csv, camera.json and truth.json into OUT_DIR.")
+    p.add_argument("out_dir", type=Path, metavar="OUT_DIR")
+    p.add_argument("--fires", type=int, default=3, help="number of fires (default 3)")
+    p.add_argument("--frames", type=int, default=36, help="number of frames (default 36)")
+    p.add_argument("--agl", type=float, default=80.0, help="flight height above ground, m (default 80)")
+    p.add_argument("--gimbal-pitch", type=float, default=-70.0, help="camera pitch, deg (default -70)")
+    p.add_argument("--hfov", type=float, default=50.0, help="horizontal field of view, deg (default 50)")
+    p.add_argument("--size", default="640x512", help="image size WxH (default 640x512)")
+    p.add_argument("--output-kind", choices=("counts", "display"), default="counts",
+                   help="16-bit radiometric counts or 8-bit display frames (default counts)")
+    p.add_argument("--palette", default="white-hot", help="palette of display frames (default white-hot)")
+    p.add_argument("--dropout", type=float, default=0.05, help="probability of a blank frame (default 0.05)")
+    p.add_argument("--growth", type=float, default=0.05, help="fire radius growth, m/s (default 0.05)")
+    p.add_argument("--smoke", type=float, default=0.3, help="smoke plume opacity 0-1 (default 0.3)")
+    p.add_argument("--lat", type=float, default=45.4592, help="scene latitude, deg")
+    p.add_argument("--lon", type=float, default=-73.9191, help="scene longitude, deg")
+    p.add_argument("--ground-alt", type=float, default=30.0, help="scene ground ellipsoidal height, m")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.set_defaults(func=run_simulate)
+
+
+def _ground(args: argparse.Namespace):
+    from skyfix.errors import InputError
+    from skyfix.thermal.ground import DemGround, FlatGround
+
+    chosen = [x for x in (args.ground_alt, args.ground_amsl, args.dem) if x is not None]
+    if len(chosen) != 1:
+        raise InputError("give exactly one of --ground-alt, --ground-amsl, --dem")
+    if args.dem is not None:
+        return DemGround.from_geotiff(args.dem, datum=args.dem_datum, geoid_undulation_m=args.geoid_undulation)
+    if args.ground_amsl is not None:
+        if args.geoid_undulation is None:
+            raise InputError("--ground-amsl needs --geoid-undulation (geoid height above the ellipsoid)")
+        return FlatGround.from_amsl(args.ground_amsl, geoid_undulation_m=args.geoid_undulation,
+                                    sigma_m=args.ground_sigma)
+    return FlatGround(args.ground_alt, args.ground_sigma)
+
+
+def _uncertainty(args: argparse.Namespace):
+    from skyfix.thermal.pose import PoseUncertainty
+
+    return PoseUncertainty(args.position_sigma, args.altitude_sigma, args.attitude_sigma, args.yaw_sigma,
+                           args.pixel_sigma)
+
+
+def _display_rgb(frame: np.ndarray, kelvin_per_count: float) -> np.ndarray:
+    """Any frame -> RGB uint8 for drawing (radiometric frames in ironbow, 1st-99.9th pct)."""
+    from skyfix.thermal.palettes import apply_palette
+
+    if frame.ndim == 3:
+        return np.ascontiguousarray(frame)
+    if frame.dtype == np.uint8:
+        return np.ascontiguousarray(np.dstack([frame] * 3))
+    img = frame.astype(np.float64) * (kelvin_per_count if frame.dtype == np.uint16 else 1.0)
+    lo, hi = np.nanpercentile(img, [1, 99.9])
+    level = np.clip((np.nan_to_num(img, nan=lo) - lo) / max(hi - lo, 1e-9) * 255, 0, 255).astype(np.uint8)
+    return np.ascontiguousarray(apply_palette(level, "ironbow"))
+
+
+def _annotate(path: Path, frame: np.ndarray, hotspots, labels: list[str], kelvin_per_count: float) -> None:
+    import cv2
+
+    rgb = _display_rgb(frame, kelvin_per_count).copy()
+    for h, text in zip(hotspots, labels, strict=True):
+        r = max(6, int(math.sqrt(h.area_px)))
+        c = (int(round(h.u_px)), int(round(h.v_px)))
+        cv2.circle(rgb, c, r, (0, 255, 0), 1, cv2.LINE_AA)
+        cv2.putText(rgb, text, (c[0] + r + 2, c[1]), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 255, 0), 1, cv2.LINE_AA)
+    cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+
+
+def _load_rows(pose_csv: Path, geoid_undulation_m: float | None):
+    from skyfix.thermal.io import read_poses
+
+    return read_poses(pose_csv, geoid_undulation_m=geoid_undulation_m)
+
+
+def run_detect(args: argparse.Namespace) -> int:
+    """``skyfix thermal detect``."""
+    import warnings
+
+    from skyfix.errors import DataError, SkyfixError
+    from skyfix.progress import progress
+    from skyfix.thermal.detect import RelativeTemperatureWarning, detect_hotspots
+    from skyfix.thermal.geolocate import geolocate_many
+    from skyfix.thermal.io import camera_from_json, read_frame
+
+    camera = camera_from_json(args.camera)
+    ground = _ground(args)
+    unc = _uncertainty(args)
+    by_name = {Path(name).name: (t, pose) for name, t, pose in _load_rows(args.pose, args.geoid_undulation)}
+    feats, last = [], None
+    warned = False
+    for path in progress(args.frames, desc="thermal detect", unit="frame"):
+        if path.name not in by_name:
+            raise DataError(f"frame {path.name} has no row in {args.pose}")
+        t, pose = by_name[path.name]
+        frame = read_frame(path)
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", RelativeTemperatureWarning)
+                spots = detect_hotspots(frame, threshold=args.threshold, palette=args.palette,
+                                        min_area_px=args.min_area, kelvin_per_count=args.kelvin_per_count)
+            if caught and not warned:
+                log.warning("%s", caught[0].message)
+                warned = True
+            fixes = geolocate_many(spots, camera, pose, ground, uncertainty=unc, time_s=t,
+                                   source_id=path.name) if spots else []
+        except SkyfixError as exc:
+            log.warning("frame %s skipped: %s", path.name, exc)
+            continue
+        for h, fix in zip(spots, fixes, strict=True):
+            feats.append({"type": "Feature",
+                          "geometry": {"type": "Point", "coordinates": [fix.lon_deg, fix.lat_deg, fix.alt_m]},
+                          "properties": {"frame": path.name, "time_s": t, "u_px": round(h.u_px, 3),
+                                         "v_px": round(h.v_px, 3), "area_px": h.area_px, "peak": round(h.peak, 2),
+                                         "units": h.units, "sigma_major_m": round(fix.sigma_horizontal_m, 3),
+                                         "cov_enu_m2": np.round(fix.cov_enu_m2, 4).tolist(),
+                                         "alt_datum": "WGS84 ellipsoid"}})
+        last = (path, frame, spots)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps({"type": "FeatureCollection", "features": feats}, indent=1))
+    png = args.output.with_suffix(".png")
+    if last is not None:
+        _annotate(png, last[1], last[2], [f"{h.peak:.0f}" for h in last[2]], args.kelvin_per_count)
+    print(f"{len(feats)} hotspot(s) in {len(args.frames)} frame(s) -> {args.output}"
+          + (f", {png}" if last is not None else ""))
+    return 0
+
+
+def run_locate(args: argparse.Namespace) -> int:
+    """``skyfix thermal locate``."""
+    import warnings
+
+    from skyfix.errors import DataError
+    from skyfix.progress import progress
+    from skyfix.thermal.detect import RelativeTemperatureWarning
+    from skyfix.thermal.io import camera_from_json, fires_geojson, frame_path, read_frame
+    from skyfix.thermal.tracker import FireTracker, TrackerSettings
+
+    camera = camera_from_json(args.camera)
+    ground = _ground(args)
+    rows = _load_rows(args.poses, args.geoid_undulation)
+    settings = TrackerSettings(min_observations=args.min_observations, threshold=args.threshold,
+                               palette=args.palette, min_area_px=args.min_area,
+                               kelvin_per_count=args.kelvin_per_count)
+    tracker = FireTracker(camera, ground, uncertainty=_uncertainty(args), settings=settings)
+    last = None
+    track = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RelativeTemperatureWarning)
+        for name, t, pose in progress(rows, desc="thermal locate", unit="frame"):
+            path = frame_path(args.frames_dir, name)
+            try:
+                frame = read_frame(path)
+            except DataError as exc:
+                log.warning("%s", exc)
+                tracker.frames_dropped += 1
+                continue
+            seen = tracker.update(frame, pose, t)
+            track.append((pose.lat, pose.lon))
+            if tracker.last_hotspots:
+                last = (path, frame, list(tracker.last_hotspots), seen)
+    if caught:
+        log.warning("%s", caught[0].message)
+    fires = tracker.fires
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(fires_geojson(fires, track=np.array(track)), indent=1))
+    stem = args.output.with_suffix("")
+    frame_png, map_png = Path(f"{stem}_last_frame.png"), Path(f"{stem}_map.png")
+    if last is not None:
+        _annotate(frame_png, last[1], last[2], [f"fire {i}" for i in last[3]], args.kelvin_per_count)
+    _map_png(map_png, tracker, np.array(track))
+    print(f"{len(fires)} fire(s) from {tracker.frames_used} frame(s) ({tracker.frames_dropped} dropped) -> "
+          f"{args.output}, {map_png}" + (f", {frame_png}" if last is not None else ""))
+    for f in fires:
+        print(f"  fire {f.fire_id}: {f.lat_deg:.7f}, {f.lon_deg:.7f}  sigma {f.sigma_m:.2f} m  "
+              f"{f.n_observations} obs  {f.first_seen_s:.1f}-{f.last_seen_s:.1f} s  "
+              f"{'burning' if f.burning else 'out'}")
+    return 0
+
+
+def _map_png(path: Path, tracker, track_latlon: np.ndarray) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Ellipse
+
+    frame = tracker.frame
+    fig, ax = plt.subplots(figsize=(7, 7))
+    if frame is not None and len(track_latlon):
+        e, n, _ = frame.to_enu(track_latlon[:, 0], track_latlon[:, 1], np.full(len(track_latlon), frame.alt0_m))
+        ax.plot(e, n, "-", color="0.6", lw=1, label="camera track")
+    for f in tracker.fires:
+        e, n, _ = frame.to_enu(f.lat_deg, f.lon_deg, f.alt_m)
+        hist = tracker.track_history(f.fire_id)
+        ax.plot(hist[:, 1], hist[:, 2], ".", ms=3, alpha=0.5)
+        vals, vecs = np.linalg.eigh(f.cov_en_m2)
+        ang = math.degrees(math.atan2(vecs[1, 1], vecs[0, 1]))
+        ax.add_patch(Ellipse((float(e), float(n)), 4 * math.sqrt(vals[1]), 4 * math.sqrt(vals[0]), angle=ang,
+                             fill=False, color="red" if f.burning else "black"))
+        ax.plot(float(e), float(n), "x", color="red" if f.burning else "black")
+        ax.annotate(f"fire {f.fire_id} ({f.sigma_m:.2f} m)", (float(e), float(n)), textcoords="offset points",
+                    xytext=(6, 6), fontsize=8)
+    ax.set_xlabel("east (m)")
+    ax.set_ylabel("north (m)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title("fires (x, 2-sigma ellipse), single-frame fixes (dots), camera track")
+    ax.legend(loc="best", fontsize=8)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+
+
+def run_simulate(args: argparse.Namespace) -> int:
+    """``skyfix thermal simulate``."""
+    from skyfix.camera import Camera
+    from skyfix.datasets.thermal_flight import orbit, write_flight
+    from skyfix.datasets.thermal_scene import FireSpec, ThermalScene, ThermalSensor
+    from skyfix.errors import InputError
+    from skyfix.geo import LocalFrame
+    from skyfix.progress import progress
+
+    try:
+        width, height = (int(x) for x in args.size.lower().split("x"))
+    except ValueError:
+        raise InputError(f"--size must look like 640x512, got {args.size!r}") from None
+    if args.fires < 0 or args.frames < 1:
+        raise InputError("--fires must be >= 0 and --frames >= 1")
+    rng = np.random.default_rng(args.seed)
+    frame = LocalFrame(args.lat, args.lon, args.ground_alt)
+    fires = [FireSpec(float(rng.uniform(-15, 15)), float(rng.uniform(-15, 15)), float(rng.uniform(0.6, 1.5)),
+                      float(rng.uniform(350, 700)), growth_m_per_s=args.growth, start_s=0.0, smoke_opacity=args.smoke,
+                      wind_to_deg=float(rng.uniform(0, 360))) for _ in range(args.fires)]
+    scene = ThermalScene(frame, fires, size_m=300.0, seed=args.seed)
+    camera = Camera.from_fov(width, height, args.hfov)
+    flight = orbit(scene, camera, (0.0, 0.0), n_frames=args.frames, agl_m=args.agl, frame_rate_hz=2.0,
+                   gimbal_pitch_deg=args.gimbal_pitch, dropout_probability=args.dropout, seed=args.seed)
+    sensor = ThermalSensor(width, height, seed=args.seed)
+    write_flight(args.out_dir, scene, camera, flight, sensor, output=args.output_kind, palette=args.palette,
+                 seed=args.seed, progress=lambda it: progress(it, desc="render", unit="frame"))
+    print(f"wrote {args.frames} frame(s) with {args.fires} fire(s) to {args.out_dir} "
+          f"(locate with: skyfix thermal locate {args.out_dir / 'frames'} --poses {args.out_dir / 'poses.csv'} "
+          f"--camera {args.out_dir / 'camera.json'} --ground-alt {args.ground_alt} -o fires.geojson)")
+    return 0
