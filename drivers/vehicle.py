@@ -460,6 +460,10 @@ class Vehicle:
                       (("north_mps", north_mps), ("east_mps", east_mps), ("down_mps", down_mps)))
         if self.safety is not None:
             self.safety.check_velocity_setpoint(vn, ve, vd)
+            if self._safety_latched:
+                raise SafetyViolation(f"vehicle {self.system_id} is outside the safety envelope; "
+                                      "velocity setpoints are refused until it is back inside "
+                                      "(use goto() to a point inside, hold() or rtl())")
         msg = M.MAVLink_set_position_target_global_int_message(
             0, self.system_id, self.component_id, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
             _VELOCITY_ONLY_MASK, 0, 0, 0, vn, ve, vd, 0, 0, 0, 0, 0)

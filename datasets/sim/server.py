@@ -47,8 +47,8 @@ DATA_STREAMS: dict[int, tuple[str, ...]] = {
     M.MAV_DATA_STREAM_EXTRA2: ("VFR_HUD",),
 }
 _MSG_NAME_BY_ID = {cls.id: cls.msgname for cls in M.mavlink_map.values()}
-_MISSION_RETRY_S = 0.03  # re-request a missing item after this much silence (loopback)
-_MISSION_GIVE_UP = 60
+_MISSION_RETRY_S = 0.01  # re-request a missing item after this much silence (loopback RTT << 1 ms)
+_MISSION_GIVE_UP = 200
 
 
 class VehicleServer:
@@ -161,7 +161,7 @@ class VehicleServer:
             if t + 1e-9 >= due:
                 self._next_due_s[name] = due + interval if t - due < interval else t + interval
                 self.send_message_named(name)
-        self._service_upload()
+        self.service_upload()
 
     def send_message_named(self, name: str, to: tuple[str, int] | None = None) -> bool:
         builder = getattr(self, "_msg_" + name.lower(), None)
@@ -571,7 +571,12 @@ class VehicleServer:
         else:
             self._request_item()
 
-    def _service_upload(self) -> None:
+    @property
+    def upload_active(self) -> bool:
+        return self._upload is not None
+
+    def service_upload(self) -> None:
+        """Re-request the missing mission item after silence; called often by the loop."""
         up = self._upload
         if up is None or time.monotonic() - up["last_tx"] < _MISSION_RETRY_S:
             return

@@ -193,7 +193,8 @@ class Simulator:
             if now - next_step > 0.5:  # starved of CPU: slow down instead of racing to catch up
                 self.overruns += 1
                 next_step = now
-            timeout = max(0.0, min(next_step - time.monotonic(), 0.05))
+            uploading = any(s.upload_active for s in self.servers)
+            timeout = max(0.0, min(next_step - time.monotonic(), 0.002 if uploading else 0.05))
             try:
                 ready, _, _ = select.select(list(socks), [], [], timeout)
             except (OSError, ValueError):
@@ -211,3 +212,7 @@ class Simulator:
                         break
                     with self.lock:
                         server.handle_datagram(data, addr)
+            if uploading:
+                with self.lock:
+                    for s in self.servers:
+                        s.service_upload()
