@@ -19,8 +19,14 @@ SHARP_EDGE_PX = 2.5
 
 def motion_blur_px(grey: np.ndarray) -> float:
     """Estimated streak length in pixels of a uint8 greyscale image ``(H, W)`` (0 if sharp)."""
-    g = cv2.resize(grey, (grey.shape[1] // 2, grey.shape[0] // 2), interpolation=cv2.INTER_AREA)
-    g = g.astype(np.float32)
+    return motion_blur_half_res(cv2.resize(grey, (grey.shape[1] // 2, grey.shape[0] // 2),
+                                           interpolation=cv2.INTER_AREA))
+
+
+def motion_blur_half_res(grey_half: np.ndarray) -> float:
+    """:func:`motion_blur_px` of an image already reduced 2x (2x2 box); result in
+    full-resolution pixels."""
+    g = grey_half.astype(np.float32)
     gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
     jxx, jyy, jxy = float(cv2.mean(gx * gx)[0]), float(cv2.mean(gy * gy)[0]), float(cv2.mean(gx * gy)[0])

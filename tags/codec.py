@@ -10,13 +10,14 @@ Tag frame: x east, y north, metres, origin at the centre of the undisplaced tile
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from skyfix import validate
 from skyfix.errors import InputError
-from skyfix.tags.palette import choose_palette, palette_delta_e
+from skyfix.tags.palette import choose_palette, palette_delta_e, srgb_to_lab
 
 SUPPORTED_TILES = (4, 9, 16)
 
@@ -67,6 +68,14 @@ class TileCodec:
             raise InputError(f"palette_rgb must be ({self.colors}, 3) sRGB in [0, 1], got shape {pal.shape}")
         pal.setflags(write=False)
         object.__setattr__(self, "palette_rgb", pal)
+        lab = srgb_to_lab(pal)
+        lab.setflags(write=False)
+        object.__setattr__(self, "_palette_lab", lab)
+
+    @property
+    def palette_lab(self) -> np.ndarray:
+        """The palette in CIELAB ``(colors, 3)``."""
+        return self._palette_lab
 
     @property
     def capacity(self) -> int:
@@ -150,7 +159,12 @@ class TagGeometry:
 
     def tile_centres_m(self) -> np.ndarray:
         """Tile centres ``(tiles, 2)`` (x east, y north) in the tag frame, reading order."""
-        cells = spiral_order(self.k).astype(float)
-        xy = (cells - (self.k - 1) / 2.0) * self.pitch_m
-        xy[0] += (self.offset_m, -self.offset_m)
-        return xy
+        return _tile_centres(self).copy()
+
+
+@functools.lru_cache(maxsize=32)
+def _tile_centres(geometry: TagGeometry) -> np.ndarray:
+    cells = spiral_order(geometry.k).astype(float)
+    xy = (cells - (geometry.k - 1) / 2.0) * geometry.pitch_m
+    xy[0] += (geometry.offset_m, -geometry.offset_m)
+    return xy

@@ -11,14 +11,14 @@ and reading order; digits decode to the value.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from skyfix.tags.blur import motion_blur_half_res
 from skyfix.tags.codec import TagGeometry, TileCodec
 from skyfix.tags.image import as_rgb_u8
 from skyfix.tags.palette import srgb_to_lab
@@ -33,7 +33,8 @@ class TileDetections:
     ``values`` ``(T,)``; ``tiles_px`` ``(T, n, 2)`` tile centroids (raw pixels, reading
     order); ``tile_size_px`` ``(T,)`` apparent tile side; ``colour_margin`` ``(T,)`` the
     smallest (second-nearest minus nearest) CIE76 margin over the tag's tiles;
-    ``n_blobs`` candidate tiles seen; ``n_groups`` tile groups of any size.
+    ``n_blobs`` candidate tiles seen; ``n_groups`` tile groups of any size;
+    ``motion_blur_px`` the frame's estimated blur streak (full-resolution pixels).
     """
 
     values: np.ndarray
@@ -42,6 +43,7 @@ class TileDetections:
     colour_margin: np.ndarray
     n_blobs: int
     n_groups: int
+    motion_blur_px: float = 0.0
 
 
 def _white_level(bright: np.ndarray, tile_px_max: float) -> np.ndarray:
@@ -54,6 +56,7 @@ def _white_level(bright: np.ndarray, tile_px_max: float) -> np.ndarray:
     return cv2.resize(white, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
+@functools.lru_cache(maxsize=32)
 def _layout_links(geometry: TagGeometry) -> float:
     """Largest nearest-neighbour tile distance of the layout, in tile sides."""
     xy = geometry.tile_centres_m()
@@ -76,14 +79,16 @@ def detect_tiles(image, codec: TileCodec, geometry: TagGeometry, *, ink_threshol
     limit = cv2.convertScaleAbs(white, alpha=ink_threshold)
     mask = cv2.compare(darkest, limit, cv2.CMP_LT)
     # Paper must be visibly brighter than ink: a flat grey frame has no white to compare with.
-    mask[white < 40] = 0
-    n_lab, _, stats, cents = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    mask = cv2.bitwise_and(mask, cv2.compare(white, 40, cv2.CMP_GE))
+    blur = motion_blur_half_res(bright)
+    # 16-bit labels suffice at half resolution (< 2^16 components) and label faster.
+    n_lab, _, stats, cents = cv2.connectedComponentsWithStatsWithAlgorithm(mask, 8, cv2.CV_16U, cv2.CCL_GRANA)
     x, y, bw, bh, area = (stats[1:, i] for i in range(5))
     sh, sw = mask.shape
     ok = ((area >= (min_tile_px / 2.0) ** 2) & (area <= (max_tile_px / 2.0) ** 2) & (area >= 0.4 * bw * bh)
           & (x > 0) & (y > 0) & (x + bw < sw) & (y + bh < sh))
     empty = TileDetections(np.zeros(0, np.int64), np.zeros((0, codec.tiles, 2)), np.zeros(0),
-                           np.zeros(0), int(ok.sum()), 0)
+                           np.zeros(0), int(ok.sum()), 0, blur)
     if ok.sum() < codec.tiles:
         return empty
     pts_small = cents[1:][ok]
@@ -93,13 +98,10 @@ def detect_tiles(image, codec: TileCodec, geometry: TagGeometry, *, ink_threshol
     si = np.clip(np.round(pts_small).astype(int), 0, [sw - 1, sh - 1])
     white_at = white[si[:, 1], si[:, 0]].astype(float)
 
-    # Colour at the centroid (3x3 mean), relative to the local white.
-    ui = np.clip(np.round(pts[:, 0]).astype(int), 1, w - 2)
-    vi = np.clip(np.round(pts[:, 1]).astype(int), 1, h - 2)
-    patch = np.stack([rgb[vi + dv, ui + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)]).astype(float)
-    refl = patch.mean(axis=0) / np.maximum(white_at, 1.0)[:, None]
+    # Colour at the centroid (the half-res pixel: a 2x2 full-res mean), relative to the local white.
+    refl = small[si[:, 1], si[:, 0]].astype(float) / np.maximum(white_at, 1.0)[:, None]
     lab = srgb_to_lab(np.clip(refl, 0.0, 1.0))
-    dist = np.linalg.norm(lab[:, None, :] - srgb_to_lab(codec.palette_rgb)[None], axis=2)
+    dist = np.linalg.norm(lab[:, None, :] - codec.palette_lab[None], axis=2)
     order = np.argsort(dist, axis=1)
     digit = order[:, 0]
     margin = np.take_along_axis(dist, order[:, 1:2], 1)[:, 0] - np.take_along_axis(dist, order[:, :1], 1)[:, 0]
@@ -111,17 +113,16 @@ def detect_tiles(image, codec: TileCodec, geometry: TagGeometry, *, ink_threshol
         d = np.linalg.norm(pts[pairs[:, 0]] - pts[pairs[:, 1]], axis=1)
         pairs = pairs[d < link * np.sqrt(0.5 * (area[pairs[:, 0]] + area[pairs[:, 1]]))]
     m = len(pts)
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(m, m)) if pairs.size \
-        else coo_matrix((m, m))
-    n_groups, group = connected_components(graph, directed=False)
-    counts = np.bincount(group, minlength=n_groups)
+    group = _link_groups(m, pairs)
+    n_groups = int(np.unique(group).size)
+    counts = np.bincount(group, minlength=m)
     keep = np.flatnonzero(counts == codec.tiles)
     if keep.size == 0:
         return TileDetections(empty.values, empty.tiles_px, empty.tile_size_px, empty.colour_margin,
-                              m, int(n_groups))
+                              m, n_groups, blur)
     members = np.argsort(group, kind="stable")
     starts = np.concatenate(([0], np.cumsum(counts)))
-    idx = np.stack([members[starts[g]:starts[g + 1]] for g in keep])          # (T, n)
+    idx = members[starts[keep][:, None] + np.arange(codec.tiles)[None, :]]     # (T, n)
     ordered, good = _reading_order(pts[idx], geometry)
     idx = np.take_along_axis(idx, ordered, axis=1)[good]
     # Tiles of one tag share a size (perspective changes it little across a tag).
@@ -131,7 +132,24 @@ def detect_tiles(image, codec: TileCodec, geometry: TagGeometry, *, ink_threshol
     idx = idx[same]
     values = codec.decode(digit[idx]) if len(idx) else np.zeros(0, np.int64)
     return TileDetections(values, pts[idx], size[idx].mean(axis=1) if len(idx) else np.zeros(0),
-                          margin[idx].min(axis=1) if len(idx) else np.zeros(0), m, int(n_groups))
+                          margin[idx].min(axis=1) if len(idx) else np.zeros(0), m, n_groups, blur)
+
+
+def _link_groups(m: int, pairs: np.ndarray) -> np.ndarray:
+    """Connected-component label ``(m,)`` (the smallest member index) of linked pairs."""
+    label = np.arange(m)
+    if pairs.size == 0:
+        return label
+    a, b = pairs[:, 0], pairs[:, 1]
+    while True:   # groups hold a handful of tiles: a few sweeps of min-propagation converge
+        low = np.minimum(label[a], label[b])
+        new = label.copy()
+        np.minimum.at(new, a, low)
+        np.minimum.at(new, b, low)
+        new = new[new]
+        if np.array_equal(new, label):
+            return label
+        label = new
 
 
 def _reading_order(tiles: np.ndarray, geometry: TagGeometry) -> tuple[np.ndarray, np.ndarray]:
@@ -156,7 +174,7 @@ def _reading_order(tiles: np.ndarray, geometry: TagGeometry) -> tuple[np.ndarray
     pred = others[rows, disp][:, None] + (zl[None, :] - (zl.sum() - zl[0]) / (n - 1)) * s[:, None]
     d = np.abs(pred[:, :, None] - zi[:, None, :])     # (T, slot, detected)
     perm = np.argmin(d, axis=2)
-    unique = np.array([len(set(p)) == n for p in perm.tolist()]) if len(perm) else np.zeros(0, bool)
+    unique = np.all(np.diff(np.sort(perm, axis=1), axis=1) > 0, axis=1)
     resid = np.take_along_axis(d, perm[..., None], 2)[..., 0].max(axis=1)
     fits = resid < 0.3 * np.abs(s) * geometry.pitch_m
     return perm, clear & unique & fits

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from skyfix.camera import Camera
 from skyfix.errors import EstimationError, InputError
-from skyfix.tags.blur import motion_blur_px
 from skyfix.tags.detect import TileDetections, detect_tiles
 from skyfix.tags.field import TagField
 from skyfix.tags.image import as_rgb_u8
@@ -59,7 +57,7 @@ def locate_tiles(image, field: TagField, camera: Camera, *, prior: AttitudePrior
     if keep.sum() < min_tags:
         raise EstimationError(f"{int(known.sum())} decoded tags but only {int(keep.sum())} agree with the "
                               f"field layout; need {min_tags}")
-    blur = motion_blur_px(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY))
+    blur = det.motion_blur_px
     sizes = det.tile_size_px[known][keep]
     sigma = np.repeat(tile_pixel_sigma(sizes, blur), ground.shape[1])
     sol = solve_pose(ground[keep].reshape(-1, 2), uv[keep].reshape(-1, 2), camera.K, prior=prior,

@@ -9,7 +9,6 @@ tile of every tag, which also catches tags read in the wrong orientation.
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 
@@ -40,8 +39,34 @@ def homographies_4pt(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return sol.reshape(t, 3, 3)
 
 
+def homography_lsq(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
+    """Least-squares homography ``(3, 3)`` src -> dst from ``(N, 2)`` points (normalised DLT)."""
+    def norm(p):
+        c = p.mean(axis=0)
+        s = np.sqrt(2.0) / max(float(np.linalg.norm(p - c, axis=1).mean()), 1e-12)
+        return np.array([[s, 0.0, -s * c[0]], [0.0, s, -s * c[1]], [0.0, 0.0, 1.0]])
+
+    ts, td = norm(src), norm(dst)
+    a = src @ ts[:2, :2].T + ts[:2, 2]
+    b = dst @ td[:2, :2].T + td[:2, 2]
+    n = len(a)
+    m = np.zeros((2 * n, 9))
+    m[0::2, 0:2], m[0::2, 2] = a, 1.0
+    m[1::2, 3:5], m[1::2, 5] = a, 1.0
+    m[0::2, 6:8] = -b[:, 0:1] * a
+    m[0::2, 8] = -b[:, 0]
+    m[1::2, 6:8] = -b[:, 1:2] * a
+    m[1::2, 8] = -b[:, 1]
+    # Null vector of m = eigenvector of m^T m with the smallest eigenvalue (9x9: cheap).
+    ev, vec = np.linalg.eigh(m.T @ m)
+    if ev[1] < 1e-12 * ev[-1]:
+        return None
+    h = np.linalg.inv(td) @ vec[:, 0].reshape(3, 3) @ ts
+    return h / h[2, 2]
+
+
 def consistent_tags(ground_xy: np.ndarray, image_uv: np.ndarray, spacing_m: float, pitch_m: float,
-                    *, min_support: int = 2) -> np.ndarray:
+                    *, min_support: int = 2, max_hypotheses: int = 16) -> np.ndarray:
     """Mask ``(T,)`` of tags consistent with the layout.
 
     ``ground_xy`` ``(T, n, 2)`` field positions of each tag's tiles (metres) implied by
@@ -52,26 +77,33 @@ def consistent_tags(ground_xy: np.ndarray, image_uv: np.ndarray, spacing_m: floa
     keep = np.zeros(t, bool)
     if t < min_support or t == 0:
         return keep
-    hs = homographies_4pt(ground_xy[:, :4], image_uv[:, :4])
+    # Proposals from at most max_hypotheses tags spread over the list: one sound tag among
+    # them is enough, and the vote costs hypotheses x tags.
+    hyp = np.linspace(0, t - 1, min(t, max_hypotheses)).round().astype(int)
+    hs = homographies_4pt(ground_xy[hyp, :4], image_uv[hyp, :4])
     g_c = ground_xy.mean(axis=1)
     u_c = image_uv.mean(axis=1)
     # Local image scale of each tag, px per metre, from its own tiles.
     px_per_m = (np.linalg.norm(image_uv - u_c[:, None], axis=2).mean(axis=1)
                 / np.linalg.norm(ground_xy - g_c[:, None], axis=2).mean(axis=1))
     with np.errstate(invalid="ignore", divide="ignore"):
-        pred = _apply(hs, np.broadcast_to(g_c, (t, t, 2)))                 # (hyp, tag, 2)
-        err = np.linalg.norm(pred - u_c[None], axis=2)
+        gh = np.concatenate((g_c, np.ones((t, 1))), axis=1)                  # (tag, 3)
+        p = np.einsum("hij,tj->hti", hs, gh)                                 # (hyp, tag, 3)
+        err = np.linalg.norm(p[..., :2] / p[..., 2:3] - u_c[None], axis=2)
     inlier = err < 0.25 * spacing_m * px_per_m[None, :]
     inlier &= np.isfinite(err)
     support = inlier.sum(axis=1)
     best = int(np.argmax(support + 1e-6 * -np.nan_to_num(err, nan=1e9).sum(axis=1)))
     keep = inlier[best]
     for _ in range(2):
+        before = keep
         if keep.sum() < min_support:
             return np.zeros(t, bool)
-        h, _ = cv2.findHomography(ground_xy[keep].reshape(-1, 2), image_uv[keep].reshape(-1, 2), 0)
+        h = homography_lsq(ground_xy[keep].reshape(-1, 2), image_uv[keep].reshape(-1, 2))
         if h is None:
             return np.zeros(t, bool)
         resid = np.linalg.norm(_apply(h, ground_xy) - image_uv, axis=2).max(axis=1)
         keep = resid < 0.25 * pitch_m * px_per_m
+        if np.array_equal(keep, before):
+            break
     return keep if keep.sum() >= min_support else np.zeros(t, bool)
