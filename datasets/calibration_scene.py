@@ -50,13 +50,16 @@ class CalibrationView:
 
 
 def render_calibration_views(camera: Camera, spec: BoardSpec, n_views: int = 12, *, seed: int = 0,
-                             fill: float = 0.8, noise_sigma: float = 1.0, px_per_square: int = 48,
-                             supersample: int = 3) -> list[CalibrationView]:
+                             fill: float = 0.6, spread: float = 0.7, noise_sigma: float = 1.0,
+                             px_per_square: int = 48, supersample: int = 3) -> list[CalibrationView]:
     """Render ``n_views`` photos of the board by ``camera`` from varied poses.
 
-    The camera stands off the board's centre by up to 40 % of its size, tilted 0-40 deg
-    and rolled freely, at a range where the board spans about ``fill`` of the image
-    height. ``noise_sigma``: grey levels of Gaussian noise.
+    The camera is tilted 0-40 deg from the board's normal and rolled freely, at a range
+    where the board spans about ``fill`` of the image height; it aims up to ``spread``
+    (fraction of the half image height) away from the board's centre so that, over the
+    views, the board visits the image edges and corners where distortion is largest.
+    Views in which the board is partly outside the image are kept (ChArUco copes; a
+    chessboard detector will skip them). ``noise_sigma``: grey levels of Gaussian noise.
     """
     if isinstance(n_views, bool) or not isinstance(n_views, int) or n_views < 1:
         raise InputError(f"n_views must be a positive integer, got {n_views!r}")
@@ -76,9 +79,11 @@ def render_calibration_views(camera: Camera, spec: BoardSpec, n_views: int = 12,
         tilt = rng.uniform(0.0, 40.0)
         azimuth = rng.uniform(0.0, 360.0)
         roll = rng.uniform(-180.0, 180.0)
-        scale = rng.uniform(0.85, 1.1)
-        target = np.array([rng.uniform(-0.15, 0.15) * board_w, rng.uniform(-0.15, 0.15) * board_h])
+        scale = rng.uniform(0.9, 1.1)
         rng_m = scale * max(board_w, board_h) / fill / (2.0 * math.tan(vfov / 2.0))
+        off_m = spread * math.sqrt(rng.uniform()) * rng_m * math.tan(vfov / 2.0)
+        off_dir = rng.uniform(0.0, 2.0 * math.pi)
+        target = off_m * np.array([math.cos(off_dir), math.sin(off_dir)])
         horiz = rng_m * math.sin(math.radians(tilt))
         up = rng_m * math.cos(math.radians(tilt))
         east = target[0] - horiz * math.sin(math.radians(azimuth))

@@ -85,6 +85,15 @@ def projection_difference_px(reference: Camera, other: Camera, n: int = 41) -> t
     return float(np.sqrt(np.mean(diff ** 2))), float(np.max(diff))
 
 
+def _paraxial_magnification(camera: Camera, eps_px: float = 1e-3) -> float:
+    """Raw / ideal pixel offset for rays next to the optical axis (1 for OpenCV models, d for barrel)."""
+    if camera.distortion is None:
+        return 1.0
+    ideal = np.array([[camera.cx + eps_px, camera.cy], [camera.cx, camera.cy]])
+    raw = camera.distortion.distort(ideal, camera)
+    return float((raw[0, 0] - raw[1, 0]) / eps_px)
+
+
 @dataclass(frozen=True)
 class LensFit:
     """A fitted camera and how far it departs from the model it was fitted to, in pixels."""
@@ -121,7 +130,7 @@ def opencv_to_barrel(camera: Camera, n_grid: int = 41) -> LensFit:
     """ImageMagick barrel camera closest to an OpenCV camera (any foundation distortion model).
 
     Fits a, b, c with ImageMagick's default ``d = 1 - a - b - c``; the ideal focal is set
-    so that the paraxial focal matches ``camera.fx``. The barrel model is centred on the
+    so that the paraxial (raw, near-axis) focal length matches ``camera``'s. The barrel model is centred on the
     image and isotropic, so an off-centre principal point, fx != fy or tangential terms
     show up in the residual.
     """
@@ -131,7 +140,7 @@ def opencv_to_barrel(camera: Camera, n_grid: int = 41) -> LensFit:
         raise InputError(f"camera must be a skyfix.camera.Camera, got {type(camera).__name__}")
     uv_raw = _raw_grid(camera, n_grid)
     rays = camera.pixel_to_ray(uv_raw)
-    f_raw = float(np.sqrt(camera.fx * camera.fy))
+    f_raw = float(np.sqrt(camera.fx * camera.fy)) * _paraxial_magnification(camera)
 
     def build(p: np.ndarray) -> Camera:
         return barrel_camera(Barrel(float(p[0]), float(p[1]), float(p[2])), camera.width, camera.height, f_raw)

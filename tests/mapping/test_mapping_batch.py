@@ -1,0 +1,112 @@
+"""Batch correction of real photos: EXIF carried over, bad photos skipped, backends agree."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import piexif
+import pytest
+
+from skyfix.errors import DataError, InputError
+from skyfix.mapping.batch import CorrectionSpec, correct_photos, list_photos
+from skyfix.mapping.camera_io import load_camera, save_camera
+from skyfix.mapping.correct import Undistortion
+from skyfix.mapping.exif import read_metadata
+from skyfix.mapping.lens import barrel_camera, parse_barrel
+
+DATA = Path(__file__).parent / "data"
+BARREL = parse_barrel("0.1 -0.32 0")
+
+
+@pytest.fixture()
+def photo_dir(tmp_path: Path) -> Path:
+    src = tmp_path / "in"
+    src.mkdir()
+    for p in sorted(DATA.glob("*.jpg")):
+        shutil.copy(p, src / p.name)
+    good = (DATA / "IMG_0459.jpg").read_bytes()
+    (src / "truncated.jpg").write_bytes(good[: len(good) // 2])
+    (src / "not_a_photo.jpg").write_bytes(b"hello, I am text")
+    img = cv2.imread(str(DATA / "IMG_0460.jpg"))
+    cv2.imwrite(str(src / "no_exif.jpg"), img)
+    return src
+
+
+def test_metadata_of_real_photo():
+    meta = read_metadata((DATA / "IMG_0459.jpg").read_bytes(), "IMG_0459")
+    assert meta.make == "Canon" and meta.orientation == 1
+    assert meta.gps_lat_deg == pytest.approx(41.0, abs=0.1) and meta.gps_lon_deg == pytest.approx(-83.3, abs=0.1)
+    # 4.3 mm x (4000000 / 732 px per inch / 25.4 mm per inch), the README's downscaled sensor.
+    assert meta.focal_length_px(1200, 900) == pytest.approx(4.3 * 4000000 / 732 / 25.4, rel=1e-9)
+
+
+def test_missing_and_corrupt_inputs_raise_data_errors(tmp_path):
+    with pytest.raises(DataError, match="no EXIF"):
+        read_metadata(cv2.imencode(".jpg", np.zeros((8, 8), np.uint8))[1].tobytes(), "blank")
+    with pytest.raises(DataError, match="not a JPEG"):
+        read_metadata(b"GIF89a....", "gif")
+    with pytest.raises(InputError, match="does not exist"):
+        list_photos(tmp_path / "nowhere")
+
+
+def test_batch_corrects_good_photos_and_reports_bad_ones(photo_dir, tmp_path):
+    out = tmp_path / "out"
+    report = correct_photos(list_photos(photo_dir), out, CorrectionSpec(barrel=BARREL), workers=2, progress=False)
+    assert sorted(Path(r.output).name for r in report.written) == ["IMG_0459.jpg", "IMG_0460.jpg"]
+    reasons = {Path(r.source).name: r.error for r in report.skipped}
+    assert set(reasons) == {"truncated.jpg", "not_a_photo.jpg", "no_exif.jpg"}
+    assert "truncated" in reasons["truncated.jpg"] and "no EXIF" in reasons["no_exif.jpg"]
+
+    before = piexif.load(str(photo_dir / "IMG_0459.jpg"))
+    after = piexif.load(str(out / "IMG_0459.jpg"))
+    assert after["GPS"] == before["GPS"]
+    assert after["0th"][piexif.ImageIFD.Make] == before["0th"][piexif.ImageIFD.Make]
+    assert after["0th"][piexif.ImageIFD.Orientation] == before["0th"][piexif.ImageIFD.Orientation]
+    f_before = before["Exif"][piexif.ExifIFD.FocalLength]
+    f_after = after["Exif"][piexif.ExifIFD.FocalLength]
+    assert f_after[0] / f_after[1] == pytest.approx(f_before[0] / f_before[1] / BARREL.d, rel=1e-4)
+    cam = report.written[0].output_camera
+    raw_f = read_metadata((photo_dir / "IMG_0459.jpg").read_bytes()).focal_length_px(1200, 900)
+    assert cam["fx_px"] == pytest.approx(raw_f / BARREL.d)
+    # Pixels: the written JPEG is the remapped photo up to JPEG re-encoding.
+    raw = cv2.imread(str(photo_dir / "IMG_0459.jpg"))
+    expected = Undistortion.for_barrel(BARREL, 1200, 900).apply(raw).astype(float)
+    assert np.mean(np.abs(cv2.imread(str(out / "IMG_0459.jpg")) - expected)) < 2.0
+
+
+def test_missing_exif_allowed_on_request(photo_dir, tmp_path):
+    spec = CorrectionSpec(barrel=BARREL, require_exif=False)
+    report = correct_photos([photo_dir / "no_exif.jpg"], tmp_path / "o", spec, workers=1, progress=False)
+    assert len(report.written) == 1 and report.written[0].output_camera["fx_px"] is None
+
+
+def test_calibration_spec_rescales_to_photo_size(tmp_path):
+    cam = barrel_camera(BARREL, 600, 450, 460.0)
+    from skyfix.mapping.lens import barrel_to_opencv
+
+    fitted = barrel_to_opencv(BARREL, 600, 450, 460.0).camera
+    save_camera(tmp_path / "cal.json", fitted)
+    spec = CorrectionSpec(camera=load_camera(tmp_path / "cal.json"))
+    tables = spec.undistortion(1200, 900)
+    assert tables.output.fx == pytest.approx(2 * fitted.fx)
+    with pytest.raises(DataError, match="aspect"):
+        spec.undistortion(1200, 1000)
+    assert cam.width == 600
+
+
+def test_torch_backend_matches_opencv(photo_dir, tmp_path):
+    pytest.importorskip("kornia")
+    from skyfix.mapping.remap_torch import TorchRemapper
+
+    raw = cv2.imread(str(photo_dir / "IMG_0459.jpg"))
+    tables = Undistortion.for_barrel(BARREL, 1200, 900)
+    a = tables.apply(raw).astype(int)
+    b = TorchRemapper(tables, device="cpu")(raw[None])[0].astype(int)
+    # Float vs OpenCV's 1/32-px fixed-point tables: rounding-level differences only.
+    assert np.mean(np.abs(a - b)) < 0.2 and np.max(np.abs(a - b)) <= 3
+    report = correct_photos(list_photos(photo_dir), tmp_path / "t", CorrectionSpec(barrel=BARREL),
+                            backend="torch", device="cpu", batch_size=2, progress=False)
+    assert len(report.written) == 2 and len(report.skipped) == 3
