@@ -171,10 +171,17 @@ def _to_en(frame: LocalFrame, latlon: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- stations
 
 
+_STEP_SLACK = 0.02
+
+
 def _grid(origin: np.ndarray, v: np.ndarray, w: np.ndarray, step_m: float) -> np.ndarray:
-    """Boustrophedon grid: rows along v (alternating direction), stepping along w."""
-    n_v = int(math.floor(np.hypot(*v) / step_m + 1e-9)) + 1
-    n_w = int(math.floor(np.hypot(*w) / step_m + 1e-9)) + 1
+    """Boustrophedon grid: rows along v (alternating direction), stepping along w.
+
+    A side within 2 % of a step of a whole number of steps counts as that whole number,
+    so corners typed with 6-decimal coordinates (~0.1 m) still give the intended grid.
+    """
+    n_v = int(math.floor(np.hypot(*v) / step_m + _STEP_SLACK)) + 1
+    n_w = int(math.floor(np.hypot(*w) / step_m + _STEP_SLACK)) + 1
     v_hat, w_hat = v / np.hypot(*v), w / np.hypot(*w)
     rows = []
     for j in range(n_w):
@@ -192,7 +199,7 @@ def _stations_plan(frame: LocalFrame, origin: np.ndarray, v: np.ndarray, w: np.n
     if sin_angle < math.sin(math.radians(5.0)):
         raise GeometryError(f"survey corners are (nearly) collinear: the angle between B - A and C - A is "
                             f"{math.degrees(math.asin(min(sin_angle, 1.0))):.2f} deg; at least 5 deg expected")
-    if step_m > min(lv, lw) + 1e-9:
+    if step_m > min(lv, lw) * (1.0 + _STEP_SLACK):
         raise GeometryError(f"step_m={step_m} is longer than a side of the area ({lv:.2f} m, {lw:.2f} m)")
     wp = _grid(origin, v, w, step_m)
     area = np.array([origin, origin + v, origin + v + w, origin + w])
