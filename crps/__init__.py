@@ -19,7 +19,7 @@ _EXPORTS = {
     "BoxDetector": "detection", "Detection": "detection", "Detector": "detection", "to_gray": "detection",
     "MarkerDetector": "marker",
     "DroneModel": "model", "ShapeTable": "model", "shape_table": "model",
-    "angular_jacobian": "observe", "locate": "observe", "observe": "observe", "shape_consistent": "observe",
+    "angular_jacobian": "observation", "locate": "observation", "observe": "observation", "shape_consistent": "observation",
     "range_from_reference": "ranging", "range_from_size": "ranging",
     "SilhouetteConfig": "silhouette", "SilhouetteDetector": "silhouette", "estimate_noise_sigma": "silhouette",
     "Tracker": "track", "TrackerConfig": "track",

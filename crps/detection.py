@@ -1,6 +1,6 @@
 """What a drone detector returns, and the protocol a user's own detector implements.
 
-A :class:`Detection` is pixel-space only; :func:`skyfix.crps.observe.observe` turns it into
+A :class:`Detection` is pixel-space only; :func:`skyfix.crps.observe` turns it into
 a range and bearing with the camera, the helper pose and the target's size.
 """
 

@@ -4,7 +4,7 @@ Uses OpenCV's ArUco detector directly for now; this is the single place to switc
 ``skyfix.tags`` once it provides marker decoding. The marker's pose comes from
 IPPE for squares (``cv2.solvePnP`` with ``SOLVEPNP_IPPE_SQUARE``) on a marker of unit
 side, so the detection is scale-free: ``size_px = focal / range_of_unit_marker`` and
-:func:`skyfix.crps.observe.observe` multiplies by the real side given as
+:func:`skyfix.crps.observe` multiplies by the real side given as
 ``target_size_m``. The returned centroid is the projection of the marker centre.
 """
 

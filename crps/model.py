@@ -27,7 +27,7 @@ from skyfix.rotation import rot_x, rot_y, rot_z
 
 __all__ = ["DroneModel", "ShapeTable", "rasterize_convex_parts", "shape_table", "silhouette_moments"]
 
-_CIRCLE_SEGMENTS = 24
+_CIRCLE_SEGMENTS = 20
 
 
 def _box(center: tuple[float, float, float], half: tuple[float, float, float], yaw_deg: float = 0.0) -> np.ndarray:
@@ -113,22 +113,38 @@ def rasterize_convex_parts(parts_uv: list[np.ndarray], values: list[float], shap
     """Fill the convex hulls of projected parts on a canvas of ``shape`` (rows, cols).
 
     ``parts_uv`` are ``(N, 2)`` canvas pixel coordinates (pixel centres at integers);
-    ``values`` the intensity of each part. Parts are painted far to near when ``depth``
-    is given. Returns (coverage ``(H, W)`` float32 in {0, 1}, intensity ``(H, W)`` float32).
-    Vertices are placed with 1/16-pixel precision.
+    ``values`` the intensity of each part. A pixel is filled when its centre lies inside
+    the hull (exact point sampling, so supersampled coverage is unbiased; OpenCV's
+    ``fillPoly`` also fills the pixels an edge touches). Parts are painted far to near
+    when ``depth`` is given. Returns (coverage ``(H, W)`` float32 in {0, 1}, intensity
+    ``(H, W)`` float32).
     """
-    cover = np.zeros(shape, np.uint8)
+    cover = np.zeros(shape, np.float32)
     value = np.zeros(shape, np.float32)
     order = np.argsort(depth)[::-1] if depth is not None else np.arange(len(parts_uv))
     for i in order:
-        pts = np.asarray(parts_uv[i], np.float32)
+        pts = np.asarray(parts_uv[i], np.float64)
         if pts.shape[0] < 3 or not np.isfinite(pts).all():
             continue
-        hull = cv2.convexHull(pts)
-        fixed = np.round(hull * 16.0).astype(np.int32)
-        cv2.fillPoly(cover, [fixed], 1, lineType=cv2.LINE_8, shift=4)
-        cv2.fillPoly(value, [fixed], float(values[i]), lineType=cv2.LINE_8, shift=4)
-    return cover.astype(np.float32), value
+        hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+        if hull.shape[0] < 3:
+            continue
+        u0, v0 = max(int(math.ceil(hull[:, 0].min())), 0), max(int(math.ceil(hull[:, 1].min())), 0)
+        u1 = min(int(math.floor(hull[:, 0].max())), shape[1] - 1)
+        v1 = min(int(math.floor(hull[:, 1].max())), shape[0] - 1)
+        if u1 < u0 or v1 < v0:
+            continue
+        us = np.arange(u0, u1 + 1, dtype=np.float64)[None, :]
+        vs = np.arange(v0, v1 + 1, dtype=np.float64)[:, None]
+        edges = np.roll(hull, -1, axis=0) - hull
+        area2 = float(np.sum(hull[:, 0] * np.roll(hull[:, 1], -1) - np.roll(hull[:, 0], -1) * hull[:, 1]))
+        orient = 1.0 if area2 > 0 else -1.0
+        inside = np.ones((v1 - v0 + 1, u1 - u0 + 1), bool)
+        for (px, py), (ex, ey) in zip(hull, edges, strict=True):
+            inside &= orient * (ex * (vs - py) - ey * (us - px)) > 0.0
+        cover[v0:v1 + 1, u0:u1 + 1][inside] = 1.0
+        value[v0:v1 + 1, u0:u1 + 1][inside] = float(values[i])
+    return cover, value
 
 
 def silhouette_moments(weight: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -191,7 +207,7 @@ def _view_rotation(elevation_deg: float, azimuth_deg: float) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=16)
-def shape_table(model: DroneModel, tilt_sigma_deg: float = 5.0, canvas_px: int = 256) -> ShapeTable:
+def shape_table(model: DroneModel, tilt_sigma_deg: float = 5.0, canvas_px: int = 160) -> ShapeTable:
     """Measure the silhouette major-axis RMS over yaw (uniform) and tilt (Gaussian) per elevation.
 
     Orthographic renders of ``model`` on a ``canvas_px`` canvas; 24 yaws x 3 tilts per
@@ -214,7 +230,7 @@ def shape_table(model: DroneModel, tilt_sigma_deg: float = 5.0, canvas_px: int =
                 att = rot_y(pitch) @ rot_x(roll)
                 uv = [((p @ att.T) @ view[:2].T) * scale + centre for p in parts]
                 cover, _ = rasterize_convex_parts(uv, [1.0] * len(uv), (canvas_px, canvas_px))
-                m = cv2.moments(cover)
+                m = cv2.moments(cover, binaryImage=True)
                 cov = np.array([[m["mu20"], m["mu11"]], [m["mu11"], m["mu02"]]]) / m["m00"]
                 ev = np.maximum(np.linalg.eigvalsh(cov), 0.0)
                 ratios.append(math.sqrt(ev[-1]) / scale)
