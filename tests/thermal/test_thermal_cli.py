@@ -1,0 +1,77 @@
+"""``skyfix thermal``: simulate -> locate -> GeoJSON near the truth; detect; help; errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from skyfix.cli import main
+from skyfix.geo import inverse
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    out = tmp_path_factory.mktemp("flight")
+    assert main(["-q", "thermal", "simulate", str(out), "--fires", "2", "--frames", "10", "--size", "320x256",
+                 "--agl", "60", "--dropout", "0.0", "--smoke", "0.0", "--seed", "3"]) == 0
+    return out
+
+
+def test_simulate_then_locate_finds_the_fires(flight, tmp_path, capsys):
+    out = tmp_path / "fires.geojson"
+    rc = main(["-q", "thermal", "locate", str(flight / "frames"), "--poses", str(flight / "poses.csv"),
+               "--camera", str(flight / "camera.json"), "--ground-alt", "30", "-o", str(out)])
+    assert rc == 0
+    assert "fire(s) from 10 frame(s)" in capsys.readouterr().out
+    feats = json.loads(out.read_text())["features"]
+    points = [f for f in feats if f["geometry"]["type"] == "Point"]
+    assert any(f["geometry"]["type"] == "LineString" for f in feats)
+    truth = json.loads((flight / "truth.json").read_text())["fires"]
+    assert len(points) == len(truth) == 2
+    for t in truth:
+        errs = [float(inverse(t["lat_deg"], t["lon_deg"], p["geometry"]["coordinates"][1],
+                              p["geometry"]["coordinates"][0])[1]) for p in points]
+        # Perfect poses: centimetres; the bound leaves room for perspective and growth.
+        assert min(errs) < 0.3
+    assert (tmp_path / "fires_map.png").stat().st_size > 1000
+    assert (tmp_path / "fires_last_frame.png").stat().st_size > 1000
+    assert all(p["properties"]["alt_datum"] == "WGS84 ellipsoid" for p in points)
+
+
+def test_detect_command(flight, tmp_path):
+    out = tmp_path / "hotspots.geojson"
+    frames = sorted((flight / "frames").glob("*.png"))[:3]
+    rc = main(["-q", "thermal", "detect", *map(str, frames), "--pose", str(flight / "poses.csv"),
+               "--camera", str(flight / "camera.json"), "--ground-alt", "30", "-o", str(out)])
+    assert rc == 0
+    feats = json.loads(out.read_text())["features"]
+    assert len(feats) >= 3 and {f["properties"]["frame"] for f in feats} == {p.name for p in frames}
+    assert out.with_suffix(".png").exists()
+
+
+def test_ground_must_be_unambiguous(flight, tmp_path):
+    base = ["-q", "thermal", "locate", str(flight / "frames"), "--poses", str(flight / "poses.csv"),
+            "--camera", str(flight / "camera.json"), "-o", str(tmp_path / "x.geojson")]
+    assert main(base) == 1
+    assert main([*base, "--ground-alt", "30", "--ground-amsl", "63"]) == 1
+    assert main([*base, "--ground-amsl", "63"]) == 1  # no geoid undulation
+
+
+def test_ambiguous_pose_columns_are_refused(flight, tmp_path):
+    csv = (flight / "poses.csv").read_text().replace("alt_ellipsoid_m", "alt", 1)
+    (tmp_path / "poses.csv").write_text(csv)
+    rc = main(["-q", "thermal", "locate", str(flight / "frames"), "--poses", str(tmp_path / "poses.csv"),
+               "--camera", str(flight / "camera.json"), "--ground-alt", "30", "-o", str(tmp_path / "x.geojson")])
+    assert rc == 1
+
+
+@pytest.mark.parametrize("sub", [[], ["detect"], ["locate"], ["simulate"]])
+def test_help(sub, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["thermal", *sub, "--help"])
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    assert "usage: skyfix thermal" in text
+    if sub in (["detect"], ["locate"]):
+        assert "--ground-alt" in text and "ellipsoid" in text
