@@ -24,7 +24,7 @@ from skyfix.camera import Camera
 from skyfix.distortion import Barrel
 from skyfix.errors import DataError, InputError, SkyfixError
 from skyfix.mapping.correct import Undistortion
-from skyfix.mapping.exif import read_metadata, transfer_metadata
+from skyfix.mapping.exif import PhotoMetadata, read_metadata, transfer_metadata
 
 __all__ = ["BatchReport", "CorrectionSpec", "PhotoResult", "correct_photos", "list_photos"]
 
@@ -116,6 +116,7 @@ class _Worker:
     def __init__(self, spec: CorrectionSpec) -> None:
         self.spec = spec
         self.tables: dict[tuple[int, int], Undistortion] = {}
+        self.metadata: dict[Path, PhotoMetadata] = {}  # read in decode(), used once in finish()
 
     def tables_for(self, width: int, height: int) -> Undistortion:
         key = (width, height)
@@ -127,7 +128,7 @@ class _Worker:
         data = src.read_bytes()
         if not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
             raise DataError(f"{src}: corrupt JPEG (truncated: no end-of-image marker)")
-        read_metadata(data, str(src), require_exif=self.spec.require_exif)
+        self.metadata[src] = read_metadata(data, str(src), require_exif=self.spec.require_exif)
         image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
         if image is None:
             raise DataError(f"{src}: corrupt JPEG (image data could not be decoded)")
@@ -138,12 +139,13 @@ class _Worker:
         for a barrel model, from the photo's EXIF (None when EXIF lacks it)."""
         out = tables.output
         fx = fy = None
+        meta = self.metadata.pop(src, None)
         if self.spec.camera is not None:
             fx, fy = out.fx, out.fy
         else:
+            meta = meta or read_metadata(data, str(src), require_exif=False)
             try:
-                raw_f = read_metadata(data, str(src), require_exif=False).focal_length_px(
-                    tables.source.width, tables.source.height)
+                raw_f = meta.focal_length_px(tables.source.width, tables.source.height)
                 fx = fy = raw_f * tables.focal_scale
             except DataError:
                 pass
@@ -170,6 +172,7 @@ class _Worker:
             corrected = tables.apply(image, self.spec.interpolation)
             return self.finish(src, dst, data, corrected, tables)
         except (SkyfixError, OSError, cv2.error) as exc:
+            self.metadata.pop(src, None)
             return PhotoResult(str(src), None, str(exc))
 
 
