@@ -214,6 +214,7 @@ def main() -> int:
     print(f"pupil-apriltags detection alone: {times['pupil_detect'] * 1000:.2f} ms/frame "
           f"({1 / times['pupil_detect']:.1f} fps)")
     speed_ratio = times["pupil_detect"] / times["tiles"]
+    e2e_ratio = times["pupil_fix"] / times["tiles"]
     print(f"tile localisation vs pupil-apriltags detection alone: {speed_ratio:.2f}x the frame rate "
           f"(vs pupil detection + pose: {times['pupil_fix'] / times['tiles']:.2f}x)")
 
@@ -244,7 +245,8 @@ def main() -> int:
         "tile RMSE <= 3 cm": t["rmse_m"] <= 0.03,
         "tile yaw RMSE <= 1 deg": t["yaw_rmse_deg"] <= 1.0,
         "tile worst outlier <= 8 cm": t["worst_m"] <= 0.08,
-        "tile frame rate >= 2x pupil-apriltags": speed_ratio >= 2.0,
+        "tile localisation >= 2x the frame rate of pupil-apriltags detection + the same pose": e2e_ratio >= 2.0,
+        "tile localisation >= 2x the frame rate of pupil-apriltags detection alone": speed_ratio >= 2.0,
         "RMSE at 30 % occlusion <= 1.5x unoccluded": occ_ratio <= 1.5,
         "misread tag moves fix <= 5 cm": shift <= 0.05 and rej >= 1,
         "placement <= 10 s and beats random min": placement_s <= 10.0 and placement.min_distance > placement.random_min,
@@ -254,7 +256,7 @@ def main() -> int:
     for name, ok in goals.items():
         print(f"  [{'met' if ok else 'NOT MET'}] {name}")
     print(f"HEADLINE tiles RMSE {t['rmse_m'] * 100:.2f} cm, yaw {t['yaw_rmse_deg']:.3f} deg, worst "
-          f"{t['worst_m'] * 100:.2f} cm, {1 / times['tiles']:.0f} fps = {speed_ratio:.2f}x pupil-apriltags; "
+          f"{t['worst_m'] * 100:.2f} cm, {1 / times['tiles']:.0f} fps = {e2e_ratio:.2f}x pupil+pose ({speed_ratio:.2f}x pupil detection alone); "
           f"30 % occlusion RMSE x{occ_ratio:.2f}; misread shift {shift * 100:.2f} cm; "
           f"{sum(goals.values())}/{len(goals)} goals met")
     return 0 if all(goals.values()) else 1
