@@ -651,6 +651,8 @@ class SimVehicle:
         self._mission_item_started = False
         if self.mission_seq < len(self.mission):
             self.events.append(("current", self.mission_seq))
+        else:  # mission complete: hold where the last item left the vehicle
+            self._hold_enu_m = self.est_pos_enu_m.copy()
 
     def _physics(self, dt_s: float, v_cmd: np.ndarray) -> None:
         cfg = self.config

@@ -71,7 +71,7 @@ def test_full_flight(sim, vehicle):
         la, lo, al = sim.world.to_geodetic(tr["east_m"] + e, tr["north_m"] + n, tr["up_m"])
         return GeoFix(float(la), float(lo), float(al), np.diag([0.25, 0.25, 0.5]), time.time(), "test")
 
-    injector = v.start_gps_injection(external_fix, rate_hz=5.0)
+    injector = v.start_gps_injection(external_fix, rate_hz=5.0 * sim.config.speed)  # 5 Hz sim time
     v.set_param("SIM_GPS_DISABLE", 1)  # cut the real receiver, as in SITL
     t_end = sim.time_s + 15.0
     worst = 0.0
@@ -83,7 +83,7 @@ def test_full_flight(sim, vehicle):
     assert v.state.mode == "GUIDED"  # no EKF failsafe
     # the hold point was taken on the real GPS (bias <= ~1.5 m); injected noise 0.5 m 1-sigma
     assert worst < 3.0, f"drifted {worst:.1f} m while injecting"
-    assert injector.sent >= 0.8 * 15.0 / sim.config.speed * 5.0
+    assert injector.sent >= 0.8 * 15.0 * 5.0
     injector.stop()
     v.set_param("SIM_GPS_DISABLE", 0)
     # --- geofence: out-of-fence goto refused; velocity breach -> RTL within one telemetry step
