@@ -1,1 +1,43 @@
-"""skyfix.mapping (see DESIGN.md); filled in by its issue."""
+"""skyfix.mapping: lens models and correction, camera calibration, survey planning.
+
+Public names are loaded on first use (so ``skyfix --help`` does not import OpenCV or
+shapely through this package):
+
+- lens models: :data:`BarrelModel` (ImageMagick ``-distort barrel``), ``BrownConrady``,
+  ``Fisheye``, :func:`barrel_to_opencv`, :func:`opencv_to_barrel` (module ``lens``);
+- correction: :class:`Undistortion` (``correct``), :func:`correct_photos` and
+  :class:`CorrectionSpec` (``batch``), EXIF in ``exif``, a torch/kornia backend in
+  ``remap_torch``;
+- calibration: :func:`calibrate`, :class:`BoardSpec` (``calibrate``, ``board``);
+- surveys: :func:`plan_survey`, :func:`plan_three_corners`, :func:`plan_polygon`,
+  :func:`extend_survey`, :func:`split_survey`, :func:`handoff` (``survey``),
+  :func:`verify_coverage` (``coverage``), :func:`mission_items` / :class:`MissionItemInt`
+  (``mission``), file writers in ``export``.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {
+    "BarrelModel": "lens", "BrownConrady": "lens", "Fisheye": "lens", "barrel_camera": "lens",
+    "barrel_to_opencv": "lens", "opencv_to_barrel": "lens", "parse_barrel": "lens",
+    "Undistortion": "correct", "CorrectionSpec": "batch", "correct_photos": "batch",
+    "read_metadata": "exif", "BoardSpec": "board", "Calibration": "calibrate", "calibrate": "calibrate",
+    "SurveyPlan": "survey", "SurveyPart": "survey", "plan_survey": "survey", "plan_three_corners": "survey",
+    "plan_polygon": "survey", "extend_survey": "survey", "split_survey": "survey", "handoff": "survey",
+    "verify_coverage": "coverage", "MissionItemInt": "mission", "mission_items": "mission",
+    "load_camera": "camera_io", "save_camera": "camera_io",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"skyfix.mapping.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module 'skyfix.mapping' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return __all__

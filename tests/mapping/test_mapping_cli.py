@@ -79,3 +79,27 @@ def test_plan_polygon_reports_coverage(tmp_path):
     assert cov["forward_overlap_min"] > 0.799 and cov["side_overlap_min"] > 0.699
     assert main(["-q", "plan", "polygon", "--polygon", poly, "--hfov", "70", "--size", "4000x3000", "--alt", "50",
                  "--side", "1.0", "-o", str(out)]) == 1
+
+
+def test_lens_calibrate_from_rendered_board_photos(tmp_path, capsys):
+    import cv2
+
+    from skyfix.camera import Camera
+    from skyfix.datasets.calibration_scene import render_calibration_views
+    from skyfix.distortion import BrownConrady
+    from skyfix.mapping.board import BoardSpec
+    from skyfix.mapping.camera_io import load_camera
+
+    truth = Camera(480, 360, 380.0, 380.0, 240.5, 178.5, BrownConrady(-0.2, 0.05))
+    shots = tmp_path / "board"
+    shots.mkdir()
+    for i, view in enumerate(render_calibration_views(truth, BoardSpec(), 10, seed=5, supersample=2)):
+        cv2.imwrite(str(shots / f"view{i:02d}.png"), view.image)
+    (shots / "broken.png").write_bytes(b"not an image")
+    cal = tmp_path / "cal.json"
+    assert main(["lens", "calibrate", str(shots), "--cols", "10", "--rows", "7", "-o", str(cal)]) == 0
+    cam = load_camera(cal)
+    assert cam.fx == pytest.approx(380.0, rel=0.01) and cam.distortion.k1 == pytest.approx(-0.2, abs=0.02)
+    assert json.loads(cal.read_text())["rms_px"] <= 0.1
+    assert cal.with_suffix(".png").is_file()
+    assert "reprojection RMS" in capsys.readouterr().out
