@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import re
 import select
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -46,11 +47,20 @@ def _open(url: str, source_system: int, source_component: int) -> mavutil.mavfil
     try:
         conn = mavutil.mavlink_connection(device, baud=baud, source_system=source_system,
                                           source_component=source_component, robust_parsing=True,
-                                          autoreconnect=False, dialect="ardupilotmega")
+                                          autoreconnect=False, retries=0, dialect="ardupilotmega")
     except Exception as exc:  # pymavlink raises bare OSError/SerialException/socket errors
         raise LinkError(f"cannot open MAVLink link {url!r}: {exc}") from exc
     conn.mav.robust_parsing = True
     return conn
+
+
+def _raise_on_tcp_eof(conn) -> None:
+    """pymavlink without autoreconnect spins on a closed TCP socket; turn EOF into an error."""
+    try:
+        if conn.port.recv(1, socket.MSG_PEEK) == b"":
+            raise ConnectionResetError("TCP peer closed the connection")
+    except (BlockingIOError, InterruptedError):
+        pass
 
 
 class MavlinkLink:
@@ -180,7 +190,9 @@ class MavlinkLink:
             try:
                 fd = getattr(conn, "fd", None)
                 if fd is not None:
-                    select.select([fd], [], [], 0.05)
+                    ready, _, _ = select.select([fd], [], [], 0.05)
+                    if ready and isinstance(conn, mavutil.mavtcp):
+                        _raise_on_tcp_eof(conn)
                 else:
                     time.sleep(0.002)
                 for _ in range(1000):
