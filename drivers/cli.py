@@ -43,6 +43,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--loss", type=float, default=0.0, help="fraction of packets to drop (0..1)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="override an autopilot parameter on every vehicle (repeatable)")
+    p.add_argument("--gps-fault", action="append", default=[], metavar="VEHICLE:KIND:START[:DURATION]",
+                   help="schedule a GPS fault on vehicle VEHICLE (system id), KIND one of loss, "
+                        "degraded, jump, spoof, START/DURATION in simulated seconds (repeatable), "
+                        "e.g. 2:loss:30:20")
     p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
     p.set_defaults(func=run_sim)
 
@@ -87,7 +91,10 @@ def run_sim(args: argparse.Namespace) -> int:
     cfg = SimulatorConfig(vehicles=args.vehicles, flavour=args.flavour, base_port=args.base_port,
                           home=_floats(args.home, 3, "--home") if args.home else None, speed=args.speed,
                           loss_rate=args.loss, wind=wind, params=params)
+    faults = [_gps_fault(spec, cfg.vehicles) for spec in args.gps_fault]
     sim = Simulator(cfg)
+    for index, fault in faults:
+        sim.add_gps_fault(index, fault)
     out = sys.stdout
     out.write(f"skyfix sim: {cfg.vehicles} {cfg.flavour} vehicle(s) on 127.0.0.1 at {cfg.speed:g}x "
               f"real time\n")
@@ -107,6 +114,23 @@ def run_sim(args: argparse.Namespace) -> int:
     finally:
         sim.stop()
     return 0
+
+
+def _gps_fault(spec: str, vehicles: int):
+    """Parse VEHICLE:KIND:START[:DURATION] into (vehicle index, GpsFault)."""
+    from skyfix.datasets.sim import GpsFault
+
+    parts = spec.split(":")
+    if len(parts) not in (3, 4):
+        raise InputError(f"--gps-fault must be VEHICLE:KIND:START[:DURATION], got {spec!r}")
+    try:
+        sysid, start = int(parts[0]), float(parts[2])
+        duration = float(parts[3]) if len(parts) == 4 else math.inf
+    except ValueError:
+        raise InputError(f"--gps-fault numbers are malformed in {spec!r}") from None
+    if not 1 <= sysid <= vehicles:
+        raise InputError(f"--gps-fault vehicle must be a system id 1..{vehicles}, got {sysid}")
+    return sysid - 1, GpsFault(parts[1], start, duration)
 
 
 def _connect(args: argparse.Namespace):
