@@ -1,4 +1,41 @@
 """skyfix.drivers: MAVLink connection, telemetry, commands, missions, position injection
-and the safety gate, on pymavlink, for ArduPilot and PX4."""
+and the safety gate, on pymavlink, for ArduPilot and PX4.
 
-from skyfix.drivers import mav as _mav  # noqa: F401  (pins MAVLink 2 before any pymavlink import)
+    from skyfix.drivers import Vehicle, MissionItem, SafetyGate, Geofence
+    v = Vehicle.connect("udpin:127.0.0.1:14550")
+
+Names are imported lazily so that ``skyfix --help`` does not load pymavlink.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+
+os.environ.setdefault("MAVLINK20", "1")  # before any pymavlink import: ODOMETRY needs MAVLink 2
+
+_EXPORTS = {
+    "Vehicle": "skyfix.drivers.vehicle",
+    "MavlinkLink": "skyfix.drivers.link",
+    "MissionItem": "skyfix.drivers.mission",
+    "TransferStats": "skyfix.drivers.mission",
+    "Geofence": "skyfix.drivers.safety",
+    "SafetyGate": "skyfix.drivers.safety",
+    "PositionInjector": "skyfix.drivers.injection",
+    "VehicleState": "skyfix.drivers.state",
+    "VehicleEvent": "skyfix.drivers.state",
+    "Position": "skyfix.drivers.state",
+    "Velocity": "skyfix.drivers.state",
+    "Attitude": "skyfix.drivers.state",
+    "GpsStatus": "skyfix.drivers.state",
+    "Battery": "skyfix.drivers.state",
+    "Home": "skyfix.drivers.state",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'skyfix.drivers' has no attribute {name!r}")
