@@ -185,15 +185,20 @@ class CameraPose:
         Returns fresh arrays; results are cached per (pose, frame) because one frame's
         processing asks for them several times.
         """
-        cam_enu, rotation = _pose_in_frame(self, frame)
+        cam_enu, rotation, _ = _pose_in_frame(self, frame)
         return cam_enu.copy(), rotation.copy()
 
 
 @functools.lru_cache(maxsize=64)
-def _pose_in_frame(pose: CameraPose, frame: LocalFrame) -> tuple[np.ndarray, np.ndarray]:
+def _pose_in_frame(pose: CameraPose, frame: LocalFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(camera ENU, frame <- camera rotation, local up at the camera in frame axes), read-only."""
     e, n, u = frame.to_enu(pose.lat, pose.lon, pose.alt_m)
-    rotation = frame.enu_rotation_at(pose.lat, pose.lon) @ pose.r_enu_from_cam()
-    return np.array([float(e), float(n), float(u)]), rotation
+    r_frame_from_enu_here = frame.enu_rotation_at(pose.lat, pose.lon)
+    out = (np.array([float(e), float(n), float(u)]), r_frame_from_enu_here @ pose.r_enu_from_cam(),
+           r_frame_from_enu_here[:, 2].copy())
+    for a in out:
+        a.setflags(write=False)
+    return out
 
 
 def ground_intersection(camera: Camera, pose: CameraPose, uv: np.ndarray, ground_alt_m: float,
@@ -209,11 +214,10 @@ def ground_intersection(camera: Camera, pose: CameraPose, uv: np.ndarray, ground
     uv = validate.points("uv", uv, 2)
     h0 = validate.finite_scalar("ground_alt_m", ground_alt_m)
     rays_cam = camera.pixel_to_ray(uv)
-    cam_enu, r_frame_from_cam = pose.in_frame(frame)
+    cam_enu, r_frame_from_cam, up_at_cam = _pose_in_frame(pose, frame)
     if pose.alt_m <= h0:
         raise GeometryError(f"camera altitude {pose.alt_m:.3f} m is not above the ground at {h0:.3f} m "
                             "(both are ellipsoidal heights)")
-    up_at_cam = frame.enu_rotation_at(pose.lat, pose.lon)[:, 2]
     d = rays_cam @ r_frame_from_cam.T
     d_up = d @ up_at_cam
     bad = d_up >= -1e-12
@@ -224,7 +228,7 @@ def ground_intersection(camera: Camera, pose: CameraPose, uv: np.ndarray, ground
     t = (pose.alt_m - h0) / -d_up
     for _ in range(8):
         pts = cam_enu + t[:, None] * d
-        _, _, h = frame.to_geodetic(pts[:, 0], pts[:, 1], pts[:, 2])
+        h = frame._heights_unchecked(pts)  # finite by construction: skip re-validation
         err = h - h0
         t = t - err / d_up
         if np.max(np.abs(err)) < 1e-5:

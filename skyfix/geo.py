@@ -102,6 +102,13 @@ class LocalFrame:
         lon, lat, alt = self._fwd.transform(e, n, u, direction=pyproj.enums.TransformDirection.INVERSE)
         return np.asarray(lat), np.asarray(lon), np.asarray(alt)
 
+    def _heights_unchecked(self, enu_m: np.ndarray) -> np.ndarray:
+        """Ellipsoidal heights ``(N,)`` of finite ENU points ``(N, 3)``, without input
+        checks (for inner loops whose points are finite by construction)."""
+        _, _, alt = self._fwd.transform(enu_m[:, 0], enu_m[:, 1], enu_m[:, 2],
+                                        direction=pyproj.enums.TransformDirection.INVERSE)
+        return np.asarray(alt)
+
     def to_enu_points(self, lla: np.ndarray) -> np.ndarray:
         """``(N, 3)`` array of (lat_deg, lon_deg, alt_m) -> ``(N, 3)`` ENU metres."""
         pts = validate.points("lla", lla, 3)

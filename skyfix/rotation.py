@@ -9,6 +9,8 @@ A matrix named ``r_a_from_b`` maps vectors expressed in frame b into frame a.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 #: ENU <- NED (its own inverse).
@@ -19,22 +21,22 @@ R_FRD_FROM_CAM = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 def rot_x(angle_deg: float) -> np.ndarray:
     """Active rotation about x by ``angle_deg`` (right-handed)."""
-    a = np.radians(angle_deg)
-    c, s = np.cos(a), np.sin(a)
+    a = math.radians(angle_deg)
+    c, s = math.cos(a), math.sin(a)
     return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
 def rot_y(angle_deg: float) -> np.ndarray:
     """Active rotation about y by ``angle_deg`` (right-handed)."""
-    a = np.radians(angle_deg)
-    c, s = np.cos(a), np.sin(a)
+    a = math.radians(angle_deg)
+    c, s = math.cos(a), math.sin(a)
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
 def rot_z(angle_deg: float) -> np.ndarray:
     """Active rotation about z by ``angle_deg`` (right-handed)."""
-    a = np.radians(angle_deg)
-    c, s = np.cos(a), np.sin(a)
+    a = math.radians(angle_deg)
+    c, s = math.cos(a), math.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
