@@ -61,7 +61,7 @@ def test_commands_retry_through_packet_loss():
             for _ in range(10):
                 v.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_ATTITUDE, 100_000,
                           timeout_s=0.1, retries=8)
-            v.set_param("WPNAV_SPEED", 800.0)
+            v.set_param("WPNAV_SPEED", 800.0, timeout_s=0.2, retries=10)  # 0.51**11 ~ 6e-4 to fail
             assert sim.vehicle(0).params["WPNAV_SPEED"] == 800.0
         finally:
             v.close()
