@@ -12,7 +12,7 @@ and reading order; digits decode to the value.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -34,7 +34,10 @@ class TileDetections:
     order); ``tile_size_px`` ``(T,)`` apparent tile side; ``colour_margin`` ``(T,)`` the
     smallest (second-nearest minus nearest) CIE76 margin over the tag's tiles;
     ``n_blobs`` candidate tiles seen; ``n_groups`` tile groups of any size;
-    ``motion_blur_px`` the frame's estimated blur streak (full-resolution pixels).
+    ``motion_blur_px`` the frame's estimated blur streak (full-resolution pixels);
+    ``blobs_px`` ``(M, 2)``, ``blob_digit``, ``blob_size_px``, ``blob_in_tag``: every
+    candidate tile, its colour index and whether it belongs to a decoded tag (the rest
+    can still be matched to the layout once a pose is known).
     """
 
     values: np.ndarray
@@ -44,6 +47,10 @@ class TileDetections:
     n_blobs: int
     n_groups: int
     motion_blur_px: float = 0.0
+    blobs_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    blob_digit: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    blob_size_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    blob_in_tag: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
 
 def _white_level(bright: np.ndarray, tile_px_max: float) -> np.ndarray:
@@ -119,7 +126,7 @@ def detect_tiles(image, codec: TileCodec, geometry: TagGeometry, *, ink_threshol
     keep = np.flatnonzero(counts == codec.tiles)
     if keep.size == 0:
         return TileDetections(empty.values, empty.tiles_px, empty.tile_size_px, empty.colour_margin,
-                              m, n_groups, blur)
+                              m, n_groups, blur, pts, digit, size, np.zeros(m, bool))
     members = np.argsort(group, kind="stable")
     starts = np.concatenate(([0], np.cumsum(counts)))
     idx = members[starts[keep][:, None] + np.arange(codec.tiles)[None, :]]     # (T, n)
@@ -131,8 +138,11 @@ def detect_tiles(image, codec: TileCodec, geometry: TagGeometry, *, ink_threshol
     same = np.all((sizes > 0.7 * med) & (sizes < 1.4 * med), axis=1)
     idx = idx[same]
     values = codec.decode(digit[idx]) if len(idx) else np.zeros(0, np.int64)
+    in_tag = np.zeros(m, bool)
+    in_tag[idx.ravel()] = True
     return TileDetections(values, pts[idx], size[idx].mean(axis=1) if len(idx) else np.zeros(0),
-                          margin[idx].min(axis=1) if len(idx) else np.zeros(0), m, n_groups, blur)
+                          margin[idx].min(axis=1) if len(idx) else np.zeros(0), m, n_groups, blur,
+                          pts, digit, size, in_tag)
 
 
 def _link_groups(m: int, pairs: np.ndarray) -> np.ndarray:

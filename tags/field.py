@@ -35,6 +35,7 @@ class TagField:
     origin_xy_m: tuple[float, float] = (0.0, 0.0)
     placement: PlacementReport | None = None
     _index: dict = field(default_factory=dict, init=False, repr=False)
+    _cache: dict = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.codec.tiles != self.geometry.tiles:
@@ -56,6 +57,9 @@ class TagField:
         o = validate.finite_array("origin_xy_m", self.origin_xy_m).reshape(2)
         object.__setattr__(self, "origin_xy_m", (float(o[0]), float(o[1])))
         self._index.update({int(val): i for i, val in enumerate(v.ravel())})
+        digits = self.codec.encode(v.ravel())
+        digits.setflags(write=False)
+        self._cache["tile_digits"] = digits
 
     @classmethod
     def generate(cls, rows: int, cols: int, *, colors: int = 6, tiles: int = 4,
@@ -77,9 +81,13 @@ class TagField:
     def cols(self) -> int:
         return int(self.values.shape[1])
 
+    def tile_digits(self) -> np.ndarray:
+        """Colour index of every tile ``(rows * cols, tiles)``, reading order (read-only)."""
+        return self._cache["tile_digits"]
+
     def index_of(self, values) -> np.ndarray:
         """Flat grid index ``(N,)`` (row-major) of each value, -1 where not in the field."""
-        return np.array([self._index.get(int(v), -1) for v in np.ravel(values)], dtype=int)
+        return np.array([self._index.get(int(v), -1) for v in np.ravel(values).tolist()], dtype=int)
 
     def centres_m(self, index=None) -> np.ndarray:
         """Tag centres ``(N, 2)`` (x east, y north) for flat grid indices (all by default)."""

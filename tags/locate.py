@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from scipy.spatial import cKDTree
 
 from skyfix.camera import Camera
 from skyfix.errors import EstimationError, InputError
 from skyfix.tags.detect import TileDetections, detect_tiles
 from skyfix.tags.field import TagField
 from skyfix.tags.image import as_rgb_u8
-from skyfix.tags.pose import DOWN_MOUNT, AttitudePrior, TagFix, make_fix, solve_pose
+from skyfix.tags.pose import DOWN_MOUNT, AttitudePrior, TagFix, _project, make_fix, solve_pose
 from skyfix.tags.reference import consistent_tags
 
 #: Streaks longer than this are flagged "motion_blur" (pixels).
@@ -29,8 +32,14 @@ def tile_pixel_sigma(tile_size_px: np.ndarray, blur_px: float) -> np.ndarray:
 
 def locate_tiles(image, field: TagField, camera: Camera, *, prior: AttitudePrior | None = None,
                  mount: np.ndarray = DOWN_MOUNT, min_tags: int = 2, time_s: float = 0.0,
-                 source_id: str = "", detections: TileDetections | None = None) -> TagFix:
+                 source_id: str = "", detections: TileDetections | None = None,
+                 densify: bool = True) -> TagFix:
     """Position and heading of the camera's vehicle over ``field`` from one RGB frame.
+
+    With ``densify`` the first pose predicts where every field tile should appear; loose
+    tiles of tags partly hidden (occluders, frame edges) that sit within a fifth of a tile
+    of a prediction and show the expected colour join the final solve. This recovers most
+    of the geometry occluders take away.
 
     Raises :class:`~skyfix.errors.EstimationError` when fewer than ``min_tags`` tags are
     both decoded and consistent with the field's layout (a grey frame, a frame without
@@ -60,9 +69,47 @@ def locate_tiles(image, field: TagField, camera: Camera, *, prior: AttitudePrior
     blur = det.motion_blur_px
     sizes = det.tile_size_px[known][keep]
     sigma = np.repeat(tile_pixel_sigma(sizes, blur), ground.shape[1])
-    sol = solve_pose(ground[keep].reshape(-1, 2), uv[keep].reshape(-1, 2), camera.K, prior=prior,
-                     mount=mount, sigma_px=sigma)
+    g_pts, uv_pts = ground[keep].reshape(-1, 2), uv[keep].reshape(-1, 2)
+    sol = solve_pose(g_pts, uv_pts, camera.K, prior=prior, mount=mount, sigma_px=sigma)
+    if densify and sol.rms_px <= 3.0:
+        extra_g, extra_uv, extra_size = _guided_tiles(det, field, camera, sol.state, mount)
+        if len(extra_g):
+            g_pts = np.concatenate((g_pts, extra_g))
+            uv_pts = np.concatenate((uv_pts, extra_uv))
+            sigma = np.concatenate((sigma, tile_pixel_sigma(extra_size, blur)))
+            sol = solve_pose(g_pts, uv_pts, camera.K, prior=prior, mount=mount, sigma_px=sigma, initial=sol)
     if sol.rms_px > 3.0:
         raise EstimationError(f"tag points fit the pose with {sol.rms_px:.1f} px RMS; expected < 3 px")
     return make_fix(sol, int(keep.sum()), n_decoded - int(keep.sum()), blur, BLUR_FLAG_PX,
                     time_s, source_id)
+
+
+def _guided_tiles(det: TileDetections, field: TagField, camera: Camera, state: np.ndarray,
+                  mount: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Loose tiles (not in a decoded tag) matching a field tile's predicted pixel (within a
+    fifth of a tile) and colour: (floor points (K, 2), ideal pixels (K, 2), sizes (K,))."""
+    loose = ~det.blob_in_tag
+    if not loose.any():
+        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
+    uv_loose = ideal_pixels(camera, det.blobs_px[loose])
+    size = det.blob_size_px[loose]
+    digit = det.blob_digit[loose]
+    # Only tags the camera can reach: the view's half-diagonal plus a generous 30 deg of
+    # tilt, capped at 80 deg from nadir.
+    half_diag = math.atan(math.hypot(camera.width, camera.height) / 2.0 / min(camera.fx, camera.fy))
+    reach_m = max(state[2], 0.1) * math.tan(min(half_diag + math.radians(30.0), math.radians(80.0)))
+    near = np.flatnonzero(np.linalg.norm(field.centres_m() - state[:2], axis=1) < reach_m + field.spacing_m)
+    ground = field.tile_points_m(near).reshape(-1, 2)
+    expected = field.tile_digits()[near].ravel()
+    proj = _project(state, np.concatenate((ground, np.zeros((len(ground), 1))), axis=1), camera.K, mount)
+    ok = np.all(np.isfinite(proj), axis=1)
+    if not ok.any():
+        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
+    tree = cKDTree(proj[ok])
+    dist, j = tree.query(uv_loose, k=1)
+    src = np.flatnonzero(ok)[np.minimum(j, ok.sum() - 1)]
+    match = (dist < 0.2 * size) & (expected[src] == digit)
+    # One blob per field tile.
+    _, first = np.unique(src[match], return_index=True)
+    sel = np.flatnonzero(match)[first]
+    return ground[src[sel]], uv_loose[sel], size[sel]

@@ -160,7 +160,8 @@ class PoseSolution:
 
 def solve_pose(ground_xy: np.ndarray, uv: np.ndarray, k: np.ndarray, *,
                prior: AttitudePrior | None = None, mount: np.ndarray = DOWN_MOUNT,
-               sigma_px: np.ndarray | float = 0.5, iterations: int = 6) -> PoseSolution:
+               sigma_px: np.ndarray | float = 0.5, iterations: int = 6,
+               initial: PoseSolution | None = None) -> PoseSolution:
     """Planar PnP (IPPE, both solutions kept) then Gauss-Newton with the attitude prior.
 
     ``ground_xy`` ``(N, 2)`` floor points (metres), ``uv`` ``(N, 2)`` ideal pixels,
@@ -173,6 +174,9 @@ def solve_pose(ground_xy: np.ndarray, uv: np.ndarray, k: np.ndarray, *,
         raise InputError(f"need >= 4 matching points, got {len(g2)} floor and {len(uv)} image points")
     sig = np.broadcast_to(np.asarray(sigma_px, float), (len(uv),)).copy()
     ground = np.concatenate((g2, np.zeros((len(g2), 1))), axis=1)
+    if initial is not None:   # refine a known solution with more points: no new branch choice
+        return _refine(initial.state.copy(), ground, uv, k, mount, sig, prior, iterations,
+                       initial.ambiguity, list(initial.flags))
     # IPPE on an evenly spread subset is as good a start as on all points, and cheaper.
     sub = np.linspace(0, len(uv) - 1, min(len(uv), 64)).round().astype(int)
     n_sol, rvecs, tvecs, errs = cv2.solvePnPGeneric(ground[sub], uv[sub].reshape(-1, 1, 2), k, None,
@@ -204,6 +208,12 @@ def solve_pose(ground_xy: np.ndarray, uv: np.ndarray, k: np.ndarray, *,
         if (abs(_wrap(other[5] - prior.roll_deg)) < 3 * prior.sigma_deg
                 and abs(other[4] - prior.pitch_deg) < 3 * prior.sigma_deg):
             flags.append("ambiguous")   # the IMU cannot separate the two either
+    return _refine(state, ground, uv, k, mount, sig, prior, iterations, ambiguity, flags)
+
+
+def _refine(state, ground, uv, k, mount, sig, prior, iterations, ambiguity, flags) -> PoseSolution:
+    """Gauss-Newton on (x, y, z, yaw, pitch, roll) with the prior; covariance from the
+    final Jacobian, scaled by the fit's reduced chi-square when that exceeds 1."""
     w = 1.0 / sig
     # IPPE's answer is already near the optimum: a few Gauss-Newton steps add the prior.
     for _ in range(iterations):

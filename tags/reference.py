@@ -90,7 +90,7 @@ def consistent_tags(ground_xy: np.ndarray, image_uv: np.ndarray, spacing_m: floa
         gh = np.concatenate((g_c, np.ones((t, 1))), axis=1)                  # (tag, 3)
         p = np.einsum("hij,tj->hti", hs, gh)                                 # (hyp, tag, 3)
         err = np.linalg.norm(p[..., :2] / p[..., 2:3] - u_c[None], axis=2)
-    inlier = err < 0.25 * spacing_m * px_per_m[None, :]
+    inlier = err < 0.4 * spacing_m * px_per_m[None, :]
     inlier &= np.isfinite(err)
     support = inlier.sum(axis=1)
     best = int(np.argmax(support + 1e-6 * -np.nan_to_num(err, nan=1e9).sum(axis=1)))
