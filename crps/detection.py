@@ -147,7 +147,7 @@ class BoxDetector:
                 continue
             ibox = (int(np.floor(box[0])), int(np.floor(box[1])), int(np.ceil(box[2])), int(np.ceil(box[3])))
             if self.refine is not None:
-                found = self.refine(image, roi=_grow(ibox, 0.25, w, h))
+                found = self.refine(image, roi=_grow(ibox, 1.0, w, h))
                 if found:
                     best = max(found, key=lambda d: d.score)
                     out.append(Detection(best.centroid_uv, best.centroid_cov_px2, best.bbox_px, float(score),
@@ -162,8 +162,7 @@ class BoxDetector:
 
 
 def _grow(box: tuple[int, int, int, int], fraction: float, width: int, height: int) -> Roi:
-    """``box`` grown by ``fraction`` of its size plus 4 px on each side, clipped to the image."""
+    """``box`` grown by ``fraction`` of its larger side plus 12 px on each side, clipped to the image."""
     u0, v0, u1, v1 = box
-    mu = int(np.ceil(fraction * (u1 - u0))) + 4
-    mv = int(np.ceil(fraction * (v1 - v0))) + 4
+    mu = mv = int(np.ceil(fraction * max(u1 - u0, v1 - v0))) + 12
     return max(u0 - mu, 0), max(v0 - mv, 0), min(u1 + mu, width), min(v1 + mv, height)
