@@ -24,7 +24,7 @@ from skyfix.camera import Camera
 from skyfix.distortion import Barrel
 from skyfix.errors import DataError, InputError, SkyfixError
 from skyfix.mapping.correct import Undistortion
-from skyfix.mapping.exif import PhotoMetadata, read_metadata, transfer_metadata
+from skyfix.mapping.exif import PhotoMetadata, jpeg_quality, read_metadata, transfer_metadata
 
 __all__ = ["BatchReport", "CorrectionSpec", "PhotoResult", "correct_photos", "list_photos"]
 
@@ -37,7 +37,9 @@ PHOTO_SUFFIXES = (".jpg", ".jpeg")
 class CorrectionSpec:
     """How to correct photos: exactly one of ``barrel`` or ``camera`` (a calibrated camera).
 
-    ``crop``: keep only pixels that sample inside the raw image. ``jpeg_quality``: 1-100.
+    ``crop``: keep only pixels that sample inside the raw image. ``jpeg_quality``: 1-100, or
+    None to keep each photo's own quality (estimated from its quantisation table, as
+    ImageMagick does; 95 when it cannot be estimated).
     ``require_exif``: skip photos without EXIF (their corrected focal length could not be
     recorded for structure-from-motion). ``interpolation``: see :meth:`Undistortion.apply`.
     """
@@ -45,15 +47,16 @@ class CorrectionSpec:
     barrel: Barrel | None = None
     camera: Camera | None = None
     crop: bool = False
-    jpeg_quality: int = 95
+    jpeg_quality: int | None = None
     require_exif: bool = True
     interpolation: str = "linear"
 
     def __post_init__(self) -> None:
         if (self.barrel is None) == (self.camera is None):
             raise InputError("CorrectionSpec needs exactly one of barrel= or camera=")
-        if not isinstance(self.jpeg_quality, int) or not 1 <= self.jpeg_quality <= 100:
-            raise InputError(f"jpeg_quality must be an integer in [1, 100], got {self.jpeg_quality!r}")
+        q = self.jpeg_quality
+        if q is not None and (isinstance(q, bool) or not isinstance(q, int) or not 1 <= q <= 100):
+            raise InputError(f"jpeg_quality must be an integer in [1, 100] or None, got {q!r}")
 
     def undistortion(self, width: int, height: int) -> Undistortion:
         """Tables for a ``width x height`` photo (a calibration is rescaled if the aspect matches)."""
@@ -153,7 +156,8 @@ class _Worker:
                 "cx_px": out.cx, "cy_px": out.cy, "focal_scale": tables.focal_scale}
 
     def finish(self, src: Path, dst: Path, data: bytes, corrected: np.ndarray, tables: Undistortion) -> PhotoResult:
-        ok, encoded = cv2.imencode(".jpg", corrected, [cv2.IMWRITE_JPEG_QUALITY, self.spec.jpeg_quality])
+        quality = self.spec.jpeg_quality or jpeg_quality(data) or 95
+        ok, encoded = cv2.imencode(".jpg", corrected, [cv2.IMWRITE_JPEG_QUALITY, quality])
         if not ok:
             raise DataError(f"{src}: JPEG encoding failed")
         out = tables.output

@@ -14,7 +14,7 @@ from fractions import Fraction
 
 from skyfix.errors import DataError
 
-__all__ = ["PhotoMetadata", "read_metadata", "transfer_metadata"]
+__all__ = ["PhotoMetadata", "jpeg_quality", "read_metadata", "transfer_metadata"]
 
 _SOI = b"\xff\xd8"
 _DIAGONAL_35MM_MM = math.hypot(36.0, 24.0)
@@ -176,3 +176,47 @@ def transfer_metadata(original: bytes, corrected: bytes, *, focal_scale: float, 
             seg = b"\xff\xe1" + (len(payload) + 2).to_bytes(2, "big") + payload
         new_segments.append(seg)
     return _SOI + b"".join(new_segments) + body
+
+
+#: IJG (libjpeg) standard luminance quantisation table, natural order; quality q scales it.
+_IJG_LUMA = (16, 11, 10, 16, 24, 40, 51, 61, 12, 12, 14, 19, 26, 58, 60, 55, 14, 13, 16, 24, 40, 57, 69, 56,
+             14, 17, 22, 29, 51, 87, 80, 62, 18, 22, 37, 56, 68, 109, 103, 77, 24, 35, 55, 64, 81, 104, 113, 92,
+             49, 64, 78, 87, 103, 121, 120, 101, 72, 92, 95, 98, 112, 100, 103, 99)
+
+
+def jpeg_quality(data: bytes) -> int | None:
+    """Estimated IJG quality (1-100) of a JPEG from its luminance quantisation table, or None.
+
+    Returns the quality whose scaled IJG table is closest to the stored one (exact for
+    libjpeg-encoded files, an estimate for cameras with their own tables), as ImageMagick
+    does to write a converted JPEG at its original quality. Table order (zig-zag vs
+    natural) does not matter for the sum compared.
+    """
+    pos = 2
+    while pos + 4 <= len(data) and data[pos] == 0xFF:
+        marker = data[pos + 1]
+        length = int.from_bytes(data[pos + 2:pos + 4], "big")
+        if marker == 0xDA or length < 2:
+            break
+        if marker == 0xDB:
+            seg, i = data[pos + 4:pos + 2 + length], 0
+            while i < len(seg):
+                precision, table_id = seg[i] >> 4, seg[i] & 0x0F
+                size = 128 if precision else 64
+                raw = seg[i + 1:i + 1 + size]
+                if len(raw) < size:
+                    return None
+                values = ([int.from_bytes(raw[k:k + 2], "big") for k in range(0, 128, 2)] if precision
+                          else list(raw))
+                if table_id == 0:
+                    total = sum(values)
+                    best, best_err = None, math.inf
+                    for q in range(1, 101):
+                        scale = 5000 / q if q < 50 else 200 - 2 * q
+                        err = abs(sum(min(max((v * scale + 50) // 100, 1), 255) for v in _IJG_LUMA) - total)
+                        if err < best_err:
+                            best, best_err = q, err
+                    return best
+                i += 1 + size
+        pos += 2 + length
+    return None

@@ -71,10 +71,11 @@ def test_batch_corrects_good_photos_and_reports_bad_ones(photo_dir, tmp_path):
     cam = report.written[0].output_camera
     raw_f = read_metadata((photo_dir / "IMG_0459.jpg").read_bytes()).focal_length_px(1200, 900)
     assert cam["fx_px"] == pytest.approx(raw_f / BARREL.d)
-    # Pixels: the written JPEG is the remapped photo up to JPEG re-encoding.
+    # Pixels: the written JPEG is the remapped photo encoded at the input's quality (90).
     raw = cv2.imread(str(photo_dir / "IMG_0459.jpg"))
-    expected = Undistortion.for_barrel(BARREL, 1200, 900).apply(raw).astype(float)
-    assert np.mean(np.abs(cv2.imread(str(out / "IMG_0459.jpg")) - expected)) < 2.0
+    expected = Undistortion.for_barrel(BARREL, 1200, 900).apply(raw)
+    expected = cv2.imdecode(cv2.imencode(".jpg", expected, [cv2.IMWRITE_JPEG_QUALITY, 90])[1], cv2.IMREAD_COLOR)
+    assert np.array_equal(cv2.imread(str(out / "IMG_0459.jpg")), expected)
 
 
 def test_missing_exif_allowed_on_request(photo_dir, tmp_path):
@@ -110,3 +111,18 @@ def test_torch_backend_matches_opencv(photo_dir, tmp_path):
     report = correct_photos(list_photos(photo_dir), tmp_path / "t", CorrectionSpec(barrel=BARREL),
                             backend="torch", device="cpu", batch_size=2, progress=False)
     assert len(report.written) == 2 and len(report.skipped) == 3
+
+
+def test_jpeg_quality_estimate_and_default_keeps_input_quality(tmp_path):
+    from skyfix.mapping.exif import jpeg_quality
+
+    img = np.random.default_rng(0).integers(0, 255, (64, 64, 3), dtype=np.uint8)
+    for q in (20, 75, 90, 98):
+        assert jpeg_quality(cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, q])[1].tobytes()) == q
+    assert jpeg_quality(b"\xff\xd8") is None
+    report = correct_photos([DATA / "IMG_0459.jpg"], tmp_path, CorrectionSpec(barrel=BARREL), workers=1,
+                            progress=False)
+    assert jpeg_quality((tmp_path / "IMG_0459.jpg").read_bytes()) == jpeg_quality((DATA / "IMG_0459.jpg").read_bytes())
+    assert len(report.written) == 1
+    with pytest.raises(InputError, match="jpeg_quality"):
+        CorrectionSpec(barrel=BARREL, jpeg_quality=101)
