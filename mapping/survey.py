@@ -110,7 +110,9 @@ class SurveyPlan:
             if length == 0:
                 continue
             heading = math.degrees(math.atan2(seg[0], seg[1])) % 360.0
-            first = 0.0 if (k == 0 or not self.trigger_on[k - 1]) else (t - carry) % t
+            # A run starts with a photo; across a waypoint inside a run the distance counter
+            # carries on, so the next photo comes t after the previous one (never twice).
+            first = 0.0 if (k == 0 or not self.trigger_on[k - 1]) else t - carry
             s = np.arange(first, length + 1e-6, t)
             pts.extend(wp[k] + seg * (s[:, None] / length))
             headings.extend([heading] * len(s))

@@ -155,3 +155,17 @@ def test_plan_json_round_trip(photo_plan, tmp_path):
     assert np.allclose(back.waypoints_en_m, photo_plan.waypoints_en_m)
     assert back.camera == photo_plan.camera and np.array_equal(back.trigger_on, photo_plan.trigger_on)
     json.loads((tmp_path / "p.json").read_text())
+
+
+def test_photo_spacing_continues_across_waypoints_inside_a_run():
+    from skyfix.mapping.survey import SurveyPlan
+
+    base = plan_three_corners((LAT0, LON0), _at(90, 28), _at(0, 35), 7.0, 10.0)
+    # One straight run split by a waypoint at 25 m: photos every 10 m from 0 m, none twice.
+    wp = np.array([[0.0, 0.0], [25.0, 0.0], [60.0, 0.0]])
+    plan = SurveyPlan(base.frame, "lines", wp, 10.0, wp, 10.0, np.array([True, True]), trigger_distance_m=10.0)
+    photos, headings = plan.photo_positions_en_m()
+    assert photos[:, 0] == pytest.approx([0, 10, 20, 30, 40, 50, 60])
+    wp2 = np.array([[0.0, 0.0], [20.0, 0.0], [45.0, 0.0]])  # waypoint exactly on a photo
+    plan2 = SurveyPlan(base.frame, "lines", wp2, 10.0, wp2, 10.0, np.array([True, True]), trigger_distance_m=10.0)
+    assert plan2.photo_positions_en_m()[0][:, 0] == pytest.approx([0, 10, 20, 30, 40])
