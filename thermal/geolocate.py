@@ -12,6 +12,7 @@ errors of the sizes a GNSS/IMU produces).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -26,6 +27,8 @@ from skyfix.thermal.pose import PoseUncertainty
 from skyfix.types import GeoFix
 
 _DEFAULT_UNCERTAINTY = PoseUncertainty()
+_DU = np.array([1.0, 0.0])
+_DV = np.array([0.0, 1.0])
 
 
 def _as_uv(hotspots_or_uv) -> np.ndarray:
@@ -56,36 +59,30 @@ def locate_in_frame(camera: Camera, pose: CameraPose, uv: np.ndarray, ground: Fl
     cam_enu, r_frame_from_cam = pose.in_frame(frame)
     n = uv.shape[0]
     # Rays at the centroid and one pixel right / down of it, for the pixel Jacobian.
-    rays_cam = camera.pixel_to_ray(np.concatenate((uv, uv + [1.0, 0.0], uv + [0.0, 1.0])))
-    rays = rays_cam @ r_frame_from_cam.T
-    d, d_du, d_dv = rays[:n], rays[n:2 * n] - rays[:n], rays[2 * n:] - rays[:n]
-    height = cam_enu[2] - pts[:, 2]
+    rays = camera.pixel_to_ray(np.concatenate((uv, uv + _DU, uv + _DV))) @ r_frame_from_cam.T
+    d = rays[:n]
     dz = d[:, 2]
     slope = d[:, :2] / dz[:, None]  # horizontal shift of the ground point per metre of height
-    # Horizontal ground point g = C_h + height * d_h / (-d_z); its Jacobian w.r.t. the ray d:
-    j_d = np.zeros((n, 2, 3))
-    j_d[:, 0, 0] = j_d[:, 1, 1] = height / -dz
-    j_d[:, :, 2] = (height / dz)[:, None] * slope
-    # Ray perturbations: a small rotation delta about E, N, U moves d by delta x d = -[d]x delta
-    # (columns 0-2); one pixel right / down moves it by d_du / d_dv (columns 3-4).
-    ray_moves = np.zeros((n, 3, 5))
-    ray_moves[:, 0, 1], ray_moves[:, 0, 2] = d[:, 2], -d[:, 1]
-    ray_moves[:, 1, 0], ray_moves[:, 1, 2] = -d[:, 2], d[:, 0]
-    ray_moves[:, 2, 0], ray_moves[:, 2, 1] = d[:, 1], -d[:, 0]
-    ray_moves[:, :, 3], ray_moves[:, :, 4] = d_du, d_dv
-    # All error sources in one Jacobian (n, 2, 9): ray (5), camera E, N, U (3), ground height (1).
-    jac = np.empty((n, 2, 9))
-    jac[:, :, :5] = j_d @ ray_moves
-    jac[:, :, 5:7] = np.eye(2)
-    jac[:, :, 7] = -slope
-    jac[:, :, 8] = slope
-    tilt = np.radians(uncertainty.tilt_sigma_deg) ** 2
-    yaw = np.radians(uncertainty.heading_deg) ** 2
+    k = (cam_enu[2] - pts[:, 2]) / -dz
+    # The horizontal ground point g = C_h + height * d_h / (-d_z) moves by
+    # k * (m_h - slope * m_z) when the ray d moves by m. Ray moves (n, 3, 5): small rotations
+    # about E, N, U (e_i x d) and one pixel right / down.
+    moves = np.empty((n, 3, 5))
+    moves[:, :, 0] = np.stack((np.zeros(n), -dz, d[:, 1]), axis=1)
+    moves[:, :, 1] = np.stack((dz, np.zeros(n), -d[:, 0]), axis=1)
+    moves[:, :, 2] = np.stack((-d[:, 1], d[:, 0], np.zeros(n)), axis=1)
+    moves[:, :, 3] = rays[n:2 * n] - d
+    moves[:, :, 4] = rays[2 * n:] - d
+    jac = k[:, None, None] * (moves[:, :2, :] - slope[:, :, None] * moves[:, 2:3, :])
+    tilt = math.radians(uncertainty.tilt_sigma_deg) ** 2
+    yaw = math.radians(uncertainty.heading_deg) ** 2
     px = uncertainty.pixel_sigma_px ** 2
-    pos, vert, ground_var = uncertainty.position_sigma_m ** 2, uncertainty.vertical_m ** 2, ground.sigma_m ** 2
-    variances = np.array([tilt, tilt, yaw, px, px, pos, pos, vert, ground_var])
+    ground_var = ground.sigma_m ** 2
     cov = np.zeros((n, 3, 3))
-    cov[:, :2, :2] = (jac * variances) @ jac.transpose(0, 2, 1)
+    # Ray terms, then camera east/north (identity), camera height and ground height (slope).
+    cov[:, :2, :2] = ((jac * np.array([tilt, tilt, yaw, px, px])) @ jac.transpose(0, 2, 1)
+                      + uncertainty.position_sigma_m ** 2 * np.eye(2)
+                      + (uncertainty.vertical_m ** 2 + ground_var) * slope[:, :, None] * slope[:, None, :])
     cov[:, :2, 2] = cov[:, 2, :2] = ground_var * slope
     cov[:, 2, 2] = ground_var
     return pts, cov
