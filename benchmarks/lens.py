@@ -147,9 +147,25 @@ def main() -> int:
                   f"{len(report.written)}/{len(batch_photos)} photos in {report.seconds:.2f} s = "
                   f"{sky_walls[-1] * 1000:.1f} ms/photo wall (2 processes)")
             shutil.rmtree(work / f"batch_out{rnd}")
-        peak_child_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
-        print(f"peak resident memory: {peak_child_mb:.0f} MB in any child process (ImageMagick or a batch worker), "
-              f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB in the benchmark process")
+        # Bounded memory: peak resident memory of a fresh batch process and its workers,
+        # for 32 and for 100 photos; one photo per worker at a time means no growth.
+        peaks = {}
+        for n in (len(photos), len(batch_photos)):
+            code = ("import resource, sys; from pathlib import Path; "
+                    "from skyfix.mapping.batch import CorrectionSpec, correct_photos, list_photos; "
+                    "from skyfix.mapping.lens import parse_barrel; "
+                    f"ph = list_photos({str(batch_in)!r})[:{n}]; "
+                    f"correct_photos(ph, {str(work / 'mem_out')!r}, CorrectionSpec(barrel=parse_barrel({COEFFS!r})), "
+                    "workers=2, progress=False); "
+                    "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, "
+                    "resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+            out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+            peaks[n] = [int(x) / 1024 for x in out.split()]
+            shutil.rmtree(work / "mem_out")
+        (m_small, w_small), (m_big, w_big) = peaks[len(photos)], peaks[len(batch_photos)]
+        print(f"peak resident memory: main {m_small:.0f} MB / worker {w_small:.0f} MB for {len(photos)} photos, "
+              f"main {m_big:.0f} MB / worker {w_big:.0f} MB for {len(batch_photos)} photos")
+        ok &= max(m_big, w_big) <= 1.2 * max(m_small, w_small) + 20
 
         # One core, CPU time per photo (tables included once).
         cpu0 = time.process_time()
