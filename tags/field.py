@@ -58,8 +58,12 @@ class TagField:
         object.__setattr__(self, "origin_xy_m", (float(o[0]), float(o[1])))
         self._index.update({int(val): i for i, val in enumerate(v.ravel())})
         digits = self.codec.encode(v.ravel())
-        digits.setflags(write=False)
-        self._cache["tile_digits"] = digits
+        row, col = np.divmod(np.arange(v.size), v.shape[1])
+        centres = np.stack((self.origin_xy_m[0] + col * spacing, self.origin_xy_m[1] + row * spacing), axis=1)
+        tiles = centres[:, None, :] + self.geometry.tile_centres_m()[None, :, :]
+        for name, arr in (("tile_digits", digits), ("centres", centres), ("tiles", tiles)):
+            arr.setflags(write=False)
+            self._cache[name] = arr
 
     @classmethod
     def generate(cls, rows: int, cols: int, *, colors: int = 6, tiles: int = 4,
@@ -91,14 +95,13 @@ class TagField:
 
     def centres_m(self, index=None) -> np.ndarray:
         """Tag centres ``(N, 2)`` (x east, y north) for flat grid indices (all by default)."""
-        idx = np.arange(self.values.size) if index is None else np.asarray(index, dtype=int).ravel()
-        row, col = np.divmod(idx, self.cols)
-        return np.stack((self.origin_xy_m[0] + col * self.spacing_m,
-                         self.origin_xy_m[1] + row * self.spacing_m), axis=1)
+        c = self._cache["centres"]
+        return c.copy() if index is None else c[np.asarray(index, dtype=int).ravel()]
 
     def tile_points_m(self, index=None) -> np.ndarray:
         """Tile centres ``(N, tiles, 2)`` in the field frame, reading order."""
-        return self.centres_m(index)[:, None, :] + self.geometry.tile_centres_m()[None, :, :]
+        t = self._cache["tiles"]
+        return t.copy() if index is None else t[np.asarray(index, dtype=int).ravel()]
 
     def bounds_m(self, margin_m: float = 0.0) -> tuple[float, float, float, float]:
         """(x_min, y_min, x_max, y_max) of the printed area, metres."""

@@ -70,14 +70,15 @@ def locate_tiles(image, field: TagField, camera: Camera, *, prior: AttitudePrior
     sizes = det.tile_size_px[known][keep]
     sigma = np.repeat(tile_pixel_sigma(sizes, blur), ground.shape[1])
     g_pts, uv_pts = ground[keep].reshape(-1, 2), uv[keep].reshape(-1, 2)
-    sol = solve_pose(g_pts, uv_pts, camera.K, prior=prior, mount=mount, sigma_px=sigma)
+    # A first, one-step pose is close enough to predict tiles; the final solve converges.
+    sol = solve_pose(g_pts, uv_pts, camera.K, prior=prior, mount=mount, sigma_px=sigma, iterations=1)
     if densify and sol.rms_px <= 3.0:
         extra_g, extra_uv, extra_size = _guided_tiles(det, field, camera, sol.state, mount)
         if len(extra_g):
             g_pts = np.concatenate((g_pts, extra_g))
             uv_pts = np.concatenate((uv_pts, extra_uv))
             sigma = np.concatenate((sigma, tile_pixel_sigma(extra_size, blur)))
-            sol = solve_pose(g_pts, uv_pts, camera.K, prior=prior, mount=mount, sigma_px=sigma, initial=sol)
+    sol = solve_pose(g_pts, uv_pts, camera.K, prior=prior, mount=mount, sigma_px=sigma, initial=sol)
     if sol.rms_px > 3.0:
         raise EstimationError(f"tag points fit the pose with {sol.rms_px:.1f} px RMS; expected < 3 px")
     return make_fix(sol, int(keep.sum()), n_decoded - int(keep.sum()), blur, BLUR_FLAG_PX,
@@ -94,20 +95,22 @@ def _guided_tiles(det: TileDetections, field: TagField, camera: Camera, state: n
     uv_loose = ideal_pixels(camera, det.blobs_px[loose])
     size = det.blob_size_px[loose]
     digit = det.blob_digit[loose]
-    # Only tags the camera can reach: the view's half-diagonal plus a generous 30 deg of
+    # Only tags the camera can reach: the view's half-diagonal plus a generous 20 deg of
     # tilt, capped at 80 deg from nadir.
     half_diag = math.atan(math.hypot(camera.width, camera.height) / 2.0 / min(camera.fx, camera.fy))
-    reach_m = max(state[2], 0.1) * math.tan(min(half_diag + math.radians(30.0), math.radians(80.0)))
+    reach_m = max(state[2], 0.1) * math.tan(min(half_diag + math.radians(20.0), math.radians(80.0)))
     near = np.flatnonzero(np.linalg.norm(field.centres_m() - state[:2], axis=1) < reach_m + field.spacing_m)
     ground = field.tile_points_m(near).reshape(-1, 2)
     expected = field.tile_digits()[near].ravel()
     proj = _project(state, np.concatenate((ground, np.zeros((len(ground), 1))), axis=1), camera.K, mount)
-    ok = np.all(np.isfinite(proj), axis=1)
+    with np.errstate(invalid="ignore"):
+        ok = ((proj[:, 0] > -1.0) & (proj[:, 0] < camera.width) & (proj[:, 1] > -1.0)
+              & (proj[:, 1] < camera.height))
     if not ok.any():
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
-    tree = cKDTree(proj[ok])
-    dist, j = tree.query(uv_loose, k=1)
-    src = np.flatnonzero(ok)[np.minimum(j, ok.sum() - 1)]
+    cand = proj[ok]
+    dist, j = cKDTree(cand).query(uv_loose, k=1)
+    src = np.flatnonzero(ok)[np.minimum(j, len(cand) - 1)]
     match = (dist < 0.2 * size) & (expected[src] == digit)
     # One blob per field tile.
     _, first = np.unique(src[match], return_index=True)

@@ -108,14 +108,17 @@ def _project(state: np.ndarray, ground: np.ndarray, k: np.ndarray, mount: np.nda
     uv = np.stack((fx * pc[:, 0] / z + k[0, 2], fy * pc[:, 1] / z + k[1, 2]), 1)
     if not with_jacobian:
         return uv
-    # d pc / d state: -R^T for the centre, dR^T (X - C) for each angle.
-    dpc = np.empty((len(ground), 3, 6))
-    dpc[:, :, :3] = -r.T[None]
-    for j, d in enumerate(dr):
-        dpc[:, :, 3 + j] = rel @ d
-    jac = np.empty((len(ground), 2, 6))
-    jac[:, 0] = fx * (dpc[:, 0] * z[:, None] - pc[:, 0:1] * dpc[:, 2]) / (z ** 2)[:, None]
-    jac[:, 1] = fy * (dpc[:, 1] * z[:, None] - pc[:, 1:2] * dpc[:, 2]) / (z ** 2)[:, None]
+    # d pc / d state: -R^T for the centre, dR^T (X - C) for each angle (one matmul).
+    n = len(ground)
+    dang = (rel @ np.concatenate(dr, axis=1)).reshape(n, 3, 3)        # (N, angle, xyz)
+    inv_z = 1.0 / z
+    jac = np.empty((n, 2, 6))
+    for row, (f, p) in enumerate(((fx, pc[:, 0]), (fy, pc[:, 1]))):
+        a = f * inv_z
+        b = f * p * inv_z * inv_z
+        # d(u)/d(centre) = a * d(pc_x)/dC - b * d(pc_z)/dC with d(pc)/dC = -R^T
+        jac[:, row, :3] = -(a[:, None] * r[:, row][None, :] - b[:, None] * r[:, 2][None, :])
+        jac[:, row, 3:] = a[:, None] * dang[:, :, row] - b[:, None] * dang[:, :, 2]
     return uv, jac
 
 
