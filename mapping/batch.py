@@ -183,10 +183,29 @@ class _Worker:
 _WORKER: _Worker | None = None
 
 
+#: Set by the parent just before forking the pool (see _prebuilt_worker).
+_PREBUILT: list[_Worker | None] = [None]
+
+
 def _init_worker(spec: CorrectionSpec) -> None:
     global _WORKER
     cv2.setNumThreads(1)  # parallelism comes from the processes
-    _WORKER = _Worker(spec)
+    _WORKER = _PREBUILT[0] if _PREBUILT[0] is not None else _Worker(spec)
+
+
+def _prebuilt_worker(spec: CorrectionSpec, first_photo: Path) -> _Worker | None:
+    """A worker with the tables for the first photo's size, built once before forking so the
+    processes share them (copy-on-write) instead of each building its own."""
+    from PIL import Image
+
+    try:
+        with Image.open(first_photo) as im:  # reads the header only
+            width, height = im.size
+        worker = _Worker(spec)
+        worker.tables_for(width, height)
+        return worker
+    except (OSError, SkyfixError, cv2.error):
+        return None  # a bad first photo is reported by the batch itself
 
 
 def _run_job(job: tuple[Path, Path]) -> PhotoResult:
@@ -257,6 +276,8 @@ def correct_photos(photos: Iterable[str | os.PathLike], out_dir: str | os.PathLi
             worker = _Worker(spec)
             results = (worker(job) for job in jobs)
         else:
+            # With fork the prebuilt tables reach the workers without pickling.
+            _PREBUILT[0] = _prebuilt_worker(spec, jobs[0][0])
             pool = multiprocessing.get_context("fork").Pool(min(n_workers, len(jobs)), _init_worker, (spec,))
             results = pool.imap_unordered(_run_job, jobs, chunksize=1)
         for result in results:
@@ -266,6 +287,7 @@ def correct_photos(photos: Iterable[str | os.PathLike], out_dir: str | os.PathLi
             bar.update(1)
     finally:
         bar.close()
+        _PREBUILT[0] = None
         if pool is not None:
             pool.terminate()
             pool.join()
