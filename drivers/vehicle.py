@@ -158,8 +158,9 @@ class Vehicle:
         self._listeners.append(callback)
 
     def _emit(self, kind: str, text: str = "", **data) -> None:
-        ev = VehicleEvent(kind, time.time(), text, data)
-        self.events.append(ev)
+        with self._lock:  # ordered with state updates: waiters woken by a state change see it
+            ev = VehicleEvent(kind, time.time(), text, data)
+            self.events.append(ev)
         for cb in list(self._listeners):
             try:
                 cb(ev)
@@ -212,24 +213,26 @@ class Vehicle:
         old = self._state
         mode = mode_name(self.autopilot, msg.custom_mode)
         armed = bool(msg.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
-        self._update(mode=mode, armed=armed, heartbeat_time_s=now, link_ok=True)
+        # events first, then the state change that wakes waiters
         if not old.link_ok:
             log.warning("vehicle %d: heartbeat back", self.system_id)
             self._emit("link_restored", f"heartbeat of vehicle {self.system_id} is back")
-            self.request_streams()  # an autopilot that rebooted forgot our rates
         if old.mode and old.mode != mode:
             self._emit("mode", mode, old=old.mode, new=mode)
         if old.armed != armed:
             self._emit("armed" if armed else "disarmed")
-            if not armed:
-                self._stop_setpoints()
+        self._update(mode=mode, armed=armed, heartbeat_time_s=now, link_ok=True)
+        if not old.link_ok:
+            self.request_streams()  # an autopilot that rebooted forgot our rates
+        if old.armed and not armed:
+            self._stop_setpoints()
 
     def _check_heartbeat(self, now_mono: float, timeout_s: float) -> None:
         if self._state.link_ok and now_mono - self._hb_mono > timeout_s:
-            self._update(link_ok=False)
             log.warning("vehicle %d: no heartbeat for %.1f s", self.system_id, now_mono - self._hb_mono)
             self._emit("link_lost", f"no HEARTBEAT from vehicle {self.system_id} for "
                        f"{now_mono - self._hb_mono:.1f} s")
+            self._update(link_ok=False)
 
     def _rx_global_position_int(self, msg, now: float, t_mono: float) -> None:
         pos = Position(msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0, msg.relative_alt / 1000.0, now)
