@@ -62,23 +62,41 @@ def locate_tiles(image, field: TagField, camera: Camera, *, prior: AttitudePrior
     ground = field.tile_points_m(index[known])
     uv_raw = det.tiles_px[known]
     uv = ideal_pixels(camera, uv_raw.reshape(-1, 2)).reshape(uv_raw.shape)
-    keep = consistent_tags(ground, uv, field.spacing_m, field.geometry.pitch_m, min_support=min_tags)
-    if keep.sum() < min_tags:
-        raise EstimationError(f"{int(known.sum())} decoded tags but only {int(keep.sum())} agree with the "
-                              f"field layout; need {min_tags}")
+    keep = consistent_tags(ground, uv, field.spacing_m, field.geometry.pitch_m, min_support=min_tags,
+                           check_tiles=False)
     blur = det.motion_blur_px
-    sizes = det.tile_size_px[known][keep]
-    sigma = np.repeat(tile_pixel_sigma(sizes, blur), ground.shape[1])
-    g_pts, uv_pts = ground[keep].reshape(-1, 2), uv[keep].reshape(-1, 2)
-    # A first, one-step pose is close enough to predict tiles; the final solve converges.
-    sol = solve_pose(g_pts, uv_pts, camera.K, prior=prior, mount=mount, sigma_px=sigma, iterations=1)
-    if densify and sol.rms_px <= 3.0:
-        extra_g, extra_uv, extra_size = _guided_tiles(det, field, camera, sol.state, mount)
-        if len(extra_g):
-            g_pts = np.concatenate((g_pts, extra_g))
-            uv_pts = np.concatenate((uv_pts, extra_uv))
-            sigma = np.concatenate((sigma, tile_pixel_sigma(extra_size, blur)))
-    sol = solve_pose(g_pts, uv_pts, camera.K, prior=prior, mount=mount, sigma_px=sigma, initial=sol)
+    sizes_all = det.tile_size_px[known]
+    # Per-tag tolerance on the pose residual: a quarter of the tile pitch, in pixels. A tag
+    # read in the wrong orientation is off by a whole pitch and drops out here.
+    tol_px = 0.25 * field.geometry.pitch_m / field.geometry.tile_m * sizes_all
+    n_tiles = ground.shape[1]
+    for _ in range(3):
+        if keep.sum() < min_tags:
+            raise EstimationError(f"{int(known.sum())} decoded tags but only {int(keep.sum())} agree with the "
+                                  f"field layout; need {min_tags}")
+        sigma = np.repeat(tile_pixel_sigma(sizes_all[keep], blur), n_tiles)
+        g_pts, uv_pts = ground[keep].reshape(-1, 2), uv[keep].reshape(-1, 2)
+        # The planar (IPPE) pose is close enough to predict tiles; the final solve converges.
+        sol = solve_pose(g_pts, uv_pts, camera.K, prior=prior, mount=mount, sigma_px=sigma, iterations=0)
+        if densify and sol.rms_px <= 3.0:
+            extra_g, extra_uv, extra_size = _guided_tiles(det, field, camera, sol.state, mount)
+            if len(extra_g):
+                g_pts = np.concatenate((g_pts, extra_g))
+                uv_pts = np.concatenate((uv_pts, extra_uv))
+                sigma = np.concatenate((sigma, tile_pixel_sigma(extra_size, blur)))
+        sol = solve_pose(g_pts, uv_pts, camera.K, prior=prior, mount=mount, sigma_px=sigma, initial=sol)
+        n_tag_pts = int(keep.sum()) * n_tiles
+        resid = np.linalg.norm(_project(sol.state, np.concatenate((g_pts[:n_tag_pts], np.zeros((n_tag_pts, 1))),
+                                                                  axis=1), camera.K, mount)
+                               - uv_pts[:n_tag_pts], axis=1).reshape(-1, n_tiles).max(axis=1)
+        bad = resid > tol_px[keep]
+        if not bad.any():
+            break
+        idx = np.flatnonzero(keep)
+        keep = keep.copy()
+        keep[idx[bad]] = False
+    else:
+        raise EstimationError("tag residuals did not settle: the decoded tags disagree with the layout")
     if sol.rms_px > 3.0:
         raise EstimationError(f"tag points fit the pose with {sol.rms_px:.1f} px RMS; expected < 3 px")
     return make_fix(sol, int(keep.sum()), n_decoded - int(keep.sum()), blur, BLUR_FLAG_PX,

@@ -211,6 +211,8 @@ def solve_pose(ground_xy: np.ndarray, uv: np.ndarray, k: np.ndarray, *,
         if (abs(_wrap(other[5] - prior.roll_deg)) < 3 * prior.sigma_deg
                 and abs(other[4] - prior.pitch_deg) < 3 * prior.sigma_deg):
             flags.append("ambiguous")   # the IMU cannot separate the two either
+    if iterations == 0:   # the chosen planar solution alone (e.g. to predict where tiles fall)
+        return PoseSolution(state, np.full((6, 6), np.nan), float(errs[pick]), ambiguity, tuple(flags))
     return _refine(state, ground, uv, k, mount, sig, prior, iterations, ambiguity, flags)
 
 
@@ -219,17 +221,20 @@ def _refine(state, ground, uv, k, mount, sig, prior, iterations, ambiguity, flag
     final Jacobian, scaled by the fit's reduced chi-square when that exceeds 1."""
     w = 1.0 / sig
     # IPPE's answer is already near the optimum: a few Gauss-Newton steps add the prior.
-    for _ in range(iterations):
+    converged = False
+    for _ in range(max(iterations, 1)):
         r0, jac = _residuals(state, ground, uv, k, mount, w, prior)
         if jac is None:
             raise EstimationError("pose refinement left the floor points behind the camera")
         dx, *_ = np.linalg.lstsq(jac, -r0, rcond=None)
         state = state + dx
         if np.all(np.abs(dx[:3]) < 1e-4) and np.all(np.abs(dx[3:]) < 1e-3):   # 0.1 mm, 0.001 deg
+            converged = True   # the last Jacobian and residuals describe the solution
             break
-    r0, jac = _residuals(state, ground, uv, k, mount, w, prior)
-    if jac is None:
-        raise EstimationError("pose refinement left the floor points behind the camera")
+    if not converged:
+        r0, jac = _residuals(state, ground, uv, k, mount, w, prior)
+        if jac is None:
+            raise EstimationError("pose refinement left the floor points behind the camera")
     res = r0[:2 * len(uv)].reshape(-1, 2) / w[:, None]
     rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
     dof = max(2 * len(uv) - 6, 1)

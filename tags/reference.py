@@ -66,12 +66,14 @@ def homography_lsq(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
 
 
 def consistent_tags(ground_xy: np.ndarray, image_uv: np.ndarray, spacing_m: float, pitch_m: float,
-                    *, min_support: int = 2, max_hypotheses: int = 16) -> np.ndarray:
+                    *, min_support: int = 2, max_hypotheses: int = 16, check_tiles: bool = True) -> np.ndarray:
     """Mask ``(T,)`` of tags consistent with the layout.
 
     ``ground_xy`` ``(T, n, 2)`` field positions of each tag's tiles (metres) implied by
     its decoded value; ``image_uv`` ``(T, n, 2)`` the tiles' ideal (undistorted) pixels.
-    A proposal must explain at least ``min_support`` tags (itself included).
+    A proposal must explain at least ``min_support`` tags (itself included). With
+    ``check_tiles`` a least-squares homography over the voters then checks every tile (a
+    caller that fits a pose next can do that check on the pose residuals instead).
     """
     t = len(ground_xy)
     keep = np.zeros(t, bool)
@@ -95,7 +97,7 @@ def consistent_tags(ground_xy: np.ndarray, image_uv: np.ndarray, spacing_m: floa
     support = inlier.sum(axis=1)
     best = int(np.argmax(support + 1e-6 * -np.nan_to_num(err, nan=1e9).sum(axis=1)))
     keep = inlier[best]
-    for _ in range(2):
+    for _ in range(2 if check_tiles else 0):
         before = keep
         if keep.sum() < min_support:
             return np.zeros(t, bool)
