@@ -164,6 +164,7 @@ class SimVehicle:
         self._takeoff_alt_up_m: float | None = None
         self._hold_enu_m: np.ndarray | None = None
         self._rtl_phase = ""
+        self._rtl_up_m: float | None = None
         self._land_xy: np.ndarray | None = None
         self.speed_override_mps: float | None = None
         self.mission: list[MissionItem] = []
@@ -228,6 +229,10 @@ class SimVehicle:
 
     def land_speed_mps(self) -> float:
         return self.param("MPC_LAND_SPEED") if self.flavour == "px4" else self.param("LAND_SPEED") / 100.0
+
+    def _descent_speed_mps(self) -> float:
+        """Landing descent: the auto descent speed high up, the landing speed in the last 10 m."""
+        return self.climb_speeds_mps()[1] if self.altitude_rel_m() > 10.0 else self.land_speed_mps()
 
     def acceptance_radius_m(self) -> float:
         return self.param("NAV_ACC_RAD") if self.flavour == "px4" else self.param("WPNAV_RADIUS") / 100.0
@@ -458,6 +463,7 @@ class SimVehicle:
         self.target_pos_enu_m = None
         self.target_vel_enu_mps = None
         self._rtl_phase = "climb"
+        self._rtl_up_m = None
         self._land_xy = self.est_pos_enu_m[:2].copy()
         if name == "AUTO.TAKEOFF" and self._takeoff_alt_up_m is None:
             self._takeoff_alt_up_m = self.home_enu_m[2] + self.param("MIS_TAKEOFF_ALT")
@@ -541,24 +547,23 @@ class SimVehicle:
             return np.zeros(3)
         if b == "land" or (b == "rtl" and self._rtl_phase == "land"):
             v = self._pos_control(np.array([*self._land_xy, est[2]]))
-            v[2] = -self.land_speed_mps() if self.altitude_rel_m() > 5.0 or self.flavour == "px4" \
-                else -max(0.3, min(self.land_speed_mps(), 0.5))
+            v[2] = -self._descent_speed_mps()
             return v
         if b == "rtl":
             rtl_up = self.home_enu_m[2] + (self.param("RTL_RETURN_ALT") if self.flavour == "px4"
                                            else self.param("RTL_ALT") / 100.0)
             cruise_up = max(rtl_up, est[2])
             if self._rtl_phase == "climb":
-                if est[2] >= rtl_up - 0.5 or est[2] > rtl_up:
+                if est[2] >= rtl_up - 0.5:
                     self._rtl_phase = "return"
-                    self._rtl_up = cruise_up
+                    self._rtl_up_m = cruise_up
                 return self._pos_control(np.array([*est[:2], rtl_up]))
-            target = np.array([*self.home_enu_m[:2], getattr(self, "_rtl_up", cruise_up)])
+            target = np.array([*self.home_enu_m[:2], self._rtl_up_m or cruise_up])
             if np.hypot(*(target[:2] - est[:2])) < 1.0:
                 self._rtl_phase = "land"
                 self._land_xy = self.home_enu_m[:2].copy()
             return self._pos_control(target)
-        if b == "takeoff" or self._takeoff_alt_up_m is not None and b == "guided":
+        if b == "takeoff" or (self._takeoff_alt_up_m is not None and b == "guided"):
             goal = self._takeoff_alt_up_m if self._takeoff_alt_up_m is not None else est[2]
             xy = self._hold_enu_m[:2] if self._hold_enu_m is not None else est[:2]
             if est[2] >= goal - 0.3:
@@ -636,7 +641,7 @@ class SimVehicle:
             return self._pos_control(target)
         if item.command == NAV_LAND:
             v = self._pos_control(np.array([*self._land_xy, est[2]]))
-            v[2] = -self.land_speed_mps()
+            v[2] = -self._descent_speed_mps()
             return v
         if item.command == NAV_RTL:
             self._enter_mode("AUTO.RTL" if self.flavour == "px4" else "RTL")
