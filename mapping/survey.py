@@ -67,6 +67,8 @@ class SurveyPlan:
     notes: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        if self.kind not in ("stations", "lines"):
+            raise InputError(f"SurveyPlan.kind must be 'stations' or 'lines', got {self.kind!r}")
         for name in ("waypoints_en_m", "area_en_m", "trigger_on", "v_en_m", "w_en_m"):
             arr = getattr(self, name)
             if arr is not None:
