@@ -26,10 +26,11 @@ def motion_blur_px(grey: np.ndarray) -> float:
 def motion_blur_half_res(grey_half: np.ndarray) -> float:
     """:func:`motion_blur_px` of an image already reduced 2x (2x2 box); result in
     full-resolution pixels."""
-    g = grey_half.astype(np.float32)
-    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
-    jxx, jyy, jxy = float(cv2.mean(gx * gx)[0]), float(cv2.mean(gy * gy)[0]), float(cv2.mean(gx * gy)[0])
+    # Sobel derivatives (int16) and the structure tensor as three dot products.
+    dx, dy = cv2.spatialGradient(np.ascontiguousarray(grey_half, dtype=np.uint8))
+    fx, fy = dx.astype(np.float32).ravel(), dy.astype(np.float32).ravel()
+    n = max(fx.size, 1)
+    jxx, jyy, jxy = float(fx @ fx) / n, float(fy @ fy) / n, float(fx @ fy) / n
     tr, det = jxx + jyy, jxx * jyy - jxy * jxy
     disc = max(tr * tr / 4.0 - det, 0.0) ** 0.5
     lmax, lmin = tr / 2.0 + disc, tr / 2.0 - disc

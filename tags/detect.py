@@ -63,6 +63,31 @@ def _white_level(bright: np.ndarray, tile_px_max: float) -> np.ndarray:
     return cv2.resize(white, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
+_LUT_STEPS = 48   # reflectance quantisation of the colour table: 1/47 ~ 5 DN per channel
+
+
+@functools.lru_cache(maxsize=8)
+def _colour_table(palette_bytes: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest palette colour (CIELAB) and its margin for every quantised reflectance;
+    keyed by the palette's float64 bytes so different palettes never share a table."""
+    palette_lab = srgb_to_lab(np.frombuffer(palette_bytes, dtype=np.float64).reshape(-1, 3))
+    q = np.linspace(0.0, 1.0, _LUT_STEPS)
+    grid = np.stack(np.meshgrid(q, q, q, indexing="ij"), axis=-1).reshape(-1, 3)
+    dist = np.linalg.norm(srgb_to_lab(grid)[:, None, :] - palette_lab[None], axis=2)
+    order = np.argsort(dist, axis=1)
+    rows = np.arange(len(grid))
+    margin = dist[rows, order[:, 1]] - dist[rows, order[:, 0]]
+    return order[:, 0].astype(np.int64), margin.astype(np.float32)
+
+
+def _classify(codec: TileCodec, reflectance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Palette index ``(K,)`` and CIE76 margin ``(K,)`` of reflectances ``(K, 3)`` in [0, 1]."""
+    digit, margin = _colour_table(np.ascontiguousarray(codec.palette_rgb, dtype=np.float64).tobytes())
+    q = np.clip(np.rint(reflectance * (_LUT_STEPS - 1)), 0, _LUT_STEPS - 1).astype(np.int64)
+    flat = (q[:, 0] * _LUT_STEPS + q[:, 1]) * _LUT_STEPS + q[:, 2]
+    return digit[flat], margin[flat].astype(float)
+
+
 @functools.lru_cache(maxsize=32)
 def _layout_links(geometry: TagGeometry) -> float:
     """Largest nearest-neighbour tile distance of the layout, in tile sides."""
@@ -107,11 +132,7 @@ def detect_tiles(image, codec: TileCodec, geometry: TagGeometry, *, ink_threshol
 
     # Colour at the centroid (the half-res pixel: a 2x2 full-res mean), relative to the local white.
     refl = small[si[:, 1], si[:, 0]].astype(float) / np.maximum(white_at, 1.0)[:, None]
-    lab = srgb_to_lab(np.clip(refl, 0.0, 1.0))
-    dist = np.linalg.norm(lab[:, None, :] - codec.palette_lab[None], axis=2)
-    order = np.argsort(dist, axis=1)
-    digit = order[:, 0]
-    margin = np.take_along_axis(dist, order[:, 1:2], 1)[:, 0] - np.take_along_axis(dist, order[:, :1], 1)[:, 0]
+    digit, margin = _classify(codec, refl)
 
     # Group tiles: link pairs closer than the layout's loosest neighbour distance allows.
     link = 1.2 * _layout_links(geometry)
