@@ -315,6 +315,16 @@ class VehicleServer:
                                                int(round(alt * 1000)), *ned, [1.0, 0.0, 0.0, 0.0],
                                                0.0, 0.0, 0.0, int(v.t_s * 1e6))
 
+    def _msg_autopilot_version(self):
+        caps = (M.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT | M.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+                | M.MAV_PROTOCOL_CAPABILITY_MISSION_INT | M.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+                | M.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
+                | M.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED | M.MAV_PROTOCOL_CAPABILITY_MAVLINK2)
+        # version word: major.minor.patch.type, type 255 = official release; skyfix-sim 0.1.0
+        return M.MAVLink_autopilot_version_message(caps, (0 << 24) | (1 << 16) | (0 << 8) | 255, 0, 0, 0,
+                                                   [0] * 8, [0] * 8, [0] * 8, 0, 0,
+                                                   self.system_id, [0] * 18)
+
     def _msg_gps_global_origin(self):
         o = self.vehicle.ekf_origin
         if o is None:
@@ -390,8 +400,11 @@ class VehicleServer:
                                       else 0.0 if interval_us < 0 else interval_us / 1e6)
             self._next_due_s[name] = v.t_s
             return ACCEPTED
-        if cmd in (M.MAV_CMD_REQUEST_MESSAGE, M.MAV_CMD_GET_HOME_POSITION):
-            msg_id = 242 if cmd == M.MAV_CMD_GET_HOME_POSITION else int(p[0])
+        if cmd in (M.MAV_CMD_REQUEST_MESSAGE, M.MAV_CMD_GET_HOME_POSITION,
+                   M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
+            msg_id = {M.MAV_CMD_GET_HOME_POSITION: M.MAVLINK_MSG_ID_HOME_POSITION,
+                      M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: M.MAVLINK_MSG_ID_AUTOPILOT_VERSION
+                      }.get(cmd, int(p[0]))
             name = _MSG_NAME_BY_ID.get(msg_id, "")
             if name == "HOME_POSITION" and not v.home_set:
                 raise Refusal(M.MAV_RESULT_FAILED, "Home position not set")

@@ -39,6 +39,11 @@ def test_plain_pymavlink_flies_the_simulator(flavour, udp_port):
             assert hb.autopilot == (mavutil.mavlink.MAV_AUTOPILOT_PX4 if flavour == "px4"
                                     else mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
             pos0 = _wait(master, "GLOBAL_POSITION_INT")
+            master.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 0,
+                                         1, 0, 0, 0, 0, 0, 0)
+            caps = _wait(master, "AUTOPILOT_VERSION").capabilities
+            assert caps & mavutil.mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+            assert caps & mavutil.mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
             if flavour == "ardupilot":
                 master.set_mode("GUIDED")
                 assert _ack(master, mavutil.mavlink.MAV_CMD_DO_SET_MODE) == 0
