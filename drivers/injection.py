@@ -39,7 +39,7 @@ GPS_EPOCH_UNIX_S = 315964800.0  # 1980-01-06T00:00:00Z
 GPS_LEAP_SECONDS = 18
 _WEEK_S = 7 * 86400
 
-__all__ = ["GeoFix", "PositionInjector", "check_settings", "gps_input_message", "gps_week_ms",
+__all__ = ["PositionInjector", "check_settings", "gps_input_message", "gps_week_ms",
            "set_origin", "vision_message"]
 
 

@@ -97,7 +97,9 @@ class SafetyGate:
     """Envelope checked for every setpoint and every telemetry position.
 
     ``action`` is what the vehicle is told to do on a violation seen in telemetry:
-    ``"hold"`` (LOITER / AUTO.LOITER), ``"rtl"`` or ``"land"``.
+    ``"hold"`` (LOITER / AUTO.LOITER), ``"rtl"`` or ``"land"``. One action per excursion:
+    the vehicle is not commanded again until telemetry shows it back inside, and until
+    then :meth:`Vehicle.velocity` refuses setpoints (a ``goto`` inside is allowed).
     """
 
     fence: Geofence | None = None

@@ -688,12 +688,3 @@ class Vehicle:
                    timeout_s: float = 1.0, retries: int = 3) -> None:
         """Set the EKF origin (SET_GPS_GLOBAL_ORIGIN) and wait for GPS_GLOBAL_ORIGIN to confirm."""
         injection.set_origin(self, lat_deg, lon_deg, alt_amsl_m, timeout_s=timeout_s, retries=retries)
-
-    def require_violation_free(self) -> None:
-        """Raise SafetyViolation when the latest telemetry is outside the safety envelope."""
-        st = self._state
-        if self.safety is not None and st.position is not None:
-            why = self.safety.violation(st.position.lat_deg, st.position.lon_deg, st.position.alt_rel_m,
-                                        st.velocity.speed_mps if st.velocity else 0.0)
-            if why:
-                raise SafetyViolation(f"vehicle {self.system_id}: {why}")
