@@ -162,3 +162,20 @@ def test_wind_gusts_statistics():
     wg = WindField(grid=grid)
     assert wg.at(np.array([50.0, 50.0, 0.0]))[:2] == pytest.approx([2.0, 2.0])
     assert wg.at(np.array([500.0, 0.0, 0.0]))[:2] == pytest.approx([4.0, 0.0])  # clamped at the edge
+
+
+def test_simulator_runs_faster_than_real_time_and_offline():
+    import time
+
+    from skyfix.datasets.sim import Simulator, SimulatorConfig
+
+    with Simulator(SimulatorConfig(vehicles=2, speed=8.0)) as sim:
+        t0_wall, t0_sim = time.monotonic(), sim.time_s
+        time.sleep(1.0)
+        ratio = (sim.time_s - t0_sim) / (time.monotonic() - t0_wall)
+    # 8x asked; a starved loop slows down rather than skipping physics, hence only a lower bound
+    assert 4.0 < ratio < 8.5
+    offline = Simulator(SimulatorConfig(vehicles=1, dt_s=0.02))
+    offline.run_steps(500)
+    assert offline.time_s == pytest.approx(10.0)
+    offline.stop()
