@@ -126,7 +126,8 @@ class Simulator:
             self.vehicle(index).gps.faults.clear()
 
     def truth(self, index: int = 0) -> dict[str, float]:
-        """Ground truth of vehicle ``index``: lat/lon/alt (AMSL = ellipsoidal here) and ENU."""
+        """Ground truth of vehicle ``index``: lat/lon/alt (AMSL = ellipsoidal here), world ENU
+        position and velocity, attitude (degrees), and the autopilot's horizontal estimate error."""
         with self.lock:
             v = self.vehicle(index)
             lat, lon, alt = v.geodetic(v.pos_enu_m)
@@ -135,7 +136,10 @@ class Simulator:
             return {"lat_deg": lat, "lon_deg": lon, "alt_m": alt, "east_m": e, "north_m": n, "up_m": u,
                     "alt_rel_m": u - float(v.home_enu_m[2]), "time_s": v.t_s,
                     "est_error_m": float(np.hypot(*(est[:2] - v.pos_enu_m[:2]))),
-                    "speed_mps": float(np.linalg.norm(v.vel_enu_mps))}
+                    "speed_mps": float(np.linalg.norm(v.vel_enu_mps)),
+                    "vel_east_mps": float(v.vel_enu_mps[0]), "vel_north_mps": float(v.vel_enu_mps[1]),
+                    "vel_up_mps": float(v.vel_enu_mps[2]), "roll_deg": v.roll_deg,
+                    "pitch_deg": v.pitch_deg, "yaw_deg": v.yaw_deg}
 
     def set_param(self, index: int, name: str, value: float) -> None:
         with self.lock:
