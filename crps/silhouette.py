@@ -165,7 +165,8 @@ class SilhouetteDetector:
             return None
         # Support: the above-noise pixels connected to the seed, grown by the blur tails.
         # Summing moments over the support only keeps far-away noise out of them.
-        above = ((sign * diff) > 2.5 * ring_rms) & ~ring
+        peak = float((sign * diff)[seed].max())
+        above = ((sign * diff) > max(2.5 * ring_rms, 0.03 * peak)) & ~ring
         _, labels = cv2.connectedComponents(above.view(np.uint8), connectivity=8)
         ids = np.unique(labels[seed & above])
         if ids.size == 0:

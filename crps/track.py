@@ -1,11 +1,14 @@
 """Follow one target across frames: predict, search a region of interest, gate, smooth size.
 
-The tracker keeps an alpha-beta filter on the centroid (pixels, pixels/s) and on the
-logarithm of the apparent size. Each frame it searches only a window around the
-prediction (fast), accepts the detection nearest the prediction inside the gate, and
-falls back to a full-frame search after ``max_misses`` frames without one. Smoothing
-the size averages pixel noise over frames; it cannot remove a bias that stays fixed
-while the target keeps its heading.
+The tracker keeps an alpha-beta filter on the centroid (pixels, pixels/s) and a
+two-state Kalman filter (value, rate) on the logarithm of the apparent size, whose
+measurement noise is each detection's own relative size sigma: far, noisy targets are
+averaged over many frames, near ones follow quickly. Each frame it searches only a
+window around the prediction (fast), accepts the detection nearest the prediction inside
+the gate, and falls back to a full-frame search after ``max_misses`` frames without one.
+The returned detection carries the filtered size and its filtered sigma; averaging
+cannot remove a bias that stays fixed while the target keeps its heading (the drone
+model's yaw spread), which :func:`~skyfix.crps.observe` adds separately.
 """
 
 from __future__ import annotations
@@ -30,13 +33,16 @@ class TrackerConfig:
     roi_scale: float = 2.5  # search window half-size = roi_scale * extent + gate_px
     alpha: float = 0.6  # position gain of the alpha-beta filter
     beta: float = 0.2  # velocity gain
-    size_alpha: float = 0.25  # gain on log apparent size (lower = smoother)
+    size_accel_sigma: float = 0.1  # random walk of the log-size rate, 1/s^2 (range-rate changes)
+    size_rate_sigma: float = 0.2  # prior 1-sigma of the log-size rate, 1/s (closing speed / range)
     max_misses: int = 5  # consecutive misses before the track is dropped
 
     def __post_init__(self) -> None:
         for name in ("gate_px", "roi_scale"):
             validate.positive_scalar(f"TrackerConfig.{name}", getattr(self, name))
-        for name in ("alpha", "beta", "size_alpha"):
+        validate.positive_scalar("TrackerConfig.size_accel_sigma", self.size_accel_sigma)
+        validate.positive_scalar("TrackerConfig.size_rate_sigma", self.size_rate_sigma)
+        for name in ("alpha", "beta"):
             value = validate.finite_scalar(f"TrackerConfig.{name}", getattr(self, name))
             if not 0.0 < value <= 1.0:
                 raise InputError(f"TrackerConfig.{name} must be in (0, 1], got {value}")
@@ -58,8 +64,8 @@ class Tracker:
         """Forget the track; the next frame is searched in full."""
         self._uv: np.ndarray | None = None
         self._vel = np.zeros(2)
-        self._log_size = 0.0
-        self._log_size_rate = 0.0
+        self._size = np.zeros(2)  # log extent, its rate (1/s)
+        self._size_cov = np.eye(2)
         self._time_s = 0.0
         self.misses = 0
 
@@ -74,7 +80,7 @@ class Tracker:
             return None
         dt = time_s - self._time_s
         pred = self._uv + self._vel * dt
-        extent = math.exp(self._log_size + self._log_size_rate * dt)
+        extent = math.exp(self._size[0] + self._size[1] * dt)
         half = self.config.roi_scale * extent + self.config.gate_px * (1 + self.misses)
         u0, v0 = int(pred[0] - half), int(pred[1] - half)
         u1, v1 = int(math.ceil(pred[0] + half)) + 1, int(math.ceil(pred[1] + half)) + 1
@@ -99,8 +105,11 @@ class Tracker:
         if dt <= 0:
             raise InputError(f"time_s must increase from frame to frame: {t} after {self._time_s}")
         pred = self._uv + self._vel * dt
-        pred_log = self._log_size + self._log_size_rate * dt
-        gate = self.config.gate_px * (1 + self.misses) + math.exp(pred_log)
+        f = np.array([[1.0, dt], [0.0, 1.0]])
+        q = self.config.size_accel_sigma ** 2 * np.array([[dt ** 3 / 3, dt ** 2 / 2], [dt ** 2 / 2, dt]])
+        size_pred = f @ self._size
+        size_cov = f @ self._size_cov @ f.T + q
+        gate = self.config.gate_px * (1 + self.misses) + math.exp(size_pred[0])
         near = [d for d in found if np.linalg.norm(d.centroid_uv - pred) <= gate]
         if not near:
             self.misses += 1
@@ -112,25 +121,36 @@ class Tracker:
         resid = det.centroid_uv - pred
         self._uv = pred + cfg.alpha * resid
         self._vel = self._vel + cfg.beta * resid / dt
-        size_resid = math.log(max(det.extent_px, 1e-6)) - pred_log
-        self._log_size = pred_log + cfg.size_alpha * size_resid
-        self._log_size_rate = self._log_size_rate + 0.5 * cfg.size_alpha ** 2 * size_resid / dt
+        r = _size_sigma_rel(det) ** 2
+        gain = size_cov[:, 0] / (size_cov[0, 0] + r)
+        # Innovation on the second moment (extent^2), which the detector measures without
+        # bias, expressed relative to the prediction; the log of a noisy size is biased low.
+        innovation = 0.5 * ((det.extent_px / math.exp(size_pred[0])) ** 2 - 1.0)
+        self._size = size_pred + gain * innovation
+        self._size_cov = size_cov - np.outer(gain, size_cov[0, :])
         self._time_s = t
         self.misses = 0
-        return _with_size(det, math.exp(self._log_size), t)
+        return _with_size(det, math.exp(self._size[0]), math.sqrt(self._size_cov[0, 0]), t)
 
     def _start(self, det: Detection, t: float) -> None:
         self._uv = det.centroid_uv.copy()
         self._vel = np.zeros(2)
-        self._log_size = math.log(max(det.extent_px, 1e-6))
-        self._log_size_rate = 0.0
+        self._size = np.array([math.log(max(det.extent_px, 1e-6)), 0.0])
+        self._size_cov = np.diag([_size_sigma_rel(det) ** 2, self.config.size_rate_sigma ** 2])
         self._time_s = t
         self.misses = 0
 
 
-def _with_size(det: Detection, extent_px: float, time_s: float) -> Detection:
-    """``det`` rescaled so that its extent is ``extent_px`` (centroid untouched)."""
+def _size_sigma_rel(det: Detection) -> float:
+    """Relative 1-sigma of a detection's apparent size (floored at 0.1 %)."""
+    rel = det.moments_sigma_rel if det.kind == "silhouette" else det.size_sigma_px / det.size_px
+    return max(float(rel), 1e-3)
+
+
+def _with_size(det: Detection, extent_px: float, sigma_rel: float, time_s: float) -> Detection:
+    """``det`` rescaled so that its extent is ``extent_px`` with relative sigma ``sigma_rel``."""
     factor = extent_px / det.extent_px
     if det.kind == "silhouette":
-        return replace(det, moments_px2=det.moments_px2 * factor ** 2, time_s=time_s)
-    return replace(det, size_px=det.size_px * factor, size_sigma_px=det.size_sigma_px * factor, time_s=time_s)
+        return replace(det, moments_px2=det.moments_px2 * factor ** 2, moments_sigma_rel=sigma_rel, time_s=time_s)
+    size = det.size_px * factor
+    return replace(det, size_px=size, size_sigma_px=size * sigma_rel, time_s=time_s)
