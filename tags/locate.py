@@ -85,18 +85,16 @@ def locate_tiles(image, field: TagField, camera: Camera, *, prior: AttitudePrior
                 uv_pts = np.concatenate((uv_pts, extra_uv))
                 sigma = np.concatenate((sigma, tile_pixel_sigma(extra_size, blur)))
         sol = solve_pose(g_pts, uv_pts, camera.K, prior=prior, mount=mount, sigma_px=sigma, initial=sol)
-        n_tag_pts = int(keep.sum()) * n_tiles
-        resid = np.linalg.norm(_project(sol.state, np.concatenate((g_pts[:n_tag_pts], np.zeros((n_tag_pts, 1))),
-                                                                  axis=1), camera.K, mount)
-                               - uv_pts[:n_tag_pts], axis=1).reshape(-1, n_tiles).max(axis=1)
-        bad = resid > tol_px[keep]
-        if not bad.any():
-            break
-        idx = np.flatnonzero(keep)
-        keep = keep.copy()
-        keep[idx[bad]] = False
-    else:
-        raise EstimationError("tag residuals did not settle: the decoded tags disagree with the layout")
+        # Every decoded tag is re-judged by the pose: far tags the single-tag vote missed
+        # come back, tags off by more than the tolerance (misreads) leave.
+        flat = ground.reshape(-1, 2)
+        proj = _project(sol.state, np.concatenate((flat, np.zeros((len(flat), 1))), axis=1), camera.K, mount)
+        with np.errstate(invalid="ignore"):
+            resid = np.linalg.norm(proj - uv.reshape(-1, 2), axis=1).reshape(-1, n_tiles).max(axis=1)
+            new_keep = resid < tol_px
+        if np.array_equal(new_keep, keep) or new_keep.sum() < min_tags:
+            break   # settled (or the pose would be left with too few tags: keep this one)
+        keep = new_keep
     if sol.rms_px > 3.0:
         raise EstimationError(f"tag points fit the pose with {sol.rms_px:.1f} px RMS; expected < 3 px")
     return make_fix(sol, int(keep.sum()), n_decoded - int(keep.sum()), blur, BLUR_FLAG_PX,
