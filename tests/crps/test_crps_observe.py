@@ -145,3 +145,16 @@ def test_bad_inputs():
         SilhouetteConfig(polarity="up")
     with pytest.raises(InputError, match="moments_px2"):
         Detection(np.zeros(2), np.eye(2), (0, 0, 1, 1), 1.0, "silhouette")
+
+
+def test_hexacopter_uses_its_own_shape_table():
+    helper, target = scene(20.0, 25.0, 12.0)
+    hexa = DroneModel.hex(0.8)
+    view = render_drone_view(CAM, helper, target, hexa, blur_sigma_px=BLUR, noise_sigma=0.005,
+                             rng=np.random.default_rng(6))
+    det = SilhouetteDetector()(view.image)[0]
+    right = observe(CAM, helper, det, 0.8, model=hexa, attitude_sigma_deg=0.0)
+    wrong = observe(CAM, helper, det, 0.8, model=DroneModel.quad(), attitude_sigma_deg=0.0)
+    assert right.range_m == pytest.approx(view.truth.range_m, rel=0.02)
+    # The hex silhouette spreads ~4 % more per unit span than the quad's at 25 deg.
+    assert abs(wrong.range_m / view.truth.range_m - 1.0) > abs(right.range_m / view.truth.range_m - 1.0)
