@@ -208,6 +208,7 @@ def detect_hotspots(frame: np.ndarray, *, threshold: float | None = None, palett
 
 
 _BLOCK_PX = 16
+_RING = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], np.uint8)  # the 8 neighbours of a pixel
 
 
 def _candidate_regions(mask: np.ndarray, min_area_px: int) -> list[tuple[int, int, int, int]]:
@@ -220,8 +221,12 @@ def _candidate_regions(mask: np.ndarray, min_area_px: int) -> list[tuple[int, in
     padded = mask
     if nbr * b != h or nbc * b != w:
         padded = cv2.copyMakeBorder(mask, 0, nbr * b - h, 0, nbc * b - w, cv2.BORDER_CONSTANT, value=0)
-    occupied = padded.reshape(nbr, b, nbc * b).max(axis=1).reshape(nbr, nbc, b).max(axis=2)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(occupied.astype(np.uint8), connectivity=8,
+    padded = np.ascontiguousarray(padded)
+    # Read the 0/1 mask 8 bytes at a time: a block is occupied when any of its words is non-zero.
+    words = b * padded.itemsize // 8
+    occupied = padded.view(np.uint64).reshape(nbr, b, nbc * words).max(axis=1)
+    occupied = (occupied.reshape(nbr, nbc, words) != 0).any(axis=2)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(occupied.view(np.uint8), connectivity=8,
                                                           ltype=cv2.CV_32S)
     regions = []
     for k in range(1, n):
@@ -246,8 +251,9 @@ def _measure(work: np.ndarray, labels: np.ndarray, stat: np.ndarray, k: int, thr
     a0, b0 = max(u0 - 1, 0), max(v0 - 1, 0)
     a1, b1 = min(u0 + w + 1, wid), min(v0 + h + 1, hgt)
     patch = work[b0:b1, a0:a1]
-    if patch.dtype == np.float64 or patch.dtype == np.float32:
-        patch = np.nan_to_num(patch.astype(np.float32), nan=float(thr))
+    if patch.dtype.kind == "f":
+        patch = patch.astype(np.float32)  # a copy: NaNs are patched in place below
+        cv2.patchNaNs(patch, float(thr))
     mine = np.zeros(patch.shape, bool)
     lr0, lc0 = b0 - r_off, a0 - c_off
     sub = labels[max(lr0, 0):b1 - r_off, max(lc0, 0):a1 - c_off] == k
@@ -263,10 +269,8 @@ def _measure(work: np.ndarray, labels: np.ndarray, stat: np.ndarray, k: int, thr
     v = b0 + m["m01"] / m["m00"]
     # Peak: a pixel's excess may be at most twice its hottest neighbour's, so a stuck
     # pixel on the edge of a fire cannot be its peak while a real peak stays intact.
-    ring = np.ones((3, 3), np.uint8)
-    ring[1, 1] = 0
     raw = patch.astype(np.float64)
-    neighbour = cv2.dilate(raw, ring)
+    neighbour = cv2.dilate(raw, _RING)
     peak = float(np.minimum(raw, 2.0 * neighbour - thr)[mine].max())
     return u, v, area, peak, (u0, v0, w, h)
 

@@ -19,10 +19,10 @@ H, W = 512, 640
 
 
 def blob_frame(u: float, v: float, *, peak_c: float = 300.0, sigma_px: float = 3.0, ambient_c: float = 20.0,
-               noise_c: float = 0.05, seed: int = 0) -> np.ndarray:
+               noise_c: float = 0.05, seed: int = 0, shape: tuple[int, int] = (H, W)) -> np.ndarray:
     """Float deg C frame with a Gaussian hotspot centred at (u, v) (OpenCV pixel centres)."""
     rng = np.random.default_rng(seed)
-    vv, uu = np.mgrid[0:H, 0:W]
+    vv, uu = np.mgrid[0:shape[0], 0:shape[1]]
     img = ambient_c + (peak_c - ambient_c) * np.exp(-((uu - u) ** 2 + (vv - v) ** 2) / (2 * sigma_px ** 2))
     return (img + rng.normal(0, noise_c, img.shape)).astype(np.float32)
 
@@ -140,6 +140,16 @@ def test_nan_pixels_are_no_data():
     img[200, 301] = np.nan  # inside the fire
     spots = detect_hotspots(img)
     assert len(spots) == 1 and spots[0].u_px == pytest.approx(300.0, abs=0.1)
+
+
+@pytest.mark.parametrize(("h", "w"), [(500, 630), (37, 41), (512, 644)])
+def test_any_frame_size(h, w):
+    big = blob_frame(w - 6.0, h - 7.5, sigma_px=2.0, shape=(h + 3, w + 5))
+    for img in (big[:h, :w], np.ascontiguousarray(big[:h, :w])):  # a view (not contiguous) and a copy
+        spots = detect_hotspots(img)
+        assert len(spots) == 1
+        assert spots[0].u_px == pytest.approx(w - 6.0, abs=0.01)
+        assert spots[0].v_px == pytest.approx(h - 7.5, abs=0.01)
 
 
 def test_two_fires_sorted_by_area():
