@@ -9,6 +9,7 @@ WGS84, with the scene's ground height).
 
 from __future__ import annotations
 
+import csv
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -97,11 +98,10 @@ def write_flight(out_dir: str | Path, scene: ThermalScene, camera: Camera, fligh
         p = ff.pose
         rows.append([name, ff.time_s, p.lat, p.lon, p.alt_m, p.roll_deg, p.pitch_deg, p.yaw_deg,
                      p.gimbal_pitch_deg, p.gimbal_roll_deg, p.gimbal_yaw_deg, int(p.stabilized)])
-    with open(out / "poses.csv", "w") as fh:
-        fh.write(",".join(POSE_COLUMNS) + "\n")
-        for r in rows:
-            fh.write(",".join(str(x) if isinstance(x, str) else repr(float(x)) if not isinstance(x, int) else str(x)
-                              for x in r) + "\n")
+    with open(out / "poses.csv", "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(POSE_COLUMNS)
+        writer.writerows(rows)  # floats at full precision (shortest round-trip repr)
     (out / "camera.json").write_text(json.dumps(camera_to_json(camera), indent=2))
     truth = {"ground_alt_m": scene.ground_alt_m, "kelvin_per_count": sensor.kelvin_per_count,
              "output": output, "palette": palette, "fires": []}
