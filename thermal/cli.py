@@ -22,6 +22,36 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
+DESCRIPTION = """\
+Fire hotspots in thermal frames: detect, geolocate, track, simulate.
+
+  skyfix thermal detect FRAMES... --pose CSV --camera JSON --ground-alt M -o OUT.geojson
+      every hotspot of every frame, geolocated on its own (no fusion)
+  skyfix thermal locate FRAMES_DIR --poses CSV --camera JSON --ground-alt M -o fires.geojson
+      a whole flight through the fire tracker: fused fires with sigma
+  skyfix thermal simulate OUT_DIR
+      a synthetic flight (frames, poses.csv, camera.json, truth.json) that locate reads
+
+Heights are metres above the WGS84 ellipsoid unless an option says AMSL. Every command
+writes GeoJSON plus PNGs to look at (annotated frame, map of fires and track).
+"""
+
+POSE_CSV_HELP = """\
+pose CSV columns (header row, one row per frame):
+  frame                 frame file name (looked up in the frames given / FRAMES_DIR)
+  time_s                frame time, seconds
+  lat_deg, lon_deg      WGS84 position
+  alt_ellipsoid_m       height above the WGS84 ellipsoid
+    or alt_amsl_m       height above mean sea level (then --geoid-undulation is required)
+  roll_deg, pitch_deg, yaw_deg   vehicle attitude (yaw 0 = north, clockwise)
+  gimbal_pitch_deg      camera pitch (-90 = straight down)
+  gimbal_yaw_body_deg   camera yaw relative to the vehicle nose
+    or gimbal_yaw_north_deg      camera yaw relative to north
+  stabilized            1 = gimbal holds the horizon, 0 = hard-mounted camera
+  gimbal_roll_deg       optional
+Ambiguous names (alt, alt_m, gimbal_yaw...) are refused.
+"""
+
 _GROUND_HELP = ("ground height in metres above the WGS84 ellipsoid (not AMSL: use --ground-amsl "
                 "with --geoid-undulation)")
 
@@ -62,13 +92,15 @@ def _add_frame_args(p: argparse.ArgumentParser) -> None:
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``skyfix thermal`` and its subcommands."""
     top = subparsers.add_parser("thermal", help="fire hotspots: detect, geolocate, track, simulate",
-                                description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                                description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = top.add_subparsers(dest="thermal_command", metavar="SUBCOMMAND", title="subcommands")
     top.set_defaults(func=lambda args: (top.print_help(), 2)[1])
 
     p = sub.add_parser("detect", help="geolocate every hotspot of each frame on its own",
                        description="Detect hotspots in each frame and geolocate each one on its own "
-                                   "(no fusion). Frames are matched to pose rows by file name.")
+                                   "(no fusion). Frames are matched to pose rows by file name. Writes "
+                                   "OUT.geojson and OUT.png (last frame annotated).",
+                       epilog=POSE_CSV_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("frames", nargs="+", type=Path, metavar="FRAME",
                    help="frames: 16-bit PNG/TIFF counts, 8-bit PNG (grey or palette RGB), .npy deg C")
     p.add_argument("--pose", type=Path, required=True, help="pose CSV (see skyfix.thermal.io for columns)")
@@ -80,7 +112,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = sub.add_parser("locate", help="track and fuse fires over a whole flight",
                        description="Run a flight through the fire tracker: detections are associated "
                                    "across frames and fused; writes fires as GeoJSON, an annotated PNG of "
-                                   "the last frame and a map PNG of fires and camera track.")
+                                   "the last frame and a map PNG of fires and camera track.",
+                       epilog=POSE_CSV_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("frames_dir", type=Path, metavar="FRAMES_DIR", help="directory holding the frames")
     p.add_argument("--poses", type=Path, required=True, help="pose CSV, one row per frame")
     p.add_argument("-o", "--output", type=Path, required=True, help="output GeoJSON of fires")
