@@ -62,31 +62,24 @@ def locate_tiles(image, field: TagField, camera: Camera, *, prior: AttitudePrior
     ground = field.tile_points_m(index[known])
     uv_raw = det.tiles_px[known]
     uv = ideal_pixels(camera, uv_raw.reshape(-1, 2)).reshape(uv_raw.shape)
-    keep = consistent_tags(ground, uv, field.spacing_m, field.geometry.pitch_m, min_support=min_tags,
-                           check_tiles=False)
+    keep = consistent_tags(ground, uv, field.spacing_m, field.geometry.pitch_m, min_support=min_tags)
     blur = det.motion_blur_px
     sizes_all = det.tile_size_px[known]
     # Per-tag tolerance on the pose residual: a quarter of the tile pitch, in pixels. A tag
     # read in the wrong orientation is off by a whole pitch and drops out here.
     tol_px = 0.25 * field.geometry.pitch_m / field.geometry.tile_m * sizes_all
     n_tiles = ground.shape[1]
-    for _ in range(3):
+    for _ in range(4):
         if keep.sum() < min_tags:
             raise EstimationError(f"{int(known.sum())} decoded tags but only {int(keep.sum())} agree with the "
                                   f"field layout; need {min_tags}")
-        sigma = np.repeat(tile_pixel_sigma(sizes_all[keep], blur), n_tiles)
-        g_pts, uv_pts = ground[keep].reshape(-1, 2), uv[keep].reshape(-1, 2)
-        # The planar (IPPE) pose is close enough to predict tiles; the final solve converges.
-        sol = solve_pose(g_pts, uv_pts, camera.K, prior=prior, mount=mount, sigma_px=sigma, iterations=0)
-        if densify and sol.rms_px <= 3.0:
-            extra_g, extra_uv, extra_size = _guided_tiles(det, field, camera, sol.state, mount)
-            if len(extra_g):
-                g_pts = np.concatenate((g_pts, extra_g))
-                uv_pts = np.concatenate((uv_pts, extra_uv))
-                sigma = np.concatenate((sigma, tile_pixel_sigma(extra_size, blur)))
-        sol = solve_pose(g_pts, uv_pts, camera.K, prior=prior, mount=mount, sigma_px=sigma, initial=sol)
-        # Every decoded tag is re-judged by the pose: far tags the single-tag vote missed
-        # come back, tags off by more than the tolerance (misreads) leave.
+        used = keep
+        g_tag, uv_tag = ground[used].reshape(-1, 2), uv[used].reshape(-1, 2)
+        sigma_tag = np.repeat(tile_pixel_sigma(sizes_all[used], blur), n_tiles)
+        # The planar (IPPE) pose is well inside the tolerances below; the final solve refines.
+        sol = solve_pose(g_tag, uv_tag, camera.K, prior=prior, mount=mount, sigma_px=sigma_tag, iterations=0)
+        # Every decoded tag is re-judged by this pose: tags the vote missed come back, tags
+        # off by more than the tolerance (misreads) leave.
         flat = ground.reshape(-1, 2)
         proj = _project(sol.state, np.concatenate((flat, np.zeros((len(flat), 1))), axis=1), camera.K, mount)
         with np.errstate(invalid="ignore"):
@@ -95,9 +88,20 @@ def locate_tiles(image, field: TagField, camera: Camera, *, prior: AttitudePrior
         if np.array_equal(new_keep, keep) or new_keep.sum() < min_tags:
             break   # settled (or the pose would be left with too few tags: keep this one)
         keep = new_keep
+    g_pts, uv_pts, sigma = g_tag, uv_tag, sigma_tag
+    if densify and sol.rms_px <= 3.0:
+        if used.sum() < 10:
+            # Few tags: the planar pose alone tilts freely; with the IMU prior it predicts
+            # far tiles well enough to match them (many tags pin the tilt already).
+            sol = solve_pose(g_tag, uv_tag, camera.K, prior=prior, mount=mount, sigma_px=sigma_tag, initial=sol)
+        extra_g, extra_uv, extra_size = _guided_tiles(det, field, camera, sol.state, mount)
+        g_pts = np.concatenate((g_pts, extra_g))
+        uv_pts = np.concatenate((uv_pts, extra_uv))
+        sigma = np.concatenate((sigma, tile_pixel_sigma(extra_size, blur)))
+    sol = solve_pose(g_pts, uv_pts, camera.K, prior=prior, mount=mount, sigma_px=sigma, initial=sol)
     if sol.rms_px > 3.0:
         raise EstimationError(f"tag points fit the pose with {sol.rms_px:.1f} px RMS; expected < 3 px")
-    return make_fix(sol, int(keep.sum()), n_decoded - int(keep.sum()), blur, BLUR_FLAG_PX,
+    return make_fix(sol, int(used.sum()), n_decoded - int(used.sum()), blur, BLUR_FLAG_PX,
                     time_s, source_id)
 
 
