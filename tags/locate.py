@@ -33,13 +33,14 @@ def tile_pixel_sigma(tile_size_px: np.ndarray, blur_px: float) -> np.ndarray:
 def locate_tiles(image, field: TagField, camera: Camera, *, prior: AttitudePrior | None = None,
                  mount: np.ndarray = DOWN_MOUNT, min_tags: int = 2, time_s: float = 0.0,
                  source_id: str = "", detections: TileDetections | None = None,
-                 densify: bool = True) -> TagFix:
+                 densify_below: int = 30) -> TagFix:
     """Position and heading of the camera's vehicle over ``field`` from one RGB frame.
 
-    With ``densify`` the first pose predicts where every field tile should appear; loose
-    tiles of tags partly hidden (occluders, frame edges) that sit within a fifth of a tile
-    of a prediction and show the expected colour join the final solve. This recovers most
-    of the geometry occluders take away.
+    With fewer than ``densify_below`` tags (occluders, low flight) the first pose predicts
+    where every field tile should appear; loose tiles of partly hidden tags that sit within
+    a fifth of a tile of a prediction and show the expected colour join the final solve.
+    This recovers most of the geometry occluders take away; with more tags the extra
+    points change the fix by little and the step is skipped for speed (0 disables it).
 
     Raises :class:`~skyfix.errors.EstimationError` when fewer than ``min_tags`` tags are
     both decoded and consistent with the field's layout (a grey frame, a frame without
@@ -89,7 +90,7 @@ def locate_tiles(image, field: TagField, camera: Camera, *, prior: AttitudePrior
             break   # settled (or the pose would be left with too few tags: keep this one)
         keep = new_keep
     g_pts, uv_pts, sigma = g_tag, uv_tag, sigma_tag
-    if densify and sol.rms_px <= 3.0:
+    if used.sum() < densify_below and sol.rms_px <= 3.0:
         if used.sum() < 10:
             # Few tags: the planar pose alone tilts freely; with the IMU prior it predicts
             # far tiles well enough to match them (many tags pin the tilt already).

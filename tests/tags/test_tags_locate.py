@@ -121,7 +121,7 @@ def test_guided_tiles_add_geometry_under_occlusion(tag_field, tag_texture, camer
     # Loose tiles of partly hidden tags join the solve: more constraint, same truth.
     eff = SceneEffects(occlusion_share=0.3, noise_sigma=0.01)
     fr = render_tag_frame(tag_texture, camera, 1.4, 1.6, 1.5, -70.0, effects=eff, rng=np.random.default_rng(4))
-    sparse = locate_tiles(fr.image, tag_field, camera, prior=_prior(fr), densify=False)
-    dense = locate_tiles(fr.image, tag_field, camera, prior=_prior(fr), densify=True)
+    sparse = locate_tiles(fr.image, tag_field, camera, prior=_prior(fr), densify_below=0)
+    dense = locate_tiles(fr.image, tag_field, camera, prior=_prior(fr), densify_below=10**6)
     assert dense.sigma_xy_m < sparse.sigma_xy_m
     assert np.hypot(dense.x_m - fr.x_m, dense.y_m - fr.y_m) < POS_TOL_M
