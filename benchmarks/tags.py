@@ -18,12 +18,20 @@ Exit status 1 if any goal is missed. Last line: the headline figures.
 
 from __future__ import annotations
 
-import sys
-import time
+import os
 
-import cv2
-import numpy as np
+# One thread each: BLAS/OpenMP pools would otherwise add their threads' CPU time to
+# time.process_time() (and run in parallel), before numpy is imported.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
+import sys  # noqa: E402
+import time  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+# ruff: noqa: E402
 from skyfix.camera import Camera
 from skyfix.datasets.tag_scene import SceneEffects, field_texture, random_poses, render_tag_frame
 from skyfix.errors import EstimationError

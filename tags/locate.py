@@ -63,7 +63,9 @@ def locate_tiles(image, field: TagField, camera: Camera, *, prior: AttitudePrior
     ground = field.tile_points_m(index[known])
     uv_raw = det.tiles_px[known]
     uv = ideal_pixels(camera, uv_raw.reshape(-1, 2)).reshape(uv_raw.shape)
-    keep = consistent_tags(ground, uv, field.spacing_m, field.geometry.pitch_m, min_support=min_tags)
+    # The vote alone: the planar-pose re-judging below replaces its tile-level homography check.
+    keep = consistent_tags(ground, uv, field.spacing_m, field.geometry.pitch_m, min_support=min_tags,
+                           check_tiles=False)
     blur = det.motion_blur_px
     sizes_all = det.tile_size_px[known]
     # Per-tag tolerance on the pose residual: a quarter of the tile pitch, in pixels. A tag
