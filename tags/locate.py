@@ -88,9 +88,17 @@ def locate_tiles(image, field: TagField, camera: Camera, *, prior: AttitudePrior
         with np.errstate(invalid="ignore"):
             resid = np.linalg.norm(proj - uv.reshape(-1, 2), axis=1).reshape(-1, n_tiles).max(axis=1)
             new_keep = resid < tol_px
-        if np.array_equal(new_keep, keep) or new_keep.sum() < min_tags:
-            break   # settled (or the pose would be left with too few tags: keep this one)
+        if new_keep.sum() < min_tags:
+            raise EstimationError(f"{int(keep.sum())} decoded tags agreed on a place but only "
+                                  f"{int(new_keep.sum())} fit one camera pose; need {min_tags}")
+        if np.array_equal(new_keep, keep):
+            break
         keep = new_keep
+    # In a frame of this field nearly every decoded tag fits; in a frame of another field
+    # (or garbage) a few values can agree by chance, but never most of them.
+    if used.sum() < 0.5 * n_decoded:
+        raise EstimationError(f"only {int(used.sum())} of {n_decoded} decoded tags fit one camera pose: "
+                              "the frame does not show this field (or is mostly misread)")
     g_pts, uv_pts, sigma = g_tag, uv_tag, sigma_tag
     if used.sum() < densify_below and sol.rms_px <= 3.0:
         if used.sum() < 10:

@@ -75,15 +75,17 @@ def test_grey_and_noise_frames_give_no_fix(tag_field, camera, rng):
         locate_tiles(noise, tag_field, camera)
 
 
-def test_frame_of_another_field_gives_no_fix(tag_field, camera, rng):
+def test_frames_of_another_field_give_no_fix(tag_field, camera):
+    # Values of another field's tags exist here too; a few can agree by chance, most cannot.
     other = TagField.generate(12, 12, tile_m=0.05, gap_m=0.02, spacing_m=0.25, time_limit_s=0.3, seed=99)
-    fr = render_tag_frame(field_texture(other), camera, 1.5, 1.5, 1.5, 0.0, rng=rng)
-    try:
-        fix = locate_tiles(fr.image, tag_field, camera)
-    except EstimationError:
-        return
-    # If a few values happen to exist in both fields they cannot agree on one layout.
-    pytest.fail(f"a frame of another field produced a fix {fix}")
+    tex = field_texture(other)
+    rng = np.random.default_rng(12)
+    for k in range(8):
+        pose = (rng.uniform(1.0, 2.0), rng.uniform(1.0, 2.0), rng.uniform(1.0, 3.0), rng.uniform(-180, 180))
+        eff = SceneEffects(occlusion_share=0.3 if k % 2 else 0.0, noise_sigma=0.01)
+        fr = render_tag_frame(tex, camera, *pose, effects=eff, rng=np.random.default_rng(k))
+        with pytest.raises(EstimationError):
+            locate_tiles(fr.image, tag_field, camera)
 
 
 def test_bad_arguments(tag_field, camera):
