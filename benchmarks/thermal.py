@@ -26,6 +26,7 @@ Usage: python benchmarks/thermal.py [--quick]   (exit status 1 when a goal is mi
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 import time
 import warnings
@@ -259,6 +260,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="fewer frames (for a smoke run)")
     args = parser.parse_args()
+    # The tracker logs the frames it drops (section E); show them in order with the rest.
+    logging.basicConfig(level=logging.WARNING, format="   log: %(message)s", stream=sys.stdout)
     n_a, n_b, n_d = (40, 10, 100) if args.quick else (200, 40, 1000)
     rng = np.random.default_rng(2026)
     keep: list = []
