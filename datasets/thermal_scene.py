@@ -70,6 +70,20 @@ class FireSpec:
         return max(self.radius_m + self.growth_m_per_s * dt, 0.0)
 
 
+def random_fires(n: int, rng: np.random.Generator, *, half_extent_m: float = 20.0,
+                 radius_m: tuple[float, float] = (0.6, 1.5), peak_c: tuple[float, float] = (350.0, 700.0),
+                 growth_m_per_s: float = 0.0, start_s: float = 0.0, smoke_opacity: float = 0.0) -> list[FireSpec]:
+    """``n`` fires uniformly within +-``half_extent_m`` of the scene origin, radius and peak
+    temperature uniform in the given (low, high) ranges, all starting at ``start_s``."""
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+        raise InputError(f"n must be an integer >= 0, got {n!r}")
+    half = validate.positive_scalar("half_extent_m", half_extent_m)
+    return [FireSpec(float(rng.uniform(-half, half)), float(rng.uniform(-half, half)),
+                     float(rng.uniform(*radius_m)), float(rng.uniform(*peak_c)), growth_m_per_s=growth_m_per_s,
+                     start_s=start_s, smoke_opacity=smoke_opacity, wind_to_deg=float(rng.uniform(0.0, 360.0)))
+            for _ in range(int(n))]
+
+
 @functools.lru_cache(maxsize=4)
 def forest_texture(size_px: int, metres_per_px: float, seed: int) -> np.ndarray:
     """Zero-mean, unit-ish-variance ``(size_px, size_px)`` float32 forest-like pattern."""

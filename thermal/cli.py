@@ -342,7 +342,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     """``skyfix thermal simulate``."""
     from skyfix.camera import Camera
     from skyfix.datasets.thermal_flight import orbit, write_flight
-    from skyfix.datasets.thermal_scene import FireSpec, ThermalScene, ThermalSensor
+    from skyfix.datasets.thermal_scene import ThermalScene, ThermalSensor, random_fires
     from skyfix.errors import InputError
     from skyfix.geo import LocalFrame
     from skyfix.progress import progress
@@ -355,9 +355,8 @@ def run_simulate(args: argparse.Namespace) -> int:
         raise InputError("--fires must be >= 0 and --frames >= 1")
     rng = np.random.default_rng(args.seed)
     frame = LocalFrame(args.lat, args.lon, args.ground_alt)
-    fires = [FireSpec(float(rng.uniform(-15, 15)), float(rng.uniform(-15, 15)), float(rng.uniform(0.6, 1.5)),
-                      float(rng.uniform(350, 700)), growth_m_per_s=args.growth, start_s=0.0, smoke_opacity=args.smoke,
-                      wind_to_deg=float(rng.uniform(0, 360))) for _ in range(args.fires)]
+    fires = random_fires(args.fires, rng, half_extent_m=15.0, growth_m_per_s=args.growth,
+                         smoke_opacity=args.smoke)
     scene = ThermalScene(frame, fires, size_m=300.0, seed=args.seed)
     camera = Camera.from_fov(width, height, args.hfov)
     flight = orbit(scene, camera, (0.0, 0.0), n_frames=args.frames, agl_m=args.agl, frame_rate_hz=2.0,

@@ -9,7 +9,13 @@ import pytest
 
 from skyfix.camera import Camera, CameraPose, world_to_pixel
 from skyfix.datasets.thermal_flight import pose_seeing
-from skyfix.datasets.thermal_scene import FireSpec, ThermalScene, ThermalSensor, to_display
+from skyfix.datasets.thermal_scene import (
+    FireSpec,
+    ThermalScene,
+    ThermalSensor,
+    random_fires,
+    to_display,
+)
 from skyfix.errors import GeometryError, InputError
 from skyfix.geo import LocalFrame
 from skyfix.thermal import detect_hotspots
@@ -95,3 +101,12 @@ def test_pose_seeing_puts_the_target_on_the_pixel():
     with pytest.raises(GeometryError):
         pose_seeing(FRAME, CAM, target, np.array([320.0, 0.0]), 100.0, roll_deg=0.0, pitch_deg=0.0,
                     yaw_deg=0.0, gimbal_pitch_deg=-5.0)
+
+
+def test_random_fires():
+    fires = random_fires(25, np.random.default_rng(1), half_extent_m=30.0, radius_m=(1.0, 2.0))
+    assert len(fires) == 25
+    assert all(abs(f.east_m) <= 30.0 and abs(f.north_m) <= 30.0 and 1.0 <= f.radius_m <= 2.0 for f in fires)
+    assert len({(f.east_m, f.north_m) for f in fires}) == 25
+    with pytest.raises(InputError):
+        random_fires(-1, np.random.default_rng(1))
