@@ -194,6 +194,15 @@ class SilhouetteDetector:
         m2 = np.array([[(wi * du * du).sum(), (wi * du * dv).sum()],
                        [(wi * du * dv).sum(), (wi * dv * dv).sum()]]) / m0
         evals, evecs = np.linalg.eigh(m2)
+        # Noise on the off-diagonal moment pushes the eigenvalues apart: the largest is
+        # biased up by var(m12) / gap (second-order perturbation); remove that bias.
+        xm = du * evecs[0, -1] + dv * evecs[1, -1]
+        ym = du * evecs[0, 0] + dv * evecs[1, 0]
+        var_m12 = noise ** 2 * float(((xm * ym) ** 2).sum()) / m0 ** 2
+        gap = evals[-1] - evals[0]
+        if gap > 0:
+            shift = min(var_m12 / gap, 0.5 * gap)
+            evals = evals + np.array([shift, -shift])
         blur_var = blur_sigma ** 2
         if evals[-1] <= 2.0 * blur_var:
             return None  # no larger than the blur: a point, not a measurable silhouette

@@ -34,7 +34,7 @@ class TrackerConfig:
     alpha: float = 0.6  # position gain of the alpha-beta filter
     beta: float = 0.2  # velocity gain
     size_accel_sigma: float = 0.1  # random walk of the log-size rate, 1/s^2 (range-rate changes)
-    size_rate_sigma: float = 0.2  # prior 1-sigma of the log-size rate, 1/s (closing speed / range)
+    size_rate_sigma: float = 0.05  # prior 1-sigma of the log-size rate, 1/s (closing speed / range)
     max_misses: int = 5  # consecutive misses before the track is dropped
 
     def __post_init__(self) -> None:
