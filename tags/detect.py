@@ -142,7 +142,7 @@ def detect_tiles(image, codec: TileCodec, geometry: TagGeometry, *, ink_threshol
         pairs = pairs[d < link * np.sqrt(0.5 * (area[pairs[:, 0]] + area[pairs[:, 1]]))]
     m = len(pts)
     group = _link_groups(m, pairs)
-    n_groups = int(np.unique(group).size)
+    n_groups = int(np.count_nonzero(group == np.arange(m)))   # each group is labelled by its root
     counts = np.bincount(group, minlength=m)
     keep = np.flatnonzero(counts == codec.tiles)
     if keep.size == 0:
@@ -155,7 +155,8 @@ def detect_tiles(image, codec: TileCodec, geometry: TagGeometry, *, ink_threshol
     idx = np.take_along_axis(idx, ordered, axis=1)[good]
     # Tiles of one tag share a size (perspective changes it little across a tag).
     sizes = size[idx]
-    med = np.median(sizes, axis=1, keepdims=True)
+    srt = np.sort(sizes, axis=1)
+    med = 0.5 * (srt[:, (codec.tiles - 1) // 2] + srt[:, codec.tiles // 2])[:, None]
     same = np.all((sizes > 0.7 * med) & (sizes < 1.4 * med), axis=1)
     idx = idx[same]
     values = codec.decode(digit[idx]) if len(idx) else np.zeros(0, np.int64)

@@ -228,8 +228,12 @@ def _refine(state, ground, uv, k, mount, sig, prior, iterations, ambiguity, flag
             raise EstimationError("pose refinement left the floor points behind the camera")
         dx, *_ = np.linalg.lstsq(jac, -r0, rcond=None)
         state = state + dx
-        if np.all(np.abs(dx[:3]) < 1e-4) and np.all(np.abs(dx[3:]) < 1e-3):   # 0.1 mm, 0.001 deg
-            converged = True   # the last Jacobian and residuals describe the solution
+        if np.all(np.abs(dx[:3]) < 1e-3) and np.all(np.abs(dx[3:]) < 0.05):
+            # Gauss-Newton converges quadratically: after a step this small the next one is
+            # ~1e-6 m. The last Jacobian stands for the solution; residuals are recomputed.
+            converged = True
+            proj = _project(state, ground, k, mount)
+            r0 = np.concatenate((((proj - uv) * w[:, None]).ravel(), r0[2 * len(uv):]))
             break
     if not converged:
         r0, jac = _residuals(state, ground, uv, k, mount, w, prior)

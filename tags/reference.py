@@ -66,7 +66,7 @@ def homography_lsq(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
 
 
 def consistent_tags(ground_xy: np.ndarray, image_uv: np.ndarray, spacing_m: float, pitch_m: float,
-                    *, min_support: int = 2, max_hypotheses: int = 16, check_tiles: bool = True) -> np.ndarray:
+                    *, min_support: int = 2, max_hypotheses: int = 10, check_tiles: bool = True) -> np.ndarray:
     """Mask ``(T,)`` of tags consistent with the layout.
 
     ``ground_xy`` ``(T, n, 2)`` field positions of each tag's tiles (metres) implied by
