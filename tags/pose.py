@@ -17,7 +17,7 @@ import numpy as np
 from skyfix import validate
 from skyfix.camera import CameraPose
 from skyfix.errors import EstimationError, InputError
-from skyfix.rotation import R_ENU_FROM_NED, euler_zyx_from_r_ned_from_frd
+from skyfix.rotation import R_ENU_FROM_NED
 
 #: Straight-down hard mount (camera top towards the nose), as ``CameraPose`` defines it.
 DOWN_MOUNT = CameraPose(0.0, 0.0, 0.0, gimbal_pitch_deg=-90.0, stabilized=False).r_ned_from_cam()
@@ -78,72 +78,95 @@ class TagFix:
         return float(np.sqrt(self.covariance[3, 3]))
 
 
-def _rotations(yaw: float, pitch: float, roll: float, mount: np.ndarray):
-    """R_enu_from_cam ``(3, 3)`` and its derivatives by yaw, pitch, roll (per degree)."""
+def _rotation_stack(yaw: float, pitch: float, roll: float, mount: np.ndarray) -> np.ndarray:
+    """R_enu_from_cam and its derivatives by yaw, pitch, roll (per degree), stacked ``(4, 3, 3)``."""
     cy, sy = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
     cp, sp = math.cos(math.radians(pitch)), math.sin(math.radians(pitch))
     cr, sr = math.cos(math.radians(roll)), math.sin(math.radians(roll))
-    rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
-    ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
-    rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
-    drz = np.array([[-sy, -cy, 0.0], [cy, -sy, 0.0], [0.0, 0.0, 0.0]])
-    dry = np.array([[-sp, 0.0, cp], [0.0, 0.0, 0.0], [-cp, 0.0, -sp]])
-    drx = np.array([[0.0, 0.0, 0.0], [0.0, -sr, -cr], [0.0, cr, -sr]])
-    a, b = R_ENU_FROM_NED, mount
     k = math.pi / 180.0
-    r = a @ rz @ ry @ rx @ b
-    return r, (k * a @ drz @ ry @ rx @ b, k * a @ rz @ dry @ rx @ b, k * a @ rz @ ry @ drx @ b)
+    # Rz(yaw) Ry(pitch) Rx(roll) and its partial derivatives, written out (one small array
+    # instead of seven matrices and a dozen 3x3 products per call).
+    m = np.array([
+        [[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+         [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+         [-sp, cp * sr, cp * cr]],
+        [[-k * sy * cp, -k * (sy * sp * sr + cy * cr), k * (cy * sr - sy * sp * cr)],
+         [k * cy * cp, k * (cy * sp * sr - sy * cr), k * (cy * sp * cr + sy * sr)],
+         [0.0, 0.0, 0.0]],
+        [[-k * cy * sp, k * cy * cp * sr, k * cy * cp * cr],
+         [-k * sy * sp, k * sy * cp * sr, k * sy * cp * cr],
+         [-k * cp, -k * sp * sr, -k * sp * cr]],
+        [[0.0, k * (cy * sp * cr + sy * sr), k * (sy * cr - cy * sp * sr)],
+         [0.0, k * (sy * sp * cr - cy * sr), -k * (sy * sp * sr + cy * cr)],
+         [0.0, k * cp * cr, -k * cp * sr]]])
+    return R_ENU_FROM_NED @ m @ mount
+
+
+def _rotations(yaw: float, pitch: float, roll: float, mount: np.ndarray):
+    """R_enu_from_cam ``(3, 3)`` and its derivatives by yaw, pitch, roll (per degree)."""
+    rs = _rotation_stack(yaw, pitch, roll, mount)
+    return rs[0], (rs[1], rs[2], rs[3])
 
 
 def _project(state: np.ndarray, ground: np.ndarray, k: np.ndarray, mount: np.ndarray,
              with_jacobian: bool = False):
     """Ideal pixels ``(N, 2)`` of floor points ``(N, 3)``; optionally d(uv)/d(state) ``(N, 2, 6)``."""
-    r, dr = _rotations(state[3], state[4], state[5], mount)
+    rs = _rotation_stack(state[3], state[4], state[5], mount)
     rel = ground - state[:3]
-    pc = rel @ r
+    n = len(ground)
+    if with_jacobian:
+        # pc and its derivatives by the three angles in one matmul: (N, 12).
+        d = rel @ rs.transpose(1, 0, 2).reshape(3, 12)
+        pc = d[:, :3]
+    else:
+        pc = rel @ rs[0]
     z = pc[:, 2]
-    if np.any(z <= 1e-6):
-        return (np.full((len(ground), 2), np.nan), None) if with_jacobian else np.full((len(ground), 2), np.nan)
-    fx, fy = k[0, 0], k[1, 1]
-    uv = np.stack((fx * pc[:, 0] / z + k[0, 2], fy * pc[:, 1] / z + k[1, 2]), 1)
+    if n and z.min() <= 1e-6:
+        return (np.full((n, 2), np.nan), None) if with_jacobian else np.full((n, 2), np.nan)
+    f = np.array([k[0, 0], k[1, 1]])
+    inv_z = 1.0 / z
+    x = pc[:, :2] * inv_z[:, None]                     # normalised image coordinates
+    uv = x * f + k[:2, 2]
     if not with_jacobian:
         return uv
-    # d pc / d state: -R^T for the centre, dR^T (X - C) for each angle (one matmul).
-    n = len(ground)
-    dang = (rel @ np.concatenate(dr, axis=1)).reshape(n, 3, 3)        # (N, angle, xyz)
-    inv_z = 1.0 / z
+    # d(uv)/d(s) = f / z * (d pc_xy / ds - x * d pc_z / ds); d pc / d centre = -R^T.
+    r_t = rs[0].T
+    dang = d[:, 3:].reshape(n, 3, 3).transpose(0, 2, 1)  # (N, xyz, angle)
     jac = np.empty((n, 2, 6))
-    for row, (f, p) in enumerate(((fx, pc[:, 0]), (fy, pc[:, 1]))):
-        a = f * inv_z
-        b = f * p * inv_z * inv_z
-        # d(u)/d(centre) = a * d(pc_x)/dC - b * d(pc_z)/dC with d(pc)/dC = -R^T
-        jac[:, row, :3] = -(a[:, None] * r[:, row][None, :] - b[:, None] * r[:, 2][None, :])
-        jac[:, row, 3:] = a[:, None] * dang[:, :, row] - b[:, None] * dang[:, :, 2]
+    jac[:, :, :3] = x[:, :, None] * r_t[2] - r_t[:2]
+    jac[:, :, 3:] = dang[:, :2] - x[:, :, None] * dang[:, 2:3]
+    jac *= (f * inv_z[:, None])[:, :, None]
     return uv, jac
 
 
 def _state_from_cv(rvec: np.ndarray, tvec: np.ndarray, mount: np.ndarray) -> np.ndarray:
     r_cv, _ = cv2.Rodrigues(rvec)
     centre = -r_cv.T @ tvec.ravel()
-    r_ned_from_frd_ = R_ENU_FROM_NED @ r_cv.T @ mount.T
-    yaw, pitch, roll = euler_zyx_from_r_ned_from_frd(r_ned_from_frd_)
-    return np.array([*centre, yaw, pitch, roll])
+    r = R_ENU_FROM_NED @ r_cv.T @ mount.T      # R_ned_from_frd
+    # euler_zyx_from_r_ned_from_frd, on scalars.
+    pitch = math.degrees(math.asin(min(max(-float(r[2, 0]), -1.0), 1.0)))
+    yaw = _wrap(math.degrees(math.atan2(float(r[1, 0]), float(r[0, 0]))))
+    roll = math.degrees(math.atan2(float(r[2, 1]), float(r[2, 2])))
+    return np.array([centre[0], centre[1], centre[2], yaw, pitch, roll])
 
 
-def _residuals(state, ground, uv, k, mount, w_px, prior):
-    """Weighted residual vector and its Jacobian by the state."""
+def _normal_equations(state, ground, uv, k, mount, w_px, prior):
+    """Weighted pixel residuals ``(2N,)``, Gauss-Newton normal matrix ``(6, 6)`` and
+    gradient ``(6,)`` (the attitude prior included), or None when a point is behind."""
     proj, jp = _project(state, ground, k, mount, with_jacobian=True)
-    r = ((proj - uv) * w_px[:, None]).ravel()
     if jp is None:
-        return r, None
+        return None
+    r = ((proj - uv) * w_px[:, None]).ravel()
     jac = (jp * w_px[:, None, None]).reshape(-1, 6)
+    h = jac.T @ jac
+    g = jac.T @ r
     if prior is not None:
-        r = np.concatenate((r, [(_wrap(state[5] - prior.roll_deg)) / prior.sigma_deg,
-                                (state[4] - prior.pitch_deg) / prior.sigma_deg]))
-        jp_prior = np.zeros((2, 6))
-        jp_prior[0, 5] = jp_prior[1, 4] = 1.0 / prior.sigma_deg
-        jac = np.concatenate((jac, jp_prior))
-    return r, jac
+        inv_s = 1.0 / prior.sigma_deg
+        h[5, 5] += inv_s * inv_s
+        h[4, 4] += inv_s * inv_s
+        g[5] += _wrap(state[5] - prior.roll_deg) * inv_s * inv_s
+        g[4] += (state[4] - prior.pitch_deg) * inv_s * inv_s
+    return r, h, g
 
 
 def _wrap(angle_deg: float) -> float:
@@ -220,31 +243,36 @@ def _refine(state, ground, uv, k, mount, sig, prior, iterations, ambiguity, flag
     """Gauss-Newton on (x, y, z, yaw, pitch, roll) with the prior; covariance from the
     final Jacobian, scaled by the fit's reduced chi-square when that exceeds 1."""
     w = 1.0 / sig
+    n = len(uv)
     # IPPE's answer is already near the optimum: a few Gauss-Newton steps add the prior.
     converged = False
     for _ in range(max(iterations, 1)):
-        r0, jac = _residuals(state, ground, uv, k, mount, w, prior)
-        if jac is None:
+        eqs = _normal_equations(state, ground, uv, k, mount, w, prior)
+        if eqs is None:
             raise EstimationError("pose refinement left the floor points behind the camera")
-        dx, *_ = np.linalg.lstsq(jac, -r0, rcond=None)
+        r0, h, g = eqs
+        try:
+            dx = np.linalg.solve(h, -g)
+        except np.linalg.LinAlgError as exc:
+            raise EstimationError("tag points do not constrain the pose (degenerate geometry)") from exc
         state = state + dx
-        if np.all(np.abs(dx[:3]) < 1e-3) and np.all(np.abs(dx[3:]) < 0.05):
+        if abs(dx[0]) < 1e-3 and abs(dx[1]) < 1e-3 and abs(dx[2]) < 1e-3 and np.abs(dx[3:]).max() < 0.05:
             # Gauss-Newton converges quadratically: after a step this small the next one is
             # ~1e-6 m. The last Jacobian stands for the solution; residuals are recomputed.
             converged = True
-            proj = _project(state, ground, k, mount)
-            r0 = np.concatenate((((proj - uv) * w[:, None]).ravel(), r0[2 * len(uv):]))
+            r0 = ((_project(state, ground, k, mount) - uv) * w[:, None]).ravel()
             break
     if not converged:
-        r0, jac = _residuals(state, ground, uv, k, mount, w, prior)
-        if jac is None:
+        eqs = _normal_equations(state, ground, uv, k, mount, w, prior)
+        if eqs is None:
             raise EstimationError("pose refinement left the floor points behind the camera")
-    res = r0[:2 * len(uv)].reshape(-1, 2) / w[:, None]
-    rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
-    dof = max(2 * len(uv) - 6, 1)
-    chi2 = float(np.sum(r0[:2 * len(uv)] ** 2)) / dof
+        r0, h, _ = eqs
+    res = r0.reshape(-1, 2) / w[:, None]
+    rms = float(np.sqrt(np.einsum("ij,ij->", res, res) / n))
+    dof = max(2 * n - 6, 1)
+    chi2 = float(r0 @ r0) / dof
     try:
-        cov = np.linalg.inv(jac.T @ jac) * max(chi2, 1.0)
+        cov = np.linalg.inv(h) * max(chi2, 1.0)
     except np.linalg.LinAlgError as exc:
         raise EstimationError("tag points do not constrain the pose (degenerate geometry)") from exc
     state[3] = _wrap(state[3])
