@@ -12,7 +12,7 @@ from skyfix.errors import EstimationError, InputError
 from skyfix.tags.detect import TileDetections, detect_tiles
 from skyfix.tags.field import TagField
 from skyfix.tags.image import as_rgb_u8
-from skyfix.tags.pose import DOWN_MOUNT, AttitudePrior, TagFix, _project, make_fix, solve_pose
+from skyfix.tags.pose import DOWN_MOUNT, AttitudePrior, TagFix, _project, _solve, make_fix
 from skyfix.tags.reference import consistent_tags
 
 #: Streaks longer than this are flagged "motion_blur" (pixels).
@@ -68,52 +68,57 @@ def locate_tiles(image, field: TagField, camera: Camera, *, prior: AttitudePrior
                            check_tiles=False)
     blur = det.motion_blur_px
     sizes_all = det.tile_size_px[known]
+    sigma_all = tile_pixel_sigma(sizes_all, blur)
     # Per-tag tolerance on the pose residual: a quarter of the tile pitch, in pixels. A tag
     # read in the wrong orientation is off by a whole pitch and drops out here.
-    tol_px = 0.25 * field.geometry.pitch_m / field.geometry.tile_m * sizes_all
+    tol2_px2 = (0.25 * field.geometry.pitch_m / field.geometry.tile_m * sizes_all) ** 2
     n_tiles = ground.shape[1]
+    flat = ground.reshape(-1, 2)
+    flat3 = np.zeros((len(flat), 3))
+    flat3[:, :2] = flat
+    uv_flat = uv.reshape(-1, 2)
     for _ in range(4):
-        if keep.sum() < min_tags:
-            raise EstimationError(f"{int(known.sum())} decoded tags but only {int(keep.sum())} agree with the "
+        n_keep = int(np.count_nonzero(keep))
+        if n_keep < min_tags:
+            raise EstimationError(f"{int(known.sum())} decoded tags but only {n_keep} agree with the "
                                   f"field layout; need {min_tags}")
         used = keep
         g_tag, uv_tag = ground[used].reshape(-1, 2), uv[used].reshape(-1, 2)
-        sigma_tag = np.repeat(tile_pixel_sigma(sizes_all[used], blur), n_tiles)
+        sigma_tag = np.repeat(sigma_all[used], n_tiles)
         # The planar (IPPE) pose is well inside the tolerances below; the final solve refines.
-        sol = solve_pose(g_tag, uv_tag, camera.K, prior=prior, mount=mount, sigma_px=sigma_tag, iterations=0)
+        sol = _solve(g_tag, uv_tag, camera.K, prior, mount, sigma_tag, iterations=0)
         # Every decoded tag is re-judged by this pose: tags the vote missed come back, tags
         # off by more than the tolerance (misreads) leave.
-        flat = ground.reshape(-1, 2)
-        proj = _project(sol.state, np.concatenate((flat, np.zeros((len(flat), 1))), axis=1), camera.K, mount)
+        d = _project(sol.state, flat3, camera.K, mount) - uv_flat
         with np.errstate(invalid="ignore"):
-            resid = np.linalg.norm(proj - uv.reshape(-1, 2), axis=1).reshape(-1, n_tiles).max(axis=1)
-            new_keep = resid < tol_px
-        if new_keep.sum() < min_tags:
-            raise EstimationError(f"{int(keep.sum())} decoded tags agreed on a place but only "
+            new_keep = np.einsum("ij,ij->i", d, d).reshape(-1, n_tiles).max(axis=1) < tol2_px2
+        if np.count_nonzero(new_keep) < min_tags:
+            raise EstimationError(f"{n_keep} decoded tags agreed on a place but only "
                                   f"{int(new_keep.sum())} fit one camera pose; need {min_tags}")
         if np.array_equal(new_keep, keep):
             break
         keep = new_keep
+    n_used = int(np.count_nonzero(used))
     # In a frame of this field nearly every decoded tag fits; in a frame of another field
     # (or garbage) a few values can agree by chance, but never most of them.
-    if used.sum() < 0.5 * n_decoded:
-        raise EstimationError(f"only {int(used.sum())} of {n_decoded} decoded tags fit one camera pose: "
+    if n_used < 0.5 * n_decoded:
+        raise EstimationError(f"only {n_used} of {n_decoded} decoded tags fit one camera pose: "
                               "the frame does not show this field (or is mostly misread)")
     g_pts, uv_pts, sigma = g_tag, uv_tag, sigma_tag
-    if used.sum() < densify_below and sol.rms_px <= 3.0:
-        if used.sum() < 10:
+    if n_used < densify_below and sol.rms_px <= 3.0:
+        if n_used < 10:
             # Few tags: the planar pose alone tilts freely; with the IMU prior it predicts
             # far tiles well enough to match them (many tags pin the tilt already).
-            sol = solve_pose(g_tag, uv_tag, camera.K, prior=prior, mount=mount, sigma_px=sigma_tag, initial=sol)
+            sol = _solve(g_tag, uv_tag, camera.K, prior, mount, sigma_tag, initial=sol)
         extra_g, extra_uv, extra_size = _guided_tiles(det, field, camera, sol.state, mount)
-        g_pts = np.concatenate((g_pts, extra_g))
-        uv_pts = np.concatenate((uv_pts, extra_uv))
-        sigma = np.concatenate((sigma, tile_pixel_sigma(extra_size, blur)))
-    sol = solve_pose(g_pts, uv_pts, camera.K, prior=prior, mount=mount, sigma_px=sigma, initial=sol)
+        if len(extra_g):
+            g_pts = np.concatenate((g_pts, extra_g))
+            uv_pts = np.concatenate((uv_pts, extra_uv))
+            sigma = np.concatenate((sigma, tile_pixel_sigma(extra_size, blur)))
+    sol = _solve(g_pts, uv_pts, camera.K, prior, mount, sigma, initial=sol)
     if sol.rms_px > 3.0:
         raise EstimationError(f"tag points fit the pose with {sol.rms_px:.1f} px RMS; expected < 3 px")
-    return make_fix(sol, int(used.sum()), n_decoded - int(used.sum()), blur, BLUR_FLAG_PX,
-                    time_s, source_id)
+    return make_fix(sol, n_used, n_decoded - n_used, blur, BLUR_FLAG_PX, time_s, source_id)
 
 
 def _guided_tiles(det: TileDetections, field: TagField, camera: Camera, state: np.ndarray,

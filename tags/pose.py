@@ -199,32 +199,46 @@ def solve_pose(ground_xy: np.ndarray, uv: np.ndarray, k: np.ndarray, *,
     if len(g2) != len(uv) or len(g2) < 4:
         raise InputError(f"need >= 4 matching points, got {len(g2)} floor and {len(uv)} image points")
     sig = np.broadcast_to(np.asarray(sigma_px, float), (len(uv),)).copy()
-    ground = np.concatenate((g2, np.zeros((len(g2), 1))), axis=1)
+    return _solve(g2, uv, k, prior, mount, sig, iterations, initial)
+
+
+def _solve(g2: np.ndarray, uv: np.ndarray, k: np.ndarray, prior: AttitudePrior | None, mount: np.ndarray,
+           sig: np.ndarray, iterations: int = 6, initial: PoseSolution | None = None) -> PoseSolution:
+    """:func:`solve_pose` on checked inputs: float ``(N, 2)`` arrays (N >= 4) and ``sig`` ``(N,)``."""
+    ground = np.zeros((len(g2), 3))
+    ground[:, :2] = g2
     if initial is not None:   # refine a known solution with more points: no new branch choice
         return _refine(initial.state.copy(), ground, uv, k, mount, sig, prior, iterations,
                        initial.ambiguity, list(initial.flags))
     # IPPE on an evenly spread subset is as good a start as on all points, and cheaper.
-    sub = np.linspace(0, len(uv) - 1, min(len(uv), 64)).round().astype(int)
-    n_sol, rvecs, tvecs, errs = cv2.solvePnPGeneric(ground[sub], uv[sub].reshape(-1, 1, 2), k, None,
+    if len(uv) > 64:
+        sub = np.linspace(0, len(uv) - 1, 64).round().astype(int)
+        g_sub, uv_sub = ground[sub], uv[sub]
+    else:
+        g_sub, uv_sub = ground, np.ascontiguousarray(uv)
+    n_sub = len(g_sub)
+    n_sol, rvecs, tvecs, errs = cv2.solvePnPGeneric(g_sub, uv_sub.reshape(-1, 1, 2), k, None,
                                                     flags=cv2.SOLVEPNP_IPPE)
     if n_sol == 0:
         raise EstimationError("planar PnP found no pose for the matched tag points")
     states = [_state_from_cv(r, t, mount) for r, t in zip(rvecs, tvecs, strict=True)]
-    errs = np.asarray(errs, float).ravel()
-    ambiguity = float(errs.min() / max(errs.max(), 1e-12)) if len(errs) > 1 else 0.0
+    errs = [float(e) for e in np.ravel(errs)]
+    e_min, e_max = min(errs), max(errs)
+    ambiguity = e_min / max(e_max, 1e-12) if len(errs) > 1 else 0.0
     flags: list[str] = []
+    mean_sig = float(sig.mean())
     # Costs: reprojection (per point, px^2 / sigma^2) plus the IMU prior.
     costs = []
     for s, e in zip(states, errs, strict=True):
-        c = len(sub) * e ** 2 / float(np.mean(sig)) ** 2
+        c = n_sub * e ** 2 / mean_sig ** 2
         if prior is not None:
             c += ((_wrap(s[5] - prior.roll_deg)) ** 2 + (s[4] - prior.pitch_deg) ** 2) / prior.sigma_deg ** 2
         costs.append(c)
-    pick = int(np.argmin(costs))
+    pick = costs.index(min(costs))
     # The mirror pose is plausible when its reprojection error is within what pixel noise
     # explains (3 sigma): then only the IMU can tell the two apart.
-    mirror_plausible = len(errs) > 1 and float(errs.max()) < 3.0 * float(np.mean(sig))
-    if pick != int(np.argmin(errs)):
+    mirror_plausible = len(errs) > 1 and e_max < 3.0 * mean_sig
+    if pick != errs.index(e_min):
         flags.append("flip_resolved_by_imu")
     elif prior is None and mirror_plausible:
         flags.append("ambiguous")
@@ -235,7 +249,7 @@ def solve_pose(ground_xy: np.ndarray, uv: np.ndarray, k: np.ndarray, *,
                 and abs(other[4] - prior.pitch_deg) < 3 * prior.sigma_deg):
             flags.append("ambiguous")   # the IMU cannot separate the two either
     if iterations == 0:   # the chosen planar solution alone (e.g. to predict where tiles fall)
-        return PoseSolution(state, np.full((6, 6), np.nan), float(errs[pick]), ambiguity, tuple(flags))
+        return PoseSolution(state, np.full((6, 6), np.nan), errs[pick], ambiguity, tuple(flags))
     return _refine(state, ground, uv, k, mount, sig, prior, iterations, ambiguity, flags)
 
 
