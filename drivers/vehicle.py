@@ -20,6 +20,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import replace
+from typing import Any
 
 from skyfix import validate
 from skyfix.drivers import injection, mission
@@ -572,16 +573,7 @@ class Vehicle:
     # ------------------------------------------------------------------ parameters
     def get_param(self, name: str, *, timeout_s: float = 1.0, retries: int = 3) -> float:
         """Read one autopilot parameter (PARAM_REQUEST_READ -> PARAM_VALUE)."""
-        if not isinstance(name, str) or not 0 < len(name) <= 16:
-            raise InputError(f"parameter name must be a string of 1-16 characters, got {name!r}")
-
-        def match(m) -> bool:
-            if m.get_type() != "PARAM_VALUE":
-                return False
-            pid = m.param_id if isinstance(m.param_id, str) else m.param_id.decode(errors="replace")
-            return pid.rstrip("\x00") == name
-
-        with self.subscribe(match) as q:
+        with self.subscribe(_param_value_matcher(name)) as q:
             for _ in range(retries + 1):
                 self.send(M.MAVLink_param_request_read_message(self.system_id, self.component_id,
                                                                name.encode(), -1))
@@ -596,14 +588,7 @@ class Vehicle:
     def set_param(self, name: str, value: float, *, timeout_s: float = 1.0, retries: int = 3) -> None:
         """Write one parameter and wait for the autopilot's PARAM_VALUE echo."""
         value = validate.finite_scalar(f"value of {name}", value)
-
-        def match(m) -> bool:
-            if m.get_type() != "PARAM_VALUE":
-                return False
-            pid = m.param_id if isinstance(m.param_id, str) else m.param_id.decode(errors="replace")
-            return pid.rstrip("\x00") == name
-
-        with self.subscribe(match) as q:
+        with self.subscribe(_param_value_matcher(name)) as q:
             for _ in range(retries + 1):
                 self.send(M.MAVLink_param_set_message(self.system_id, self.component_id, name.encode(),
                                                       value, M.MAV_PARAM_TYPE_REAL32))
@@ -688,3 +673,17 @@ class Vehicle:
                    timeout_s: float = 1.0, retries: int = 3) -> None:
         """Set the EKF origin (SET_GPS_GLOBAL_ORIGIN) and wait for GPS_GLOBAL_ORIGIN to confirm."""
         injection.set_origin(self, lat_deg, lon_deg, alt_amsl_m, timeout_s=timeout_s, retries=retries)
+
+
+def _param_value_matcher(name: str) -> Callable[[Any], bool]:
+    """Predicate selecting the PARAM_VALUE message that reports parameter ``name``."""
+    if not isinstance(name, str) or not 0 < len(name) <= 16:
+        raise InputError(f"parameter name must be a string of 1-16 characters, got {name!r}")
+
+    def match(m) -> bool:
+        if m.get_type() != "PARAM_VALUE":
+            return False
+        pid = m.param_id if isinstance(m.param_id, str) else m.param_id.decode(errors="replace")
+        return pid.rstrip("\x00") == name
+
+    return match
