@@ -80,12 +80,23 @@ def _colour_table(palette_bytes: bytes) -> tuple[np.ndarray, np.ndarray]:
     return order[:, 0].astype(np.int64), margin.astype(np.float32)
 
 
-def _classify(codec: TileCodec, reflectance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Palette index ``(K,)`` and CIE76 margin ``(K,)`` of reflectances ``(K, 3)`` in [0, 1]."""
+@functools.lru_cache(maxsize=1)
+def _quantised_reflectance() -> np.ndarray:
+    """``table[ink, white]``: the colour-table step ``rint(47 * ink / max(white, 1))``
+    (clipped) of a uint8 channel value relative to a uint8 white level."""
+    ink = np.arange(256, dtype=float)[:, None]
+    white = np.maximum(np.arange(256, dtype=float), 1.0)[None, :]
+    q = np.clip(np.rint(ink / white * (_LUT_STEPS - 1)), 0, _LUT_STEPS - 1).astype(np.intp)
+    q.setflags(write=False)
+    return q
+
+
+def _classify_u8(codec: TileCodec, rgb: np.ndarray, white: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Palette index ``(K,)`` and CIE76 margin ``(K,)`` of uint8 colours ``(K, 3)``
+    relative to the uint8 local white levels ``(K,)`` (reflectance = colour / white)."""
     digit, margin = _colour_table(np.ascontiguousarray(codec.palette_rgb, dtype=np.float64).tobytes())
-    q = np.clip(np.rint(reflectance * (_LUT_STEPS - 1)), 0, _LUT_STEPS - 1).astype(np.int64)
-    flat = (q[:, 0] * _LUT_STEPS + q[:, 1]) * _LUT_STEPS + q[:, 2]
-    return digit[flat], margin[flat].astype(float)
+    q = _quantised_reflectance()[rgb, white[:, None]] @ np.array([_LUT_STEPS * _LUT_STEPS, _LUT_STEPS, 1])
+    return digit[q], margin[q].astype(float)
 
 
 @functools.lru_cache(maxsize=32)
@@ -115,56 +126,69 @@ def detect_tiles(image, codec: TileCodec, geometry: TagGeometry, *, ink_threshol
     blur = motion_blur_half_res(bright)
     # 16-bit labels suffice at half resolution (< 2^16 components) and label faster.
     n_lab, _, stats, cents = cv2.connectedComponentsWithStatsWithAlgorithm(mask, 8, cv2.CV_16U, cv2.CCL_GRANA)
-    x, y, bw, bh, area = (stats[1:, i] for i in range(5))
+    st = stats[1:]
+    x, y, bw, bh, area = st.T
     sh, sw = mask.shape
     ok = ((area >= (min_tile_px / 2.0) ** 2) & (area <= (max_tile_px / 2.0) ** 2) & (area >= 0.4 * bw * bh)
-          & (x > 0) & (y > 0) & (x + bw < sw) & (y + bh < sh))
-    empty = TileDetections(np.zeros(0, np.int64), np.zeros((0, codec.tiles, 2)), np.zeros(0),
-                           np.zeros(0), int(ok.sum()), 0, blur)
-    if ok.sum() < codec.tiles:
-        return empty
+          & (np.minimum(x, y) > 0) & (x + bw < sw) & (y + bh < sh))
+    n_ok = int(np.count_nonzero(ok))
+    if n_ok < codec.tiles:
+        return _empty(codec, n_ok, 0, blur)
     pts_small = cents[1:][ok]
     pts = 2.0 * pts_small + 0.5                  # half-res pixel centre -> full-res pixel
-    area = 4.0 * area[ok].astype(float)
+    area = 4.0 * area[ok]
     size = np.sqrt(area)
-    si = np.clip(np.round(pts_small).astype(int), 0, [sw - 1, sh - 1])
-    white_at = white[si[:, 1], si[:, 0]].astype(float)
+    # Centroids lie inside their (border-free) bounding boxes: no clipping needed.
+    si = np.rint(pts_small).astype(np.intp)
+    row, col = si[:, 1], si[:, 0]
 
     # Colour at the centroid (the half-res pixel: a 2x2 full-res mean), relative to the local white.
-    refl = small[si[:, 1], si[:, 0]].astype(float) / np.maximum(white_at, 1.0)[:, None]
-    digit, margin = _classify(codec, refl)
+    digit, margin = _classify_u8(codec, small[row, col], white[row, col])
 
     # Group tiles: link pairs closer than the layout's loosest neighbour distance allows.
     link = 1.2 * _layout_links(geometry)
-    pairs = cKDTree(pts).query_pairs(link * float(size.max()), output_type="ndarray")
+    pairs = cKDTree(pts, balanced_tree=False, compact_nodes=False).query_pairs(
+        link * float(size.max()), output_type="ndarray")
     if pairs.size:
-        d = np.linalg.norm(pts[pairs[:, 0]] - pts[pairs[:, 1]], axis=1)
-        pairs = pairs[d < link * np.sqrt(0.5 * (area[pairs[:, 0]] + area[pairs[:, 1]]))]
+        a, b = pairs[:, 0], pairs[:, 1]
+        dxy = pts[a] - pts[b]
+        pairs = pairs[np.einsum("ij,ij->i", dxy, dxy) < (0.5 * link * link) * (area[a] + area[b])]
     m = len(pts)
     group = _link_groups(m, pairs)
-    n_groups = int(np.count_nonzero(group == np.arange(m)))   # each group is labelled by its root
     counts = np.bincount(group, minlength=m)
+    n_groups = int(np.count_nonzero(counts))   # each group is labelled by its root
     keep = np.flatnonzero(counts == codec.tiles)
     if keep.size == 0:
-        return TileDetections(empty.values, empty.tiles_px, empty.tile_size_px, empty.colour_margin,
-                              m, n_groups, blur, pts, digit, size, np.zeros(m, bool))
+        return _empty(codec, m, n_groups, blur, pts, digit, size)
     members = np.argsort(group, kind="stable")
-    starts = np.concatenate(([0], np.cumsum(counts)))
-    idx = members[starts[keep][:, None] + np.arange(codec.tiles)[None, :]]     # (T, n)
+    starts = np.cumsum(counts) - counts
+    idx = members[starts[keep][:, None] + np.arange(codec.tiles)]     # (T, n)
     ordered, good = _reading_order(pts[idx], geometry)
     idx = np.take_along_axis(idx, ordered, axis=1)[good]
     # Tiles of one tag share a size (perspective changes it little across a tag).
     sizes = size[idx]
     srt = np.sort(sizes, axis=1)
     med = 0.5 * (srt[:, (codec.tiles - 1) // 2] + srt[:, codec.tiles // 2])[:, None]
-    same = np.all((sizes > 0.7 * med) & (sizes < 1.4 * med), axis=1)
+    same = ((sizes > 0.7 * med) & (sizes < 1.4 * med)).all(axis=1)
     idx = idx[same]
-    values = codec.decode(digit[idx]) if len(idx) else np.zeros(0, np.int64)
+    if len(idx) == 0:
+        return _empty(codec, m, n_groups, blur, pts, digit, size)
+    values = codec.decode(digit[idx])
     in_tag = np.zeros(m, bool)
     in_tag[idx.ravel()] = True
-    return TileDetections(values, pts[idx], size[idx].mean(axis=1) if len(idx) else np.zeros(0),
-                          margin[idx].min(axis=1) if len(idx) else np.zeros(0), m, n_groups, blur,
+    return TileDetections(values, pts[idx], size[idx].mean(axis=1), margin[idx].min(axis=1), m, n_groups, blur,
                           pts, digit, size, in_tag)
+
+
+def _empty(codec: TileCodec, n_blobs: int, n_groups: int, blur: float, pts: np.ndarray | None = None,
+           digit: np.ndarray | None = None, size: np.ndarray | None = None) -> TileDetections:
+    """Detections without a decoded tag (the loose candidate tiles kept when given)."""
+    none = TileDetections(np.zeros(0, np.int64), np.zeros((0, codec.tiles, 2)), np.zeros(0), np.zeros(0),
+                          n_blobs, n_groups, blur)
+    if pts is None:
+        return none
+    return TileDetections(none.values, none.tiles_px, none.tile_size_px, none.colour_margin, n_blobs, n_groups,
+                          blur, pts, digit, size, np.zeros(len(pts), bool))
 
 
 def _link_groups(m: int, pairs: np.ndarray) -> np.ndarray:
@@ -184,29 +208,38 @@ def _link_groups(m: int, pairs: np.ndarray) -> np.ndarray:
         label = new
 
 
-def _reading_order(tiles: np.ndarray, geometry: TagGeometry) -> tuple[np.ndarray, np.ndarray]:
-    """For tile groups ``(T, n, 2)``: permutation ``(T, n)`` into reading order, and a
-    validity mask ``(T,)`` (clear displaced tile, layout fits a similarity transform)."""
+@functools.lru_cache(maxsize=32)
+def _layout_complex(geometry: TagGeometry) -> tuple[np.ndarray, float, complex, np.ndarray]:
+    """Per-layout constants of :func:`_reading_order`: tile centres as complex numbers
+    (y down), the expected spread ratio of the displaced tile, the displaced tile's offset
+    from the others' mean, and every slot's offset from that mean."""
     layout = geometry.tile_centres_m()
     n = len(layout)
     zl = layout[:, 0] - 1j * layout[:, 1]            # image-like: y down
-    zi = tiles[..., 0] + 1j * tiles[..., 1]          # (T, n)
-    total = zi.sum(axis=1, keepdims=True)
-    others = (total - zi) / (n - 1)
+    l_spread = np.abs(zl - (zl.sum() - zl) / (n - 1))
+    expected = float(l_spread[0] / np.sort(l_spread)[-2])
+    rest = (zl.sum() - zl[0]) / (n - 1)
+    return zl, expected, complex(zl[0] - rest), zl - rest
+
+
+def _reading_order(tiles: np.ndarray, geometry: TagGeometry) -> tuple[np.ndarray, np.ndarray]:
+    """For tile groups ``(T, n, 2)``: permutation ``(T, n)`` into reading order, and a
+    validity mask ``(T,)`` (clear displaced tile, layout fits a similarity transform)."""
+    _, expected, b, slots = _layout_complex(geometry)
+    n = len(slots)
+    zi = tiles @ np.array([1.0, 1j])                 # (T, n) complex
+    others = (zi.sum(axis=1, keepdims=True) - zi) / (n - 1)
     spread = np.abs(zi - others)                     # distance of each tile from the others' mean
     disp = np.argmax(spread, axis=1)
     srt = np.sort(spread, axis=1)
-    l_spread = np.abs(zl - (zl.sum() - zl) / (n - 1))
-    expected = l_spread[0] / np.sort(l_spread)[-2]
-    clear = srt[:, -1] / np.maximum(srt[:, -2], 1e-9) > 1.0 + 0.4 * (expected - 1.0)
+    clear = srt[:, -1] > (1.0 + 0.4 * (expected - 1.0)) * np.maximum(srt[:, -2], 1e-9)
     rows = np.arange(len(zi))
-    a = zi[rows, disp] - others[rows, disp]
-    b = zl[0] - (zl.sum() - zl[0]) / (n - 1)
-    s = a / b                                         # similarity: layout -> image
-    pred = others[rows, disp][:, None] + (zl[None, :] - (zl.sum() - zl[0]) / (n - 1)) * s[:, None]
+    o_disp = others[rows, disp]
+    s = (zi[rows, disp] - o_disp) / b                 # similarity: layout -> image
+    pred = o_disp[:, None] + slots * s[:, None]
     d = np.abs(pred[:, :, None] - zi[:, None, :])     # (T, slot, detected)
     perm = np.argmin(d, axis=2)
-    unique = np.all(np.diff(np.sort(perm, axis=1), axis=1) > 0, axis=1)
-    resid = np.take_along_axis(d, perm[..., None], 2)[..., 0].max(axis=1)
-    fits = resid < 0.3 * np.abs(s) * geometry.pitch_m
+    # Each detected tile in exactly one slot; the worst slot's distance is the fit residual.
+    unique = np.bitwise_or.reduce(1 << perm, axis=1) == (1 << n) - 1
+    fits = d.min(axis=2).max(axis=1) < 0.3 * geometry.pitch_m * np.abs(s)
     return perm, clear & unique & fits
