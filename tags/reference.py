@@ -9,6 +9,8 @@ tile of every tag, which also catches tags read in the wrong orientation.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 
@@ -29,7 +31,7 @@ def homographies_4pt(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     a[:, 1::2, 3], a[:, 1::2, 4], a[:, 1::2, 5] = x, y, 1.0
     a[:, 0::2, 6], a[:, 0::2, 7] = -u * x, -u * y
     a[:, 1::2, 6], a[:, 1::2, 7] = -v * x, -v * y
-    b = np.stack((u, v), axis=2).reshape(t, 8)
+    b = dst.reshape(t, 8)                  # (u0, v0, u1, v1, ...): the rows' order
     sol = np.ones((t, 9))
     try:
         sol[:, :8] = np.linalg.solve(a, b[..., None])[..., 0]
@@ -81,21 +83,23 @@ def consistent_tags(ground_xy: np.ndarray, image_uv: np.ndarray, spacing_m: floa
         return keep
     # Proposals from at most max_hypotheses tags spread over the list: one sound tag among
     # them is enough, and the vote costs hypotheses x tags.
-    hyp = np.linspace(0, t - 1, min(t, max_hypotheses)).round().astype(int)
+    hyp = _spread(t, min(t, max_hypotheses))
     hs = homographies_4pt(ground_xy[hyp, :4], image_uv[hyp, :4])
-    g_c = ground_xy.mean(axis=1)
-    u_c = image_uv.mean(axis=1)
+    n = ground_xy.shape[1]
+    g_c = ground_xy.sum(axis=1) / n
+    u_c = image_uv.sum(axis=1) / n
     # Local image scale of each tag, px per metre, from its own tiles.
-    px_per_m = (np.linalg.norm(image_uv - u_c[:, None], axis=2).mean(axis=1)
-                / np.linalg.norm(ground_xy - g_c[:, None], axis=2).mean(axis=1))
+    du, dg = image_uv - u_c[:, None], ground_xy - g_c[:, None]
+    px_per_m = (np.sqrt(np.einsum("tnk,tnk->tn", du, du)).sum(axis=1)
+                / np.sqrt(np.einsum("tnk,tnk->tn", dg, dg)).sum(axis=1))
     with np.errstate(invalid="ignore", divide="ignore"):
-        gh = np.concatenate((g_c, np.ones((t, 1))), axis=1)                  # (tag, 3)
-        p = np.einsum("hij,tj->hti", hs, gh)                                 # (hyp, tag, 3)
-        err = np.linalg.norm(p[..., :2] / p[..., 2:3] - u_c[None], axis=2)
-    inlier = err < 0.4 * spacing_m * px_per_m[None, :]
-    inlier &= np.isfinite(err)
+        p = hs[:, :, :2] @ g_c.T + hs[:, :, 2:]                           # (hyp, 3, tag)
+        ex, ey = p[:, 0] / p[:, 2] - u_c[:, 0], p[:, 1] / p[:, 2] - u_c[:, 1]
+        err = np.sqrt(ex * ex + ey * ey)                                   # (hyp, tag)
+        inlier = err < 0.4 * spacing_m * px_per_m
     support = inlier.sum(axis=1)
-    best = int(np.argmax(support + 1e-6 * -np.nan_to_num(err, nan=1e9).sum(axis=1)))
+    # Ties go to the smaller total error (a point behind the camera counts 1e9 px).
+    best = int(np.argmax(support - 1e-6 * np.where(err == err, err, 1e9).sum(axis=1)))
     keep = inlier[best]
     for _ in range(2 if check_tiles else 0):
         before = keep
@@ -109,3 +113,11 @@ def consistent_tags(ground_xy: np.ndarray, image_uv: np.ndarray, spacing_m: floa
         if np.array_equal(keep, before):
             break
     return keep if keep.sum() >= min_support else np.zeros(t, bool)
+
+
+@functools.lru_cache(maxsize=256)
+def _spread(t: int, k: int) -> np.ndarray:
+    """``k`` indices spread evenly over ``range(t)`` (first and last included)."""
+    idx = np.linspace(0, t - 1, k).round().astype(int)
+    idx.setflags(write=False)
+    return idx
