@@ -151,8 +151,9 @@ def _state_from_cv(rvec: np.ndarray, tvec: np.ndarray, mount: np.ndarray) -> np.
 
 
 def _normal_equations(state, ground, uv, k, mount, w_px, prior):
-    """Weighted pixel residuals ``(2N,)``, Gauss-Newton normal matrix ``(6, 6)`` and
-    gradient ``(6,)`` (the attitude prior included), or None when a point is behind."""
+    """Weighted pixel residuals ``(2N,)``, their Jacobian ``(2N, 6)``, the Gauss-Newton
+    normal matrix ``(6, 6)`` and gradient ``(6,)`` (the attitude prior included), or None
+    when a point is behind the camera."""
     proj, jp = _project(state, ground, k, mount, with_jacobian=True)
     if jp is None:
         return None
@@ -166,7 +167,7 @@ def _normal_equations(state, ground, uv, k, mount, w_px, prior):
         h[4, 4] += inv_s * inv_s
         g[5] += _wrap(state[5] - prior.roll_deg) * inv_s * inv_s
         g[4] += (state[4] - prior.pitch_deg) * inv_s * inv_s
-    return r, h, g
+    return r, jac, h, g
 
 
 def _wrap(angle_deg: float) -> float:
@@ -253,42 +254,48 @@ def _solve(g2: np.ndarray, uv: np.ndarray, k: np.ndarray, prior: AttitudePrior |
     return _refine(state, ground, uv, k, mount, sig, prior, iterations, ambiguity, flags)
 
 
+def _inverse(h: np.ndarray) -> np.ndarray:
+    """Inverse of a normal matrix; a singular one means the points do not fix the pose."""
+    try:
+        return np.linalg.inv(h)
+    except np.linalg.LinAlgError as exc:
+        raise EstimationError("tag points do not constrain the pose (degenerate geometry)") from exc
+
+
 def _refine(state, ground, uv, k, mount, sig, prior, iterations, ambiguity, flags) -> PoseSolution:
     """Gauss-Newton on (x, y, z, yaw, pitch, roll) with the prior; covariance from the
     final Jacobian, scaled by the fit's reduced chi-square when that exceeds 1."""
     w = 1.0 / sig
     n = len(uv)
     # IPPE's answer is already near the optimum: a few Gauss-Newton steps add the prior.
+    # The inverse normal matrix gives both the step and, at the end, the covariance.
     converged = False
     for _ in range(max(iterations, 1)):
         eqs = _normal_equations(state, ground, uv, k, mount, w, prior)
         if eqs is None:
             raise EstimationError("pose refinement left the floor points behind the camera")
-        r0, h, g = eqs
-        try:
-            dx = np.linalg.solve(h, -g)
-        except np.linalg.LinAlgError as exc:
-            raise EstimationError("tag points do not constrain the pose (degenerate geometry)") from exc
+        r0, jac, h, g = eqs
+        h_inv = _inverse(h)
+        dx = -(h_inv @ g)
         state = state + dx
         if abs(dx[0]) < 1e-3 and abs(dx[1]) < 1e-3 and abs(dx[2]) < 1e-3 and np.abs(dx[3:]).max() < 0.05:
             # Gauss-Newton converges quadratically: after a step this small the next one is
-            # ~1e-6 m. The last Jacobian stands for the solution; residuals are recomputed.
+            # ~1e-6 m. The last Jacobian stands for the solution, and the residuals there are
+            # the linear prediction (its error is second order in a sub-mm step).
             converged = True
-            r0 = ((_project(state, ground, k, mount) - uv) * w[:, None]).ravel()
+            r0 = r0 + jac @ dx
             break
     if not converged:
         eqs = _normal_equations(state, ground, uv, k, mount, w, prior)
         if eqs is None:
             raise EstimationError("pose refinement left the floor points behind the camera")
-        r0, h, _ = eqs
+        r0, _, h, _ = eqs
+        h_inv = _inverse(h)
     res = r0.reshape(-1, 2) / w[:, None]
     rms = float(np.sqrt(np.einsum("ij,ij->", res, res) / n))
     dof = max(2 * n - 6, 1)
     chi2 = float(r0 @ r0) / dof
-    try:
-        cov = np.linalg.inv(h) * max(chi2, 1.0)
-    except np.linalg.LinAlgError as exc:
-        raise EstimationError("tag points do not constrain the pose (degenerate geometry)") from exc
+    cov = h_inv * max(chi2, 1.0)
     state[3] = _wrap(state[3])
     if "ambiguous" in flags:
         cov = cov * 100.0  # the mirror pose is as good: say so in the covariance
