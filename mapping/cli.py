@@ -322,13 +322,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                         "Brown-Conrady or fisheye model and write the camera to OUTPUT (JSON) "
                                         "plus OUTPUT.png (distortion field and per-view reprojection RMS).")
     p.add_argument("images", nargs="+", metavar="IMAGE_OR_DIR", help="board photos, or folders of them")
-    p.add_argument("--board", default="chessboard", choices=["chessboard", "charuco"])
+    p.add_argument("--board", default="chessboard", choices=["chessboard", "charuco"],
+                   help="calibration target: plain chessboard or ChArUco board (default chessboard)")
     p.add_argument("--cols", type=int, default=10, help="squares across the board (not inner corners)")
     p.add_argument("--rows", type=int, default=7, help="squares down the board")
     p.add_argument("--square-m", type=float, default=0.05, help="side of one square, metres")
     p.add_argument("--marker-m", type=float, default=None, help="ChArUco marker side, metres (default 0.75 square)")
     p.add_argument("--dictionary", default="DICT_5X5_100", help="ChArUco ArUco dictionary name")
-    p.add_argument("--model", default="brown_conrady", choices=["brown_conrady", "fisheye"])
+    p.add_argument("--model", default="brown_conrady", choices=["brown_conrady", "fisheye"],
+                   help="lens model to fit (default brown_conrady)")
     p.add_argument("-o", "--output", default="cal.json", help="camera file to write")
     p.set_defaults(func=_lens_calibrate)
 
@@ -388,7 +390,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = plan_sub.add_parser("extend", formatter_class=fmt, help="re-centre a plan on an alarm and grow it",
                             description="Rebuild PLAN with the same shape and step, centred on --alarm, its area "
                                         "grown by --growth per joining drone (source platform: 50 %%).")
-    p.add_argument("plan", metavar="PLAN.json")
+    p.add_argument("plan", metavar="PLAN.json", help="the plan to extend (written by skyfix plan corners|polygon)")
     p.add_argument("--alarm", type=_latlon, required=True, metavar="LAT,LON", help="where the alarm was raised")
     p.add_argument("--joining", type=int, required=True, help="number of drones joining")
     p.add_argument("--growth", type=float, default=0.5, help="area growth per joining drone (fraction)")

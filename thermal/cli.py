@@ -125,7 +125,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = sub.add_parser("simulate", help="write a synthetic thermal flight that 'locate' can read",
                        description="Render a forest with fires from an orbiting drone and write frames/, "
                                    "poses.csv, camera.json and truth.json into OUT_DIR.")
-    p.add_argument("out_dir", type=Path, metavar="OUT_DIR")
+    p.add_argument("out_dir", type=Path, metavar="OUT_DIR",
+                   help="folder to write frames/, poses.csv, camera.json and truth.json into")
     p.add_argument("--fires", type=int, default=3, help="number of fires (default 3)")
     p.add_argument("--frames", type=int, default=36, help="number of frames (default 36)")
     p.add_argument("--agl", type=float, default=80.0, help="flight height above ground, m (default 80)")

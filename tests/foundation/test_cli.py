@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 import skyfix
 from skyfix.cli import build_parser, main
 
@@ -24,17 +26,27 @@ def test_version_and_help():
     assert "demo" in out.stdout and "--verbose" in out.stdout
 
 
+def _subcommands(parser, prefix="skyfix"):
+    """Yield (command path, parser) for every subcommand at any depth."""
+    for action in parser._actions:
+        if action.__class__.__name__ == "_SubParsersAction":
+            helps = {a.dest: a.help for a in action._choices_actions}
+            for name, sub in action.choices.items():
+                yield f"{prefix} {name}", sub, helps.get(name)
+                yield from _subcommands(sub, f"{prefix} {name}")
+
+
 def test_every_subcommand_has_complete_help():
-    parser = build_parser()
-    subparsers = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
-    assert subparsers.choices, "no subcommand registered"
-    for name, sub in subparsers.choices.items():
-        text = sub.format_help()
-        assert sub.description or any(h.help for h in subparsers._choices_actions if h.dest == name), name
+    commands = list(_subcommands(build_parser()))
+    assert len(commands) >= 2, "no subcommand registered"
+    for path, sub, summary in commands:
+        assert summary, f"'{path}' has no one-line help in its parent's listing"
+        assert sub.format_help()
         for action in sub._actions:
-            if action.dest != "help" and not action.option_strings == []:
-                assert action.help, f"skyfix {name}: option {action.option_strings} has no help"
-        assert text
+            if action.__class__.__name__ == "_SubParsersAction" or action.dest == "help":
+                continue
+            if not action.help:
+                pytest.fail(f"'{path}': argument {action.option_strings or action.dest} has no help")
 
 
 def test_no_command_prints_help_and_fails(capsys):
