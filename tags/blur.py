@@ -26,11 +26,14 @@ def motion_blur_px(grey: np.ndarray) -> float:
 def motion_blur_half_res(grey_half: np.ndarray) -> float:
     """:func:`motion_blur_px` of an image already reduced 2x (2x2 box); result in
     full-resolution pixels."""
-    # Sobel derivatives (int16) and the structure tensor as three dot products.
+    # Sobel derivatives (int16) and the structure tensor from exact integer sums of squares
+    # (cv2.norm accumulates in double): 2 fx.fy = |fx + fy|^2 - |fx|^2 - |fy|^2. No float
+    # copies of the gradient images.
     dx, dy = cv2.spatialGradient(np.ascontiguousarray(grey_half, dtype=np.uint8))
-    fx, fy = dx.astype(np.float32).ravel(), dy.astype(np.float32).ravel()
-    n = max(fx.size, 1)
-    jxx, jyy, jxy = float(fx @ fx) / n, float(fy @ fy) / n, float(fx @ fy) / n
+    n = max(dx.size, 1)
+    sxx, syy = cv2.norm(dx, cv2.NORM_L2SQR), cv2.norm(dy, cv2.NORM_L2SQR)
+    sxy = 0.5 * (cv2.norm(cv2.add(dx, dy, dtype=cv2.CV_32S), cv2.NORM_L2SQR) - sxx - syy)
+    jxx, jyy, jxy = sxx / n, syy / n, sxy / n
     tr, det = jxx + jyy, jxx * jyy - jxy * jxy
     disc = max(tr * tr / 4.0 - det, 0.0) ** 0.5
     lmax, lmin = tr / 2.0 + disc, tr / 2.0 - disc
