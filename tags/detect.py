@@ -64,6 +64,7 @@ def _white_level(bright: np.ndarray, tile_px_max: float) -> np.ndarray:
 
 
 _LUT_STEPS = 48   # reflectance quantisation of the colour table: 1/47 ~ 5 DN per channel
+_CHANNEL_STRIDES = np.array([_LUT_STEPS * _LUT_STEPS, _LUT_STEPS, 1], dtype=np.intp)
 
 
 @functools.lru_cache(maxsize=8)
@@ -77,7 +78,8 @@ def _colour_table(palette_bytes: bytes) -> tuple[np.ndarray, np.ndarray]:
     order = np.argsort(dist, axis=1)
     rows = np.arange(len(grid))
     margin = dist[rows, order[:, 1]] - dist[rows, order[:, 0]]
-    return order[:, 0].astype(np.int64), margin.astype(np.float32)
+    # Small dtypes: the tables are read at random, and a cold cache pays per line touched.
+    return order[:, 0].astype(np.uint8), margin.astype(np.float32)
 
 
 @functools.lru_cache(maxsize=1)
@@ -86,7 +88,7 @@ def _quantised_reflectance() -> np.ndarray:
     (clipped) of a uint8 channel value relative to a uint8 white level."""
     ink = np.arange(256, dtype=float)[:, None]
     white = np.maximum(np.arange(256, dtype=float), 1.0)[None, :]
-    q = np.clip(np.rint(ink / white * (_LUT_STEPS - 1)), 0, _LUT_STEPS - 1).astype(np.intp)
+    q = np.clip(np.rint(ink / white * (_LUT_STEPS - 1)), 0, _LUT_STEPS - 1).astype(np.uint8)
     q.setflags(write=False)
     return q
 
@@ -95,8 +97,8 @@ def _classify_u8(codec: TileCodec, rgb: np.ndarray, white: np.ndarray) -> tuple[
     """Palette index ``(K,)`` and CIE76 margin ``(K,)`` of uint8 colours ``(K, 3)``
     relative to the uint8 local white levels ``(K,)`` (reflectance = colour / white)."""
     digit, margin = _colour_table(np.ascontiguousarray(codec.palette_rgb, dtype=np.float64).tobytes())
-    q = _quantised_reflectance()[rgb, white[:, None]] @ np.array([_LUT_STEPS * _LUT_STEPS, _LUT_STEPS, 1])
-    return digit[q], margin[q].astype(float)
+    q = _quantised_reflectance()[rgb, white[:, None]] @ _CHANNEL_STRIDES
+    return digit[q].astype(np.int64), margin[q].astype(float)
 
 
 @functools.lru_cache(maxsize=32)
