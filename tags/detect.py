@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 from skyfix.tags.blur import motion_blur_half_res
 from skyfix.tags.codec import TagGeometry, TileCodec
 from skyfix.tags.image import as_rgb_u8
-from skyfix.tags.palette import srgb_to_lab
+from skyfix.tags.palette import srgb_grid_to_lab, srgb_to_lab
 
 _DOWN = 4  # white-level estimation grid, half-resolution pixels
 
@@ -70,16 +70,24 @@ _CHANNEL_STRIDES = np.array([_LUT_STEPS * _LUT_STEPS, _LUT_STEPS, 1], dtype=np.i
 @functools.lru_cache(maxsize=8)
 def _colour_table(palette_bytes: bytes) -> tuple[np.ndarray, np.ndarray]:
     """Nearest palette colour (CIELAB) and its margin for every quantised reflectance;
-    keyed by the palette's float64 bytes so different palettes never share a table."""
+    keyed by the palette's float64 bytes so different palettes never share a table.
+
+    Built once per palette (~110k entries): one palette colour at a time, keeping the
+    nearest and second-nearest distance, so no (entries x colours x 3) temporaries."""
     palette_lab = srgb_to_lab(np.frombuffer(palette_bytes, dtype=np.float64).reshape(-1, 3))
-    q = np.linspace(0.0, 1.0, _LUT_STEPS)
-    grid = np.stack(np.meshgrid(q, q, q, indexing="ij"), axis=-1).reshape(-1, 3)
-    dist = np.linalg.norm(srgb_to_lab(grid)[:, None, :] - palette_lab[None], axis=2)
-    order = np.argsort(dist, axis=1)
-    rows = np.arange(len(grid))
-    margin = dist[rows, order[:, 1]] - dist[rows, order[:, 0]]
+    lab = srgb_grid_to_lab(np.linspace(0.0, 1.0, _LUT_STEPS)).reshape(-1, 3)
+    l_, a_, b_ = lab[:, 0].copy(), lab[:, 1].copy(), lab[:, 2].copy()
+    best = np.full(len(lab), np.inf)
+    second = np.full(len(lab), np.inf)
+    digit = np.zeros(len(lab), np.uint8)
+    for i, (pl, pa, pb) in enumerate(palette_lab):
+        d = np.sqrt((l_ - pl) ** 2 + (a_ - pa) ** 2 + (b_ - pb) ** 2)
+        closer = d < best
+        second = np.where(closer, best, np.minimum(second, d))
+        best = np.where(closer, d, best)
+        digit[closer] = i
     # Small dtypes: the tables are read at random, and a cold cache pays per line touched.
-    return order[:, 0].astype(np.uint8), margin.astype(np.float32)
+    return digit, (second - best).astype(np.float32)
 
 
 @functools.lru_cache(maxsize=1)

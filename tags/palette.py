@@ -22,14 +22,34 @@ _WHITE_XYZ = _M_XYZ_FROM_RGB.sum(axis=1)
 MAX_INK_CHANNEL = 0.25
 
 
-def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
-    """sRGB in [0, 1] ``(..., 3)`` -> CIELAB ``(..., 3)`` (L in [0, 100], D65)."""
-    c = np.clip(np.asarray(rgb, dtype=np.float64), 0.0, 1.0)
-    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-    xyz = lin @ _M_XYZ_FROM_RGB.T / _WHITE_XYZ
+def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """sRGB tone curve removed, elementwise, from values already clipped to [0, 1]."""
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def _xyz_to_lab(xyz: np.ndarray) -> np.ndarray:
+    """White-normalised XYZ ``(..., 3)`` -> CIELAB ``(..., 3)``."""
     f = np.where(xyz > (6 / 29) ** 3, np.cbrt(xyz), xyz / (3 * (6 / 29) ** 2) + 4 / 29)
     return np.stack((116 * f[..., 1] - 16, 500 * (f[..., 0] - f[..., 1]),
                      200 * (f[..., 1] - f[..., 2])), axis=-1)
+
+
+def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
+    """sRGB in [0, 1] ``(..., 3)`` -> CIELAB ``(..., 3)`` (L in [0, 100], D65)."""
+    lin = _srgb_to_linear(np.clip(np.asarray(rgb, dtype=np.float64), 0.0, 1.0))
+    return _xyz_to_lab(lin @ _M_XYZ_FROM_RGB.T / _WHITE_XYZ)
+
+
+def srgb_grid_to_lab(levels: np.ndarray) -> np.ndarray:
+    """CIELAB ``(L, L, L, 3)`` of every sRGB colour whose channels (r, g, b index order)
+    take the ``L`` given levels in [0, 1]. The tone curve is applied to the ``L`` levels
+    only and XYZ mixed by broadcasting: the same values as :func:`srgb_to_lab` on the
+    full grid (to rounding) at a fraction of the cost."""
+    lin = _srgb_to_linear(np.clip(np.asarray(levels, dtype=np.float64).ravel(), 0.0, 1.0))
+    m = _M_XYZ_FROM_RGB / _WHITE_XYZ[:, None]          # row i: channel weights of X, Y or Z
+    xyz = (lin[:, None, None, None] * m[:, 0] + lin[None, :, None, None] * m[:, 1]
+           + lin[None, None, :, None] * m[:, 2])
+    return _xyz_to_lab(xyz)
 
 
 def delta_e(lab_a: np.ndarray, lab_b: np.ndarray) -> np.ndarray:
