@@ -12,7 +12,10 @@ shapely through this package):
 - surveys: :func:`plan_survey`, :func:`plan_three_corners`, :func:`plan_polygon`,
   :func:`extend_survey`, :func:`split_survey`, :func:`handoff` (``survey``),
   :func:`verify_coverage` (``coverage``), :func:`mission_items` / :class:`MissionItemInt`
-  (``mission``), file writers in ``export``.
+  (``mission``), file writers in ``export``;
+- photo-to-model pipeline: :func:`run_pipeline`, :class:`PipelineConfig`, :class:`Report`
+  (``pipeline``, ``report``; stages in ``photos``, ``sfm``, ``georef``, ``dsm``, ``ortho``,
+  ``grid``, ``geotiff``).
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ _EXPORTS = {
     "plan_polygon": "survey", "extend_survey": "survey", "split_survey": "survey", "handoff": "survey",
     "verify_coverage": "coverage", "MissionItemInt": "mission", "mission_items": "mission",
     "load_camera": "camera_io", "save_camera": "camera_io",
+    "PipelineConfig": "pipeline", "run_pipeline": "pipeline", "Report": "report", "load_photos": "photos",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -1,0 +1,499 @@
+"""Photo-to-model pipeline: geotagged photos -> orthophoto, DSM, point cloud, report.
+
+Stages run in order over one project folder (``out_dir``); each writes its outputs and
+a marker ``work/stages/<stage>.json`` (with its time). On a new run a stage whose marker
+exists is skipped unless it is forced or an earlier stage ran again, so a run resumes
+after a crash or Ctrl-C. Feature extraction and matching keep the pycolmap database
+(``work/database.db``) and are never redone once their markers exist (force them with
+``force=("features",)``); pycolmap also skips images already in the database.
+
+Stages: ``photos`` (EXIF, rejections, GPS overlap), ``correct`` (optional barrel lens
+correction), ``features``, ``matches``, ``mapping`` (pycolmap), ``georef`` (similarity to
+GPS in a local ENU frame), ``dsm``, ``ortho``, ``export`` (PLY, GeoJSON, report).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+import resource
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from skyfix.camera import Camera
+from skyfix.distortion import Barrel
+from skyfix.errors import ConfigurationError, DataError, InputError
+from skyfix.mapping.photos import Photo, camera_groups, check_gps_overlap, load_photos
+from skyfix.mapping.report import Report
+
+__all__ = ["STAGES", "PipelineConfig", "run_pipeline"]
+
+log = logging.getLogger(__name__)
+
+STAGES = ("photos", "correct", "features", "matches", "mapping", "georef", "dsm", "ortho", "export")
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Everything a run needs; defaults suit 1-12 Mpx survey photos on a laptop."""
+
+    photos_dir: str | os.PathLike
+    out_dir: str | os.PathLike
+    barrel: Barrel | None = None          # ImageMagick barrel model: photos are corrected first
+    calibration: Camera | None = None     # pre-calibrated lens, passed to pycolmap (held fixed)
+    resolution_cm: float | None = None    # orthophoto pixel; None: the photos' median GSD
+    dsm_resolution_m: float | None = None  # DSM cell; None: twice the mean sparse-point spacing
+    max_ortho_mpx: float = 40.0           # raise the pixel size if the orthophoto would be larger
+    max_image_size_px: int = 1600         # photos are downscaled to this for features
+    max_features: int = 4000              # SIFT features per photo
+    exhaustive_max_photos: int = 40       # more photos than this: spatial (GPS neighbour) matching
+    spatial_neighbours: int = 12          # GPS neighbours matched per photo in spatial matching
+    max_agl_m: float = 120.0              # upper bound of height above ground for the overlap check
+    georef_max_error_m: float = 10.0      # RANSAC inlier distance camera centre <-> GPS
+    blend_power: float = 2.0              # seam feathering exponent of the edge-distance weight
+    threads: int = -1                     # -1: all cores
+    force: tuple[str, ...] = ()           # stages to re-run even when their outputs exist
+
+    def __post_init__(self) -> None:
+        if self.barrel is not None and self.calibration is not None:
+            raise ConfigurationError("give either barrel= (correct photos) or calibration= (pass the lens "
+                                     "model to pycolmap), not both")
+        unknown = set(self.force) - set(STAGES)
+        if unknown:
+            raise ConfigurationError(f"force names unknown stage(s) {sorted(unknown)}; stages are {list(STAGES)}")
+        for name in ("resolution_cm", "dsm_resolution_m"):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(v) and v > 0):
+                raise InputError(f"{name} must be a positive number, got {v!r}")
+
+
+class _Project:
+    """Paths of a project folder and the stage markers."""
+
+    def __init__(self, out_dir: Path) -> None:
+        self.root = out_dir
+        self.work = out_dir / "work"
+        self.stages = self.work / "stages"
+        self.database = self.work / "database.db"
+        self.sparse = self.work / "sparse"
+        self.georef = self.work / "georef"
+        self.corrected = self.work / "corrected"
+        self.stages.mkdir(parents=True, exist_ok=True)
+
+    def marker(self, stage: str) -> dict | None:
+        path = self.stages / f"{stage}.json"
+        return json.loads(path.read_text()) if path.exists() else None
+
+    def mark(self, stage: str, data: dict) -> None:
+        tmp = self.stages / f"{stage}.json.part"
+        tmp.write_text(json.dumps(data, indent=1))
+        os.replace(tmp, self.stages / f"{stage}.json")
+
+    def clear_from(self, stage: str) -> None:
+        for later in STAGES[STAGES.index(stage):]:
+            (self.stages / f"{later}.json").unlink(missing_ok=True)
+
+
+def _peak_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_pipeline(config: PipelineConfig) -> Report:
+    """Run (or resume) the pipeline; returns the :class:`Report` also saved as ``report.json``.
+
+    Raises :class:`InputError` for a missing/empty photo folder and :class:`DataError` when
+    no photo is usable or nothing reconstructs; the report written so far says why.
+    """
+    import cv2
+
+    start = time.perf_counter()
+    out = Path(config.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    project = _Project(out)
+    report = Report(str(config.photos_dir), str(out))
+    if config.threads > 0:
+        cv2.setNumThreads(config.threads)
+    state: dict = {}
+    dirty = False
+    try:
+        for stage in STAGES:
+            marker = project.marker(stage)
+            rerun = stage in config.force or marker is None or (dirty and stage not in ("features", "matches"))
+            if stage == "photos":
+                rerun = True  # cheap, and later stages need the photo list
+            if not rerun:
+                report.stage_seconds[stage] = marker.get("seconds", 0.0)
+                report.resumed_stages.append(stage)
+                _STAGE_LOAD[stage](config, project, state, report, marker)
+                continue
+            t0 = time.perf_counter()
+            log.info("stage %s", stage)
+            data = _STAGE_RUN[stage](config, project, state, report) or {}
+            data["seconds"] = time.perf_counter() - t0
+            if stage != "photos":
+                dirty = True
+            elif marker is not None and marker.get("names") != data.get("names"):
+                log.info("the photo set changed since the last run: every stage runs again")
+                project.clear_from("correct")
+                config = dataclasses.replace(config, force=STAGES)
+            project.mark(stage, data)
+            report.stage_seconds[stage] = data["seconds"]
+    finally:
+        report.total_seconds = time.perf_counter() - start
+        report.peak_memory_mib = _peak_mib()
+        report.save_json(out / "report.json")
+    return report
+
+
+# --------------------------------------------------------------------------- stages
+
+
+def _photos_run(config, project, state, report) -> dict:
+    photos, rejected = load_photos(config.photos_dir)
+    report.photos_found = len(photos) + len(rejected)
+    report.rejected = [{"photo": r.name, "reason": r.reason} for r in rejected]
+    report.warnings += [f"rejected {r.name}: {r.reason}" for r in rejected]
+    if not photos:
+        raise DataError(f"none of the {len(rejected)} photo(s) in {config.photos_dir} is usable: "
+                        + "; ".join(f"{r.name}: {r.reason}" for r in rejected[:5]))
+    groups = camera_groups(photos)
+    report.camera_groups = [{"make": k[0], "model": k[1], "width": k[2], "height": k[3], "focal_px": k[4],
+                             "photos": len(v)} for k, v in groups.items()]
+    if len(groups) > 1:
+        report.warnings.append(f"mixed cameras: {len(groups)} camera models, each with its own calibration")
+    report.without_gps = [p.name for p in photos if not p.has_gps]
+    if report.without_gps:
+        report.warnings.append(f"{len(report.without_gps)} photo(s) without GPS in EXIF reconstruct but are not "
+                               "used for georeferencing")
+    overlap = check_gps_overlap(photos, config.max_agl_m)
+    report.isolated_by_gps = overlap.isolated
+    if overlap.isolated:
+        report.warnings.append(f"{len(overlap.isolated)} photo(s) cannot overlap any other photo by GPS "
+                               f"(even {config.max_agl_m:.0f} m above ground): {', '.join(overlap.isolated[:10])}")
+    report.photos_used = [p.name for p in photos]
+    state["photos"] = photos
+    state["image_dir"] = Path(config.photos_dir)
+    return {"names": report.photos_used, "photos": [dataclasses.asdict(p) for p in photos]}
+
+
+def _correct_run(config, project, state, report) -> dict:
+    if config.barrel is None:
+        state["image_dir"] = Path(config.photos_dir)
+        return {"corrected": False}
+    from skyfix.mapping.batch import CorrectionSpec, correct_photos
+
+    result = correct_photos([p.path for p in state["photos"]], project.corrected,
+                            CorrectionSpec(barrel=config.barrel), workers=None if config.threads < 1 else
+                            config.threads, progress=False)
+    focal = {Path(r.source).name: r.output_camera for r in result.written}
+    kept = []
+    for p in state["photos"]:
+        cam = focal.get(p.name)
+        if cam is None:
+            reason = next(r.error for r in result.skipped if Path(r.source).name == p.name)
+            report.rejected.append({"photo": p.name, "reason": f"lens correction failed: {reason}"})
+            continue
+        kept.append(dataclasses.replace(p, path=str(project.corrected / p.name), width=cam["width"],
+                                        height=cam["height"], focal_px=cam["fx_px"] or p.focal_px))
+    state["photos"], state["image_dir"] = kept, project.corrected
+    report.photos_used = [p.name for p in kept]
+    return {"corrected": True, "photos": [dataclasses.asdict(p) for p in kept]}
+
+
+def _correct_load(config, project, state, report, marker) -> None:
+    if marker.get("corrected"):
+        state["photos"] = [Photo(**d) for d in marker["photos"]]
+        state["image_dir"] = project.corrected
+        report.photos_used = [p.name for p in state["photos"]]
+    else:
+        state["image_dir"] = Path(config.photos_dir)
+
+
+def _features_run(config, project, state, report) -> dict:
+    from skyfix.mapping import sfm
+
+    sfm.extract(project.database, state["image_dir"], state["photos"], calibration=config.calibration,
+                max_image_size_px=config.max_image_size_px, max_features=config.max_features,
+                threads=config.threads)
+    return {"database": str(project.database)}
+
+
+def _matches_run(config, project, state, report) -> dict:
+    from skyfix.mapping import sfm
+
+    report.matching = sfm.match(project.database, state["photos"], exhaustive_max_photos=config.exhaustive_max_photos,
+                                neighbours=config.spatial_neighbours, threads=config.threads)
+    return {"method": report.matching}
+
+
+def _matches_load(config, project, state, report, marker) -> None:
+    report.matching = marker.get("method", "")
+
+
+def _mapping_run(config, project, state, report) -> dict:
+    from skyfix.mapping import sfm
+
+    if project.sparse.exists():
+        shutil.rmtree(project.sparse)
+    models = sfm.reconstruct(project.database, state["image_dir"], project.sparse,
+                             calibrated=config.calibration is not None, threads=config.threads)
+    if not models:
+        raise DataError("structure from motion reconstructed nothing: the photos share too few features "
+                        "(do they overlap? are they sharp?)")
+    state["models"] = models
+    return {"models": len(models)}
+
+
+def _mapping_load(config, project, state, report, marker) -> None:
+    from skyfix.mapping import sfm
+
+    state["models"] = sfm.load_models(project.sparse)
+
+
+def _summarise_models(state, report) -> None:
+    models = state["models"]
+    registered = sorted({im.name for rec in models for im in rec.images.values() if im.has_pose})
+    report.registered = registered
+    report.unregistered = sorted(set(report.photos_used) - set(registered))
+    errors = [rec.compute_mean_reprojection_error() for rec in models]
+    weights = [rec.compute_num_observations() for rec in models]
+    report.mean_reprojection_error_px = float(np.average(errors, weights=weights)) if sum(weights) else math.nan
+    report.points = int(sum(rec.num_points3D() for rec in models))
+
+
+def _georef_run(config, project, state, report) -> dict:
+    from skyfix.mapping.georef import georeference, survey_frame
+
+    if project.georef.exists():
+        shutil.rmtree(project.georef)
+    models = state["models"]
+    frame = survey_frame(state["photos"])
+    results = []
+    for i, rec in enumerate(models):
+        if frame is None:
+            from skyfix.mapping.georef import ModelGeoref
+
+            results.append(ModelGeoref(i, rec.num_reg_images(), False, "no photo has GPS; model left unreferenced"))
+        else:
+            results.append(georeference(rec, state["photos"], frame, i, max_error_m=config.georef_max_error_m))
+        path = project.georef / str(i)
+        path.mkdir(parents=True, exist_ok=True)
+        rec.write(str(path))
+    state["frame"] = frame
+    data = {"frame": None if frame is None else [frame.lat0_deg, frame.lon0_deg, frame.alt0_m],
+            "models": [r.to_dict() for r in results]}
+    _georef_load(config, project, state, report, data)
+    return data
+
+
+def _georef_load(config, project, state, report, marker) -> None:
+    from skyfix.geo import LocalFrame
+    from skyfix.mapping import sfm
+
+    state["models"] = sfm.load_models(project.georef)
+    state["frame"] = None if marker["frame"] is None else LocalFrame(*marker["frame"])
+    _summarise_models(state, report)
+    report.models = marker["models"]
+    referenced = [m for m in marker["models"] if m["georeferenced"]]
+    report.georeferenced = bool(referenced)
+    for m in marker["models"]:
+        if not m["georeferenced"]:
+            report.warnings.append(f"model {m['model']} ({m['registered']} photos) not georeferenced: {m['reason']}")
+    if len(marker["models"]) > 1:
+        report.warnings.append(f"mapping produced {len(marker['models'])} models; georeferenced ones are merged "
+                               "in the outputs")
+    if referenced:
+        res = np.array([r for m in referenced for r in m["residuals_enu_m"].values()])
+        report.georef_rms_m = float(np.sqrt((res ** 2).sum(axis=1).mean()))
+        report.georef_rms_horizontal_m = float(np.sqrt((res[:, :2] ** 2).sum(axis=1).mean()))
+    state["referenced"] = [state["models"][m["model"]] for m in referenced]
+    state["unreferenced"] = [state["models"][m["model"]] for m in marker["models"] if not m["georeferenced"]]
+
+
+def _points(models: list, max_error_px: float = 2.0, min_track: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) xyz and (N, 3) uint8 colours of well-measured points of ``models``."""
+    xyz, rgb = [], []
+    for rec in models:
+        for p in rec.points3D.values():
+            if p.error <= max_error_px and p.track.length() >= min_track:
+                xyz.append(p.xyz)
+                rgb.append(p.color)
+    if not xyz:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    return np.array(xyz, dtype=np.float64), np.array(rgb, dtype=np.uint8)
+
+
+def _dsm_run(config, project, state, report) -> dict:
+    from skyfix.mapping.dsm import auto_dsm_resolution_m, build_dsm
+    from skyfix.mapping.geotiff import write_dsm_tif
+    from skyfix.mapping.grid import Grid, enu_to_utm, utm_epsg
+
+    if not state["referenced"]:
+        report.warnings.append("no georeferenced model: DSM and orthophoto skipped")
+        return {"skipped": True}
+    frame = state["frame"]
+    xyz, _ = _points(state["referenced"])
+    if len(xyz) < 3:
+        raise DataError(f"only {len(xyz)} well-measured 3-D points; a DSM needs more")
+    epsg = utm_epsg(frame.lat0_deg, frame.lon0_deg)
+    utm = enu_to_utm(frame, xyz, epsg)
+    res_m = config.dsm_resolution_m or auto_dsm_resolution_m(utm)
+    lo, hi = utm[:, :2].min(axis=0), utm[:, :2].max(axis=0)
+    grid = Grid.covering(epsg, lo[0], lo[1], hi[0], hi[1], res_m)
+    dsm = build_dsm(utm, grid)
+    write_dsm_tif(project.root / "dsm.tif", dsm.surface_m, grid)
+    np.save(project.work / "dsm_filled.npy", dsm.filled_m)
+    np.save(project.work / "dsm_surface.npy", dsm.surface_m)
+    data = {"grid": grid.to_dict(), "points": len(xyz)}
+    _dsm_load(config, project, state, report, data)
+    return data
+
+
+def _dsm_load(config, project, state, report, marker) -> None:
+    from skyfix.mapping.dsm import Dsm
+    from skyfix.mapping.grid import Grid
+
+    if marker.get("skipped"):
+        state["dsm"] = None
+        return
+    grid = Grid(**marker["grid"])
+    surface = np.load(project.work / "dsm_surface.npy")
+    state["dsm"] = Dsm(grid, surface, np.load(project.work / "dsm_filled.npy"), np.isfinite(surface))
+    report.crs_epsg = grid.epsg
+    report.dsm_resolution_m = grid.resolution_m
+    report.outputs["dsm"] = str(project.root / "dsm.tif")
+
+
+def _median_gsd_m(models: list, frame, dsm) -> float:
+    """Median ground sample distance: height above the median DSM height / focal length."""
+    ground_up = float(np.nanmedian(dsm.filled_m)) - frame.alt0_m
+    gsd = []
+    for rec in models:
+        for image in rec.images.values():
+            if image.has_pose:
+                cam = rec.cameras[image.camera_id]
+                gsd.append((image.projection_center()[2] - ground_up) / cam.mean_focal_length())
+    return float(np.median(gsd))
+
+
+def _ortho_run(config, project, state, report) -> dict:
+    from skyfix.mapping.geotiff import write_orthophoto_tif, write_preview_png
+    from skyfix.mapping.grid import Grid, UtmToEnu, enu_to_utm
+    from skyfix.mapping.ortho import load_views, orthomosaic
+
+    dsm = state["dsm"]
+    if dsm is None:
+        return {"skipped": True}
+    frame, models = state["frame"], state["referenced"]
+    gsd_m = _median_gsd_m(models, frame, dsm)
+    res_m = config.resolution_cm / 100.0 if config.resolution_cm else gsd_m
+    # Ortho extent: the camera footprints bounded by the DSM box grown by a footprint's half-size.
+    centres = np.array([im.projection_center() for rec in models for im in rec.images.values() if im.has_pose])
+    centres_utm = enu_to_utm(frame, centres, dsm.grid.epsg)
+    west, south, east, north = dsm.grid.bounds_m
+    margin = 0.5 * gsd_m * max(max(c.width, c.height) for rec in models for c in rec.cameras.values())
+    west, south = min(west, centres_utm[:, 0].min() - margin), min(south, centres_utm[:, 1].min() - margin)
+    east, north = max(east, centres_utm[:, 0].max() + margin), max(north, centres_utm[:, 1].max() + margin)
+    area = (east - west) * (north - south)
+    if area / res_m ** 2 > config.max_ortho_mpx * 1e6:
+        res_m = math.sqrt(area / (config.max_ortho_mpx * 1e6))
+        report.warnings.append(f"orthophoto pixel raised to {res_m * 100:.1f} cm to stay within "
+                               f"{config.max_ortho_mpx:g} Mpx")
+    grid = Grid.covering(dsm.grid.epsg, west, south, east, north, res_m)
+    to_enu = UtmToEnu(frame, grid.epsg, grid.bounds_m)
+    views = load_views(models, state["image_dir"])
+    mosaic = orthomosaic(views, grid, dsm, to_enu, blend_power=config.blend_power)
+    # Crop to the covered part.
+    alpha = mosaic.rgba[..., 3] > 0
+    rows, cols = np.flatnonzero(alpha.any(axis=1)), np.flatnonzero(alpha.any(axis=0))
+    r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+    west_c, north_c = grid.centres_m(r0, c0)
+    crop = Grid(grid.epsg, float(west_c) - res_m / 2, float(north_c) + res_m / 2, res_m, int(c1 - c0), int(r1 - r0))
+    rgba = mosaic.rgba[r0:r1, c0:c1]
+    write_orthophoto_tif(project.root / "orthophoto.tif", rgba, crop)
+    write_preview_png(project.root / "orthophoto.png", rgba)
+    data = {"grid": crop.to_dict(), "gsd_m": gsd_m, "covered_m2": float(alpha.sum() * res_m ** 2),
+            "photos": mosaic.photos_used, "utm_to_enu_max_residual_m": to_enu.max_residual_m}
+    _ortho_load(config, project, state, report, data)
+    return data
+
+
+def _ortho_load(config, project, state, report, marker) -> None:
+    if marker.get("skipped"):
+        return
+    report.gsd_cm = marker["gsd_m"] * 100.0
+    report.resolution_cm = marker["grid"]["resolution_m"] * 100.0
+    report.covered_area_m2 = marker["covered_m2"]
+    report.outputs["orthophoto"] = str(project.root / "orthophoto.tif")
+    report.outputs["preview"] = str(project.root / "orthophoto.png")
+    state["ortho_grid"] = marker["grid"]
+
+
+def _export_run(config, project, state, report) -> dict:
+    from skyfix.mapping.geotiff import write_cameras_geojson, write_ply
+    from skyfix.mapping.grid import enu_to_utm
+
+    frame = state["frame"]
+    by_name = {p.name: p for p in state["photos"]}
+    features, cams_utm, gps_utm = [], [], []
+    residuals = {n: r for m in report.models for n, r in m["residuals_enu_m"].items()}
+    if state["referenced"]:
+        xyz, rgb = _points(state["referenced"], max_error_px=4.0, min_track=2)
+        write_ply(project.root / "points.ply", enu_to_utm(frame, xyz, report.crs_epsg) if len(xyz) else xyz, rgb)
+        for rec in state["referenced"]:
+            for image in rec.images.values():
+                if not image.has_pose:
+                    continue
+                lat, lon, alt = frame.to_geodetic_points(image.projection_center()[None, :])[0]
+                p = by_name.get(image.name)
+                features.append({"lat_deg": lat, "lon_deg": lon, "alt_m": alt, "properties": {
+                    "photo": image.name, "alt_amsl_m": alt, "gps_lat_deg": p.gps_lat_deg if p else None,
+                    "gps_lon_deg": p.gps_lon_deg if p else None, "gps_alt_amsl_m": p.gps_alt_amsl_m if p else None,
+                    "residual_enu_m": residuals.get(image.name)}})
+                if p is not None and p.has_gps:
+                    cams_utm.append(image.projection_center())
+                    gps_utm.append(frame.to_enu_points(np.array([[p.gps_lat_deg, p.gps_lon_deg,
+                                                                  p.gps_alt_amsl_m]]))[0])
+        write_cameras_geojson(project.root / "cameras.geojson", features)
+        report.outputs["cameras"] = str(project.root / "cameras.geojson")
+    elif state["unreferenced"]:
+        xyz, rgb = _points(state["unreferenced"], max_error_px=4.0, min_track=2)
+        write_ply(project.root / "points.ply", xyz, rgb)
+        report.warnings.append("points.ply is in the arbitrary model frame (no georeference)")
+    report.outputs["points"] = str(project.root / "points.ply")
+    report.outputs["report"] = str(project.root / "report.json")
+    report.outputs["report_png"] = str(project.root / "report.png")
+    report.total_seconds = sum(report.stage_seconds.values())
+    report.peak_memory_mib = _peak_mib()
+    preview = extent = None
+    if "ortho_grid" in state:
+        import cv2
+
+        g = state["ortho_grid"]
+        img = cv2.imread(str(project.root / "orthophoto.png"), cv2.IMREAD_UNCHANGED)
+        preview = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA)
+        extent = (g["west_m"], g["west_m"] + g["width"] * g["resolution_m"],
+                  g["north_m"] - g["height"] * g["resolution_m"], g["north_m"])
+    cams = enu_to_utm(frame, np.array(cams_utm), report.crs_epsg) if cams_utm else None
+    gps = enu_to_utm(frame, np.array(gps_utm), report.crs_epsg) if gps_utm else None
+    report.save_png(project.root / "report.png", preview, extent, cams, gps)
+    return {}
+
+
+def _noop_load(config, project, state, report, marker) -> None:
+    return None
+
+
+_STAGE_RUN = {"photos": _photos_run, "correct": _correct_run, "features": _features_run,
+              "matches": _matches_run, "mapping": _mapping_run, "georef": _georef_run, "dsm": _dsm_run,
+              "ortho": _ortho_run, "export": _export_run}
+_STAGE_LOAD = {"photos": _noop_load, "correct": _correct_load, "features": _noop_load,
+               "matches": _matches_load, "mapping": _mapping_load, "georef": _georef_load, "dsm": _dsm_load,
+               "ortho": _ortho_load, "export": _noop_load}

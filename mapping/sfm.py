@@ -1,0 +1,150 @@
+"""Structure from motion with pycolmap: feature extraction, matching, incremental mapping.
+
+One camera model per camera group (same make, model, size, focal length): a
+``SIMPLE_RADIAL`` model seeded with the EXIF focal length, or a pre-calibrated lens
+(Brown-Conrady -> ``FULL_OPENCV``, fisheye -> ``OPENCV_FISHEYE``, pinhole -> ``PINHOLE``)
+passed through to pycolmap with its distortion held fixed. pycolmap is imported inside
+the functions.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+from skyfix.camera import Camera
+from skyfix.distortion import BrownConrady, Fisheye
+from skyfix.errors import ConfigurationError
+from skyfix.mapping.photos import Photo, camera_groups
+
+__all__ = ["ColmapCamera", "colmap_camera", "extract", "load_models", "match", "reconstruct"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ColmapCamera:
+    """A pycolmap camera model name with its parameter string; ``fixed`` when calibrated."""
+
+    model: str
+    params: tuple[float, ...]
+    fixed: bool
+
+    @property
+    def params_text(self) -> str:
+        return ",".join(f"{v:.10g}" for v in self.params)
+
+
+def colmap_camera(photo: Photo, calibration: Camera | None = None) -> ColmapCamera:
+    """The pycolmap camera for ``photo``: EXIF focal (refined by mapping) or ``calibration``.
+
+    A calibration for another resolution of the same aspect ratio is rescaled.
+    """
+    if calibration is None:
+        return ColmapCamera("SIMPLE_RADIAL", (photo.focal_px, photo.width / 2.0, photo.height / 2.0, 0.0), False)
+    cam = calibration
+    if (cam.width, cam.height) != (photo.width, photo.height):
+        factor = photo.width / cam.width
+        if abs(cam.height * factor - photo.height) > 0.5:
+            raise ConfigurationError(f"{photo.name} is {photo.width}x{photo.height} but the calibration is "
+                                     f"{cam.width}x{cam.height} (different aspect ratio)")
+        cam = cam.scaled(factor)
+    # pycolmap's pixel centres are at +0.5 (OpenCV's at 0).
+    base = (cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5)
+    dist = cam.distortion
+    if dist is None:
+        return ColmapCamera("PINHOLE", base, True)
+    if isinstance(dist, BrownConrady):
+        return ColmapCamera("FULL_OPENCV", (*base, dist.k1, dist.k2, dist.p1, dist.p2, dist.k3, 0.0, 0.0, 0.0),
+                            True)
+    if isinstance(dist, Fisheye):
+        return ColmapCamera("OPENCV_FISHEYE", (*base, dist.k1, dist.k2, dist.k3, dist.k4), True)
+    raise ConfigurationError(f"lens model {type(dist).__name__} has no pycolmap equivalent; correct the photos "
+                             "first (the pipeline's --barrel option)")
+
+
+def extract(database: Path, image_dir: Path, photos: list[Photo], *, calibration: Camera | None = None,
+            max_image_size_px: int = 1600, max_features: int = 4000, threads: int = -1) -> None:
+    """SIFT features of ``photos`` into ``database``; images already there are skipped by pycolmap."""
+    import pycolmap
+
+    options = pycolmap.FeatureExtractionOptions()
+    options.max_image_size = int(max_image_size_px)
+    options.sift.max_num_features = int(max_features)
+    options.num_threads = int(threads)
+    for key, group in camera_groups(photos).items():
+        cam = colmap_camera(group[0], calibration)
+        reader = pycolmap.ImageReaderOptions(camera_model=cam.model, camera_params=cam.params_text)
+        log.info("extracting features of %d photo(s) from camera %s %s (%s)", len(group), key[0], key[1], cam.model)
+        pycolmap.extract_features(database, image_dir, image_names=[p.name for p in group],
+                                  camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                  extraction_options=options, device=pycolmap.Device.cpu)
+
+
+def match(database: Path, photos: list[Photo], *, exhaustive_max_photos: int = 40, neighbours: int = 12,
+          threads: int = -1) -> str:
+    """Match features; returns the method used ('exhaustive' or 'spatial').
+
+    Small sets (or any set with photos lacking GPS) are matched exhaustively; larger ones
+    pair each photo with its ``neighbours`` nearest GPS positions (pycolmap spatial matching
+    on the EXIF positions the extractor stored as pose priors).
+    """
+    import pycolmap
+
+    options = pycolmap.FeatureMatchingOptions()
+    options.num_threads = int(threads)
+    if len(photos) <= exhaustive_max_photos or not all(p.has_gps for p in photos):
+        log.info("exhaustive matching of %d photos (%d pairs)", len(photos), len(photos) * (len(photos) - 1) // 2)
+        pycolmap.match_exhaustive(database, matching_options=options, device=pycolmap.Device.cpu)
+        return "exhaustive"
+    pairing = pycolmap.SpatialPairingOptions()
+    pairing.max_num_neighbors = int(neighbours)
+    pairing.max_distance = 1e6  # neighbours by count, not by distance
+    pairing.ignore_z = True
+    log.info("spatial matching of %d photos with their %d nearest GPS neighbours", len(photos), neighbours)
+    pycolmap.match_spatial(database, matching_options=options, pairing_options=pairing, device=pycolmap.Device.cpu)
+    return "spatial"
+
+
+def reconstruct(database: Path, image_dir: Path, out_dir: Path, *, calibrated: bool = False,
+                threads: int = -1) -> list:
+    """Incremental mapping; every model (largest first) as a ``pycolmap.Reconstruction``.
+
+    Registration thresholds are lowered from COLMAP's defaults (30 -> 15 absolute-pose
+    inliers, 100 -> 50 initial-pair inliers) because nadir survey photos at 1-2 Mpx share
+    few features across flight lines; every registration still passes RANSAC and bundle
+    adjustment with the 4 px reprojection filter. Models are written under ``out_dir/<i>``.
+    """
+    import pycolmap
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = int(threads)
+    options.min_model_size = 3
+    options.mapper.abs_pose_min_num_inliers = 15
+    options.mapper.init_min_num_inliers = 50
+    if calibrated:
+        options.ba_refine_focal_length = False
+        options.ba_refine_extra_params = False
+        options.mapper.abs_pose_refine_focal_length = False
+        options.mapper.abs_pose_refine_extra_params = False
+    models = pycolmap.incremental_mapping(database, image_dir, out_dir, options=options)
+    ordered = sorted(models.values(), key=lambda r: r.num_reg_images(), reverse=True)
+    for i, rec in enumerate(ordered):
+        path = out_dir / str(i)
+        path.mkdir(exist_ok=True)
+        rec.write(str(path))
+    return ordered
+
+
+def load_models(out_dir: Path) -> list:
+    """Models written by :func:`reconstruct` (``out_dir/0``, ``out_dir/1`` ...), in order."""
+    import pycolmap
+
+    models = []
+    i = 0
+    while (out_dir / str(i) / "images.bin").exists() or (out_dir / str(i) / "images.txt").exists():
+        models.append(pycolmap.Reconstruction(str(out_dir / str(i))))
+        i += 1
+    return models
