@@ -305,8 +305,7 @@ def _refine(state, ground, uv, k, mount, sig, prior, iterations, ambiguity, flag
 def make_fix(sol: PoseSolution, n_tags: int, rejected: int, motion_blur_px: float,
              blur_flag_px: float, time_s: float = 0.0, source_id: str = "") -> TagFix:
     """Assemble a :class:`TagFix` from a pose solution (covariance of x, y, z, yaw)."""
-    sel = [0, 1, 2, 3]
-    cov = sol.covariance[np.ix_(sel, sel)].copy()
+    cov = sol.covariance[:4, :4].copy()
     flags = list(sol.flags)
     if motion_blur_px > blur_flag_px:
         flags.append("motion_blur")
