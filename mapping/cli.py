@@ -407,3 +407,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="a drone that can take over (repeat)")
     common(p, drones=False)
     p.set_defaults(func=_plan_handoff)
+
+    from skyfix.mapping.map_cli import register_map
+
+    register_map(subparsers)

@@ -10,6 +10,7 @@ Heights are in the datum of the input points (AMSL for the photo pipeline).
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,7 +71,9 @@ def build_dsm(points_utm_m: np.ndarray, grid: Grid, spike_m: float = 5.0) -> Dsm
     surface = np.full(grid.height * grid.width, np.nan)
     surface[cell[starts]] = 0.5 * (lower + upper)
     surface = surface.reshape(grid.height, grid.width)
-    local = generic_filter(surface, np.nanmedian, size=5, mode="constant", cval=np.nan)
+    with warnings.catch_warnings():  # all-NaN neighbourhoods give NaN, as wanted
+        warnings.simplefilter("ignore", RuntimeWarning)
+        local = generic_filter(surface, np.nanmedian, size=5, mode="constant", cval=np.nan)
     spikes = np.isfinite(surface) & (np.abs(surface - local) > spike_m)
     surface[spikes] = np.nan
     observed = np.isfinite(surface)

@@ -8,7 +8,8 @@ to centimetres over a survey, so horizontal positions and relative heights are u
 
 The transform is found by LO-RANSAC (pycolmap ``estimate_sim3d_robust``) so a few bad GPS
 tags do not pull it, then refined by least squares on the inliers. Photos along a single
-straight line leave the roll about that line free; then each camera also contributes a
+straight line (or nearly: cross-line spread under a quarter of the length) leave the
+roll about that line free or decided by GPS noise; then each camera also contributes a
 point below it along its viewing direction, matched to a point straight below its GPS
 position (the photos are assumed near nadir) and the report says so.
 """
@@ -20,7 +21,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from skyfix.errors import EstimationError
 from skyfix.geo import LocalFrame
 from skyfix.mapping.photos import Photo
 
@@ -89,7 +89,9 @@ def _apply(sim, points: np.ndarray) -> np.ndarray:
     return points @ m[:, :3].T + m[:, 3]
 
 
-def _collinear(points: np.ndarray, ratio: float = 0.05) -> bool:
+def _collinear(points: np.ndarray, ratio: float = 0.25) -> bool:
+    """True when the cross-line spread is under ``ratio`` of the along-line spread: a few
+    metres of GPS noise then decide the roll about the line (it can even flip the model)."""
     sv = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
     return sv[0] == 0 or sv[1] / sv[0] < ratio
 
@@ -98,7 +100,8 @@ def georeference(rec, photos: list[Photo], frame: LocalFrame, model_index: int =
                  max_error_m: float = 10.0) -> ModelGeoref:
     """Fit the model-to-ENU similarity and apply it to ``rec`` (a ``pycolmap.Reconstruction``,
     transformed in place). Needs 3 registered photos with GPS; otherwise ``rec`` is left
-    as it is and the result says why. ``max_error_m``: RANSAC inlier distance.
+    as it is and the result says why (also when no transform fits 3 photos within
+    ``max_error_m``). ``max_error_m``: RANSAC inlier distance.
     """
     import pycolmap
 
@@ -125,9 +128,10 @@ def georeference(rec, photos: list[Photo], frame: LocalFrame, model_index: int =
     src_fit, tgt_fit = src, tgt
     if _collinear(tgt):
         # Roll about the line is free: add a point below each camera (near-nadir photos).
+        # The point is max_error_m below, so a photo tilted up to ~30 deg stays a RANSAC inlier.
         span_model = np.linalg.norm(src - src.mean(axis=0), axis=1).max()
         span_enu = np.linalg.norm(tgt - tgt.mean(axis=0), axis=1).max()
-        depth_enu = max(span_enu, 1.0)
+        depth_enu = float(max_error_m)
         depth_model = depth_enu * span_model / max(span_enu, 1e-9)
         src_fit = np.vstack((src, src + depth_model * np.array(dirs_model)))
         tgt_fit = np.vstack((tgt, tgt + depth_enu * np.array([0.0, 0.0, -1.0])))
@@ -139,9 +143,11 @@ def georeference(rec, photos: list[Photo], frame: LocalFrame, model_index: int =
     ransac.random_seed = 0
     found = pycolmap.estimate_sim3d_robust(src_fit, tgt_fit, ransac)
     sim = found["tgt_from_src"] if found else None
-    if sim is None:
-        raise EstimationError(f"model {model_index}: no similarity transform fits the GPS positions "
-                              f"within {max_error_m} m")
+    if sim is None or found["num_inliers"] < 3:
+        result.reason = (f"no similarity transform fits 3 or more GPS positions within {max_error_m} m; "
+                         "model left unreferenced")
+        log.warning("model %d: %s", model_index, result.reason)
+        return result
     moved = _apply(sim, src_fit)
     inlier_mask = np.linalg.norm(moved - tgt_fit, axis=1) <= max_error_m
     if inlier_mask.sum() >= 3:

@@ -27,7 +27,7 @@ from skyfix.mapping.dsm import Dsm
 from skyfix.mapping.grid import Grid, UtmToEnu, enu_to_utm
 from skyfix.progress import progress
 
-__all__ = ["Orthomosaic", "View", "orthomosaic"]
+__all__ = ["Orthomosaic", "View", "load_views", "orthomosaic", "rectify"]
 
 log = logging.getLogger(__name__)
 
@@ -110,31 +110,38 @@ def _project_window(view: View, grid: Grid, dsm: Dsm, to_enu: UtmToEnu, window: 
             cv2.remap(v, xx, yy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
 
 
+def rectify(view: View, grid: Grid, dsm: Dsm, to_enu: UtmToEnu, *, blend_power: float = 2.0,
+            lattice_px: int = 8) -> tuple[tuple[int, int, int, int], np.ndarray, np.ndarray] | None:
+    """One photo on ``grid``: (window (row0, row1, col0, col1), BGR float32 (h, w, 3),
+    weight (h, w)), or None when it does not reach the grid."""
+    finite = dsm.filled_m[np.isfinite(dsm.filled_m)]
+    window = _footprint_window(view, grid, to_enu, (float(finite.min()), float(finite.max())))
+    if window is None:
+        return None
+    image = cv2.imread(view.path, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    if image is None:
+        raise DataError(f"{view.path}: photo could not be decoded for the orthophoto")
+    u, v = _project_window(view, grid, dsm, to_enu, window, lattice_px)
+    h, w = image.shape[:2]
+    edge = np.minimum(np.minimum(u + 0.5, w - 0.5 - u), np.minimum(v + 0.5, h - 0.5 - v))
+    weight = np.clip(edge / (min(w, h) / 2.0), 0.0, 1.0) ** blend_power
+    sampled = cv2.remap(image, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    return window, sampled.astype(np.float32), weight
+
+
 def orthomosaic(views: list[View], grid: Grid, dsm: Dsm, to_enu: UtmToEnu, *, blend_power: float = 2.0,
                 lattice_px: int = 8) -> Orthomosaic:
     """Orthorectify and blend ``views`` onto ``grid`` (see the module docstring)."""
     acc = np.zeros((grid.height, grid.width, 3), np.float32)
     weight_sum = np.zeros((grid.height, grid.width), np.float32)
-    finite = dsm.filled_m[np.isfinite(dsm.filled_m)]
-    heights = (float(finite.min()), float(finite.max()))
     used = []
     for view in progress(views, desc="orthophoto", unit="photo"):
-        window = _footprint_window(view, grid, to_enu, heights)
-        if window is None:
+        rectified = rectify(view, grid, dsm, to_enu, blend_power=blend_power, lattice_px=lattice_px)
+        if rectified is None or not np.any(rectified[2] > 0):
             log.warning("%s: footprint does not reach the ground grid; skipped in the orthophoto", view.name)
             continue
-        image = cv2.imread(view.path, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
-        if image is None:
-            raise DataError(f"{view.path}: photo could not be decoded for the orthophoto")
-        u, v = _project_window(view, grid, dsm, to_enu, window, lattice_px)
-        h, w = image.shape[:2]
-        edge = np.minimum(np.minimum(u + 0.5, w - 0.5 - u), np.minimum(v + 0.5, h - 0.5 - v))
-        weight = np.clip(edge / (min(w, h) / 2.0), 0.0, 1.0) ** blend_power
-        if not np.any(weight > 0):
-            continue
-        sampled = cv2.remap(image, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        r0, r1, c0, c1 = window
-        acc[r0:r1, c0:c1] += sampled.astype(np.float32) * weight[..., None]
+        (r0, r1, c0, c1), sampled, weight = rectified
+        acc[r0:r1, c0:c1] += sampled * weight[..., None]
         weight_sum[r0:r1, c0:c1] += weight
         used.append(view.name)
     covered = weight_sum > 1e-6

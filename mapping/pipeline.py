@@ -337,6 +337,7 @@ def _dsm_run(config, project, state, report) -> dict:
 
     if not state["referenced"]:
         report.warnings.append("no georeferenced model: DSM and orthophoto skipped")
+        state["dsm"] = None
         return {"skipped": True}
     frame = state["frame"]
     xyz, _ = _points(state["referenced"])

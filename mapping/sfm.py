@@ -112,9 +112,11 @@ def reconstruct(database: Path, image_dir: Path, out_dir: Path, *, calibrated: b
     """Incremental mapping; every model (largest first) as a ``pycolmap.Reconstruction``.
 
     Registration thresholds are lowered from COLMAP's defaults (30 -> 15 absolute-pose
-    inliers, 100 -> 50 initial-pair inliers) because nadir survey photos at 1-2 Mpx share
-    few features across flight lines; every registration still passes RANSAC and bundle
-    adjustment with the 4 px reprojection filter. Models are written under ``out_dir/<i>``.
+    inliers, 100 -> 50 initial-pair inliers) and two-view tracks are triangulated, because
+    nadir survey photos at 1-2 Mpx over fields share few features across flight lines
+    (on the Seneca photos this joins two partial models into one); every registration
+    still passes RANSAC and bundle adjustment with the 4 px reprojection filter. Models
+    are written under ``out_dir/<i>``.
     """
     import pycolmap
 
@@ -124,6 +126,7 @@ def reconstruct(database: Path, image_dir: Path, out_dir: Path, *, calibrated: b
     options.min_model_size = 3
     options.mapper.abs_pose_min_num_inliers = 15
     options.mapper.init_min_num_inliers = 50
+    options.triangulation.ignore_two_view_tracks = False
     if calibrated:
         options.ba_refine_focal_length = False
         options.ba_refine_extra_params = False

@@ -1,0 +1,77 @@
+"""``skyfix map PHOTOS_DIR -o OUT_DIR``: the photo-to-model pipeline on the command line."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+__all__ = ["register_map"]
+
+
+def _map(args: argparse.Namespace) -> int:
+    import os
+
+    os.environ.setdefault("GLOG_minloglevel", "1")  # pycolmap: warnings and errors only
+    from skyfix.mapping.camera_io import load_camera
+    from skyfix.mapping.lens import parse_barrel
+    from skyfix.mapping.pipeline import PipelineConfig, run_pipeline
+
+    if args.barrel is not None and args.calibration is not None:
+        from skyfix.errors import InputError
+
+        raise InputError("give at most one of --barrel 'a b c [d]' or --calibration cal.json")
+    config = PipelineConfig(
+        args.photos_dir, args.out_dir, barrel=parse_barrel(args.barrel) if args.barrel else None,
+        calibration=load_camera(args.calibration) if args.calibration else None,
+        resolution_cm=args.resolution_cm, dsm_resolution_m=args.dsm_resolution_m,
+        max_image_size_px=args.max_image_size, max_features=args.max_features,
+        exhaustive_max_photos=args.exhaustive_max, max_agl_m=args.max_agl, threads=args.threads,
+        force=tuple(args.force or ()))
+    report = run_pipeline(config)
+    out = sys.stdout
+    out.write(f"registered {len(report.registered)}/{len(report.photos_used)} photos "
+              f"({len(report.rejected)} rejected) in {len(report.models)} model(s); "
+              f"reprojection error {report.mean_reprojection_error_px:.2f} px\n")
+    if report.georeferenced:
+        out.write(f"georeferenced to GPS: RMS {report.georef_rms_m:.2f} m, EPSG:{report.crs_epsg}, "
+                  f"GSD {report.gsd_cm:.1f} cm, covered {report.covered_area_m2 / 1e4:.2f} ha\n")
+    for warning in report.warnings:
+        out.write(f"warning: {warning}\n")
+    for name, path in report.outputs.items():
+        out.write(f"{name}: {path}\n")
+    out.write(f"{report.total_seconds:.0f} s, peak memory {report.peak_memory_mib:.0f} MiB\n")
+    return 0 if report.registered else 1
+
+
+def register_map(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``map`` to the ``skyfix`` command line."""
+    from skyfix.mapping.pipeline import STAGES
+
+    p = subparsers.add_parser(
+        "map", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        help="geotagged photos -> orthophoto, DSM, point cloud (pycolmap)",
+        description="Build a georeferenced orthophoto (GeoTIFF, UTM), a surface model, a point cloud and a "
+                    "report from a folder of geotagged JPEG photos. Stages write into OUT_DIR, so an "
+                    "interrupted run resumes where it stopped (extraction and matching are never redone). "
+                    "Heights are AMSL as recorded by the photos' GPS. Outputs: orthophoto.tif/.png, dsm.tif, "
+                    "points.ply, cameras.geojson, report.json/.png.")
+    p.add_argument("photos_dir", metavar="PHOTOS_DIR", help="folder of JPEG photos with GPS in EXIF")
+    p.add_argument("-o", "--out-dir", required=True, metavar="OUT_DIR", help="project/output folder")
+    p.add_argument("--barrel", default=None, metavar="'A B C [D]'",
+                   help="correct photos with this ImageMagick barrel model first")
+    p.add_argument("--calibration", default=None, metavar="CAL.json",
+                   help="pre-calibrated lens (skyfix lens calibrate), passed to pycolmap and held fixed")
+    p.add_argument("--resolution-cm", type=float, default=None,
+                   help="orthophoto pixel size in cm (default: the photos' median ground sample distance)")
+    p.add_argument("--dsm-resolution-m", type=float, default=None,
+                   help="DSM cell size in metres (default: twice the sparse point spacing)")
+    p.add_argument("--max-image-size", type=int, default=1600, help="photos are downscaled to this for features")
+    p.add_argument("--max-features", type=int, default=4000, help="SIFT features per photo")
+    p.add_argument("--exhaustive-max", type=int, default=40,
+                   help="match exhaustively up to this many photos, by GPS neighbours beyond")
+    p.add_argument("--max-agl", type=float, default=120.0,
+                   help="highest possible flight height above ground (m), for the GPS overlap check")
+    p.add_argument("--threads", type=int, default=-1, help="worker threads (-1: all cores)")
+    p.add_argument("--force", action="append", choices=STAGES, metavar="STAGE",
+                   help=f"re-run this stage and the ones after it (repeat); one of {', '.join(STAGES)}")
+    p.set_defaults(func=_map)

@@ -1,0 +1,64 @@
+"""A run interrupted after matching resumes without redoing extraction or matching;
+photos without any GPS reconstruct unreferenced."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import piexif
+import pytest
+
+from skyfix.mapping import sfm
+from skyfix.mapping.pipeline import PipelineConfig, run_pipeline
+
+DATA = Path(__file__).parents[1] / "data" / "seneca"
+FAST = {"max_image_size_px": 1200, "max_features": 4000, "threads": 2}
+
+
+def test_interrupt_after_matching_then_resume(tmp_path, monkeypatch):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for p in sorted(DATA.glob("*.jpg"))[1:5]:
+        shutil.copy(p, photos / p.name)
+    out = tmp_path / "project"
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt  # Ctrl-C while mapping
+
+    monkeypatch.setattr(sfm, "reconstruct", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_pipeline(PipelineConfig(photos, out, **FAST))
+    monkeypatch.undo()
+    assert (out / "work" / "stages" / "matches.json").exists()
+    assert not (out / "work" / "stages" / "mapping.json").exists()
+
+    calls = []
+    for name in ("extract", "match"):
+        original = getattr(sfm, name)
+
+        def spy(*args, _original=original, _name=name, **kwargs):
+            calls.append(_name)
+            return _original(*args, **kwargs)
+
+        monkeypatch.setattr(sfm, name, spy)
+    report = run_pipeline(PipelineConfig(photos, out, **FAST))
+    assert calls == []
+    assert {"features", "matches"} <= set(report.resumed_stages)
+    assert "mapping" not in report.resumed_stages
+    assert len(report.registered) >= 3 and report.georeferenced
+
+
+def test_no_gps_reconstructs_unreferenced(tmp_path):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for p in sorted(DATA.glob("*.jpg"))[1:5]:
+        exif = piexif.load(str(p))
+        exif["GPS"], exif["thumbnail"] = {}, None
+        piexif.insert(piexif.dump(exif), p.read_bytes(), str(photos / p.name))
+    report = run_pipeline(PipelineConfig(photos, tmp_path / "project", **FAST))
+    assert len(report.registered) >= 3
+    assert not report.georeferenced
+    assert any("not georeferenced" in w for w in report.warnings)
+    assert (tmp_path / "project" / "points.ply").exists()
+    assert not (tmp_path / "project" / "orthophoto.tif").exists()
