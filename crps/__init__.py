@@ -17,6 +17,7 @@ from typing import Any
 
 _EXPORTS = {
     "BoxDetector": "detection", "Detection": "detection", "Detector": "detection", "to_gray": "detection",
+    "SilhouetteFit": "fit", "SilhouetteFitConfig": "fit",
     "MarkerDetector": "marker",
     "DroneModel": "model", "ShapeTable": "model", "shape_table": "model",
     "angular_jacobian": "observation", "locate": "observation", "observe": "observation", "shape_consistent": "observation",

@@ -19,7 +19,7 @@ __all__ = ["BoxDetector", "Detection", "Detector", "Roi", "to_gray"]
 
 #: Region of interest (u0, v0, u1, v1) in pixels, end-exclusive.
 Roi = tuple[int, int, int, int]
-Kind = Literal["silhouette", "marker", "box"]
+Kind = Literal["silhouette", "marker", "box", "model"]
 
 
 @dataclass(frozen=True)
@@ -36,7 +36,11 @@ class Detection:
       along the major axis (``sqrt`` of the largest eigenvalue);
     * ``"marker"``: ``size_px`` the on-axis-equivalent apparent side, focal / PnP range of
       a unit-sized marker, with ``size_sigma_px``; ``marker_id`` the decoded identity;
-    * ``"box"``: ``size_px`` the raw box width in pixels, ``size_sigma_px`` its 1-sigma.
+    * ``"box"``: ``size_px`` the raw box width in pixels, ``size_sigma_px`` its 1-sigma;
+    * ``"model"``: a silhouette refined by :class:`~skyfix.crps.fit.SilhouetteFit`:
+      ``size_px`` the on-axis apparent span (focal x span / range), ``size_sigma_px`` its 1-sigma
+      from the pixels' noise, ``size_model_sigma_rel`` the relative 1-sigma of the model error,
+      which stays fixed while the target keeps its attitude (a tracker does not average it).
     """
 
     centroid_uv: np.ndarray
@@ -50,6 +54,7 @@ class Detection:
     size_sigma_px: float = 0.0
     marker_id: int | None = None
     time_s: float = 0.0
+    size_model_sigma_rel: float = 0.0
 
     def __post_init__(self) -> None:
         c = validate.finite_array("Detection.centroid_uv", self.centroid_uv).reshape(-1)
@@ -58,8 +63,8 @@ class Detection:
         object.__setattr__(self, "centroid_uv", c)
         object.__setattr__(self, "centroid_cov_px2",
                            validate.covariance("Detection.centroid_cov_px2", self.centroid_cov_px2, 2))
-        if self.kind not in ("silhouette", "marker", "box"):
-            raise InputError(f"Detection.kind must be 'silhouette', 'marker' or 'box', got {self.kind!r}")
+        if self.kind not in ("silhouette", "marker", "box", "model"):
+            raise InputError(f"Detection.kind must be 'silhouette', 'marker', 'box' or 'model', got {self.kind!r}")
         if self.kind == "silhouette":
             if self.moments_px2 is None:
                 raise InputError("a silhouette Detection needs moments_px2")
@@ -67,6 +72,8 @@ class Detection:
         elif not (np.isfinite(self.size_px) and self.size_px > 0):
             raise InputError(f"a {self.kind} Detection needs size_px > 0, got {self.size_px}")
         object.__setattr__(self, "time_s", validate.finite_scalar("Detection.time_s", self.time_s))
+        if validate.finite_scalar("Detection.size_model_sigma_rel", self.size_model_sigma_rel) < 0:
+            raise InputError(f"Detection.size_model_sigma_rel must be >= 0, got {self.size_model_sigma_rel}")
 
     @property
     def major_rms_px(self) -> float:

@@ -134,14 +134,17 @@ def rasterize_convex_parts(parts_uv: list[np.ndarray], values: list[float], shap
         v1 = min(int(math.floor(hull[:, 1].max())), shape[0] - 1)
         if u1 < u0 or v1 < v0:
             continue
-        us = np.arange(u0, u1 + 1, dtype=np.float64)[None, :]
-        vs = np.arange(v0, v1 + 1, dtype=np.float64)[:, None]
-        edges = np.roll(hull, -1, axis=0) - hull
-        area2 = float(np.sum(hull[:, 0] * np.roll(hull[:, 1], -1) - np.roll(hull[:, 0], -1) * hull[:, 1]))
+        nxt = np.concatenate((hull[1:], hull[:1]))
+        edges = nxt - hull
+        area2 = float(np.sum(hull[:, 0] * nxt[:, 1] - nxt[:, 0] * hull[:, 1]))
         orient = 1.0 if area2 > 0 else -1.0
-        inside = np.ones((v1 - v0 + 1, u1 - u0 + 1), bool)
-        for (px, py), (ex, ey) in zip(hull, edges, strict=True):
-            inside &= orient * (ex * (vs - py) - ey * (us - px)) > 0.0
+        # Inside every edge: orient * (ex (v - py) - ey (u - px)) > 0, all edges at once (E, H, W).
+        a = (-orient * edges[:, 1])[:, None, None]
+        b = (orient * edges[:, 0])[:, None, None]
+        c = (orient * (edges[:, 1] * hull[:, 0] - edges[:, 0] * hull[:, 1]))[:, None, None]
+        us = np.arange(u0, u1 + 1, dtype=np.float64)[None, None, :]
+        vs = np.arange(v0, v1 + 1, dtype=np.float64)[None, :, None]
+        inside = ((a * us + b * vs + c) > 0.0).all(axis=0)
         cover[v0:v1 + 1, u0:u1 + 1][inside] = 1.0
         value[v0:v1 + 1, u0:u1 + 1][inside] = float(values[i])
     return cover, value

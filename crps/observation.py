@@ -124,8 +124,9 @@ def observe(camera: Camera, helper_pose: CameraPose, detection: Detection, targe
     if detection.kind == "silhouette":
         span_rad, rel = _silhouette_size(detection, jac, elevation_deg, model or DroneModel.quad(size_m))
         size_px, size_sigma = focal * span_rad, focal * span_rad * rel
-    elif detection.kind == "marker":
-        size_px, size_sigma = detection.size_px, detection.size_sigma_px
+    elif detection.kind in ("marker", "model"):
+        size_px = detection.size_px
+        size_sigma = math.hypot(detection.size_sigma_px, detection.size_model_sigma_rel * size_px)
     else:  # a raw box width: pixels along u at the centroid, turned into on-axis pixels
         px_to_rad = float(np.linalg.norm(jac[:, 0]))
         size_px = detection.size_px * px_to_rad * focal

@@ -19,7 +19,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from skyfix import validate
+from skyfix.camera import CameraPose
 from skyfix.crps.detection import Detection, Detector
+from skyfix.crps.fit import FitState, SilhouetteFit
 from skyfix.errors import InputError
 
 __all__ = ["Tracker", "TrackerConfig"]
@@ -53,11 +55,16 @@ class TrackerConfig:
 class Tracker:
     """Track one target with any :class:`~skyfix.crps.detection.Detector`."""
 
-    def __init__(self, detector: Detector, config: TrackerConfig | None = None) -> None:
+    def __init__(self, detector: Detector, config: TrackerConfig | None = None,
+                 fit: SilhouetteFit | None = None) -> None:
+        """``fit`` re-measures small silhouettes by the model fit when ``update`` gets the helper pose."""
         if not callable(detector):
             raise InputError(f"detector must be callable (the Detector protocol), got {type(detector).__name__}")
+        if fit is not None and not isinstance(fit, SilhouetteFit):
+            raise InputError(f"fit must be a skyfix.crps.SilhouetteFit, got {type(fit).__name__}")
         self.detector = detector
         self.config = config if config is not None else TrackerConfig()
+        self.fit = fit
         self.reset()
 
     def reset(self) -> None:
@@ -67,6 +74,8 @@ class Tracker:
         self._size = np.zeros(2)  # log extent, its rate (1/s)
         self._size_cov = np.eye(2)
         self._time_s = 0.0
+        self._kind = ""
+        self._fit_state: FitState | None = None
         self.misses = 0
 
     @property
@@ -89,8 +98,12 @@ class Tracker:
             return None
         return u0, v0, u1, v1
 
-    def update(self, image: np.ndarray, time_s: float) -> Detection | None:
-        """Process one frame; the accepted detection with a smoothed size, or None."""
+    def update(self, image: np.ndarray, time_s: float, helper_pose: CameraPose | None = None) -> Detection | None:
+        """Process one frame; the accepted detection with a smoothed size, or None.
+
+        With ``helper_pose`` (the helper camera's pose for this frame) and a ``fit``, small
+        silhouettes are re-measured by the model fit, started from the last frame's attitude.
+        """
         t = validate.finite_scalar("time_s", time_s)
         h, w = np.shape(image)[:2]
         roi = self.roi(w, h, t)
@@ -98,7 +111,7 @@ class Tracker:
         if self._uv is None:
             if not found:
                 return None
-            best = max(found, key=lambda d: d.score)
+            best = self._refine(image, max(found, key=lambda d: d.score), helper_pose)
             self._start(best, t)
             return replace(best, time_s=t)
         dt = t - self._time_s
@@ -116,8 +129,16 @@ class Tracker:
             if self.misses >= self.config.max_misses:
                 self.reset()
             return None
-        det = min(near, key=lambda d: float(np.linalg.norm(d.centroid_uv - pred)))
+        det = self._refine(image, min(near, key=lambda d: float(np.linalg.norm(d.centroid_uv - pred))),
+                           helper_pose)
         cfg = self.config
+        if det.kind != self._kind:
+            # Sizes of different kinds measure different things (4 x RMS, apparent span):
+            # the size filter restarts from this detection.
+            self._size = np.array([math.log(max(det.extent_px, 1e-6)), 0.0])
+            self._size_cov = np.diag([_size_sigma_rel(det) ** 2, cfg.size_rate_sigma ** 2])
+            self._kind = det.kind
+            size_pred, size_cov = self._size, self._size_cov
         resid = det.centroid_uv - pred
         self._uv = pred + cfg.alpha * resid
         self._vel = self._vel + cfg.beta * resid / dt
@@ -125,18 +146,28 @@ class Tracker:
         gain = size_cov[:, 0] / (size_cov[0, 0] + r)
         # Innovation on the second moment (extent^2), which the detector measures without
         # bias, expressed relative to the prediction; the log of a noisy size is biased low.
-        innovation = 0.5 * ((det.extent_px / math.exp(size_pred[0])) ** 2 - 1.0)
+        ratio = det.extent_px / math.exp(size_pred[0])
+        # Fitted sizes are unbiased themselves; moment sizes through their square.
+        innovation = 0.5 * (ratio ** 2 - 1.0) if det.kind == "silhouette" else ratio - 1.0
         self._size = size_pred + gain * innovation
         self._size_cov = size_cov - np.outer(gain, size_cov[0, :])
         self._time_s = t
         self.misses = 0
         return _with_size(det, math.exp(self._size[0]), math.sqrt(self._size_cov[0, 0]), t)
 
+    def _refine(self, image: np.ndarray, det: Detection, helper_pose: CameraPose | None) -> Detection:
+        if self.fit is None or helper_pose is None or not self.fit.applies(det):
+            return det
+        out = self.fit(image, det, helper_pose, start=self._fit_state)
+        self._fit_state = self.fit.last_state
+        return out
+
     def _start(self, det: Detection, t: float) -> None:
         self._uv = det.centroid_uv.copy()
         self._vel = np.zeros(2)
         self._size = np.array([math.log(max(det.extent_px, 1e-6)), 0.0])
         self._size_cov = np.diag([_size_sigma_rel(det) ** 2, self.config.size_rate_sigma ** 2])
+        self._kind = det.kind
         self._time_s = t
         self.misses = 0
 
