@@ -99,7 +99,7 @@ def consistent_tags(ground_xy: np.ndarray, image_uv: np.ndarray, spacing_m: floa
         inlier = err < 0.4 * spacing_m * px_per_m
     support = inlier.sum(axis=1)
     # Ties go to the smaller total error (a point behind the camera counts 1e9 px).
-    best = int(np.argmax(support - 1e-6 * np.where(err == err, err, 1e9).sum(axis=1)))
+    best = int(np.argmax(support - 1e-6 * np.where(np.isnan(err), 1e9, err).sum(axis=1)))
     keep = inlier[best]
     for _ in range(2 if check_tiles else 0):
         before = keep
