@@ -17,7 +17,8 @@ from typing import Any
 
 _EXPORTS = {
     "BoxDetector": "detection", "Detection": "detection", "Detector": "detection", "to_gray": "detection",
-    "SilhouetteFit": "fit", "SilhouetteFitConfig": "fit",
+    "FitState": "fit", "SilhouetteFit": "fit", "SilhouetteFitConfig": "fit",
+    "PriorWindow": "prior", "prior_gate": "prior", "prior_window": "prior",
     "MarkerDetector": "marker",
     "DroneModel": "model", "ShapeTable": "model", "shape_table": "model",
     "angular_jacobian": "observation", "locate": "observation", "observe": "observation", "shape_consistent": "observation",
