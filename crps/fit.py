@@ -40,7 +40,11 @@ class SilhouetteFitConfig:
     """Settings of :class:`SilhouetteFit`."""
 
     psf_sigma_px: float = 0.7  # Gaussian optical blur of the camera, 1-sigma px (as SilhouetteConfig)
-    max_extent_px: float = 48.0  # fit detections up to this extent (larger ones keep their moments)
+    # Fit detections up to this extent (4 x major RMS, px); larger ones keep their moments.
+    # Where noise is small the moments are the better size (the fit's model error, below,
+    # does not average out along a track); 8 px is where their noise passes it (~65 m for
+    # a 0.5 m drone at 1144 px focal, 0.01 noise against sky).
+    max_extent_px: float = 8.0
     canvas_px: int = 320  # longest side of the supersampled canvas; sets the supersampling (2..8)
     yaw_steps: int = 4  # yaw hypotheses over the symmetry period, each fitted and weighted
     iterations: int = 5  # Gauss-Newton iterations (at most) from a yaw search
@@ -92,23 +96,24 @@ class SilhouetteFit:
         self._focal = math.sqrt(camera.fx * camera.fy)
         self.last_state: FitState | None = None  # per-yaw solution of the last successful fit
 
-    def applies(self, detection: Detection) -> bool:
-        """Whether ``detection`` is a silhouette small enough to be fitted."""
-        return detection.kind == "silhouette" and detection.extent_px <= self.config.max_extent_px
+    def applies(self, detection: Detection, slack: float = 1.0) -> bool:
+        """Whether ``detection`` is a silhouette no larger than ``slack * max_extent_px``."""
+        return detection.kind == "silhouette" and detection.extent_px <= slack * self.config.max_extent_px
 
     def __call__(self, image: np.ndarray, detection: Detection, helper_pose: CameraPose, *,
-                 start: FitState | None = None) -> Detection:
+                 start: FitState | None = None, slack: float = 1.0) -> Detection:
         """``detection`` re-measured by the model fit; returned unchanged when it does not apply or fails.
 
         ``start`` (the previous frame's :attr:`last_state`, kept by a tracker) starts each
-        yaw hypothesis from last frame's solution and runs ``tracked_iterations`` only.
+        yaw hypothesis from last frame's solution and runs ``tracked_iterations`` only;
+        ``slack`` > 1 widens ``max_extent_px`` (a tracker's hysteresis).
         """
         self.last_state = None
         if not isinstance(helper_pose, CameraPose):
             raise InputError(f"helper_pose must be a skyfix.camera.CameraPose, got {type(helper_pose).__name__}")
         if not isinstance(detection, Detection):
             raise InputError(f"detection must be a skyfix.crps.Detection, got {type(detection).__name__}")
-        if not self.applies(detection):
+        if not self.applies(detection, slack):
             return detection
         return self._fit(image, detection, helper_pose, start) or detection
 

@@ -156,9 +156,12 @@ class Tracker:
         return _with_size(det, math.exp(self._size[0]), math.sqrt(self._size_cov[0, 0]), t)
 
     def _refine(self, image: np.ndarray, det: Detection, helper_pose: CameraPose | None) -> Detection:
-        if self.fit is None or helper_pose is None or not self.fit.applies(det):
+        # Hysteresis: a fitted track keeps fitting up to 1.25 x the size limit, so that noise
+        # on the extent does not flip the kind (which restarts the size filter).
+        slack = 1.25 if self._kind == "model" else 1.0
+        if self.fit is None or helper_pose is None or not self.fit.applies(det, slack):
             return det
-        out = self.fit(image, det, helper_pose, start=self._fit_state)
+        out = self.fit(image, det, helper_pose, start=self._fit_state, slack=slack)
         self._fit_state = self.fit.last_state
         return out
 
