@@ -3,7 +3,9 @@
 Pipeline: a detector (:class:`SilhouetteDetector` for a drone against sky or smooth
 ground, :class:`MarkerDetector` for a marker on the drone, :class:`BoxDetector` for a
 user's own model) finds the target in pixels; :class:`Tracker` follows it with a region
-of interest; :func:`observe` turns a detection into a :class:`skyfix.types.RelativeObservation`
+of interest; :class:`SilhouetteFit` re-measures small silhouettes by fitting the drone
+model to the pixels; :func:`prior_window`/:func:`prior_gate` restrict a directed search to
+where the help request puts the target; :func:`observe` turns a detection into a :class:`skyfix.types.RelativeObservation`
 (bearing in ENU, range, covariance) and :func:`locate` fuses several helpers' observations
 into a :class:`skyfix.types.GeoFix`.
 

@@ -9,6 +9,10 @@ the gate, and falls back to a full-frame search after ``max_misses`` frames with
 The returned detection carries the filtered size and its filtered sigma; averaging
 cannot remove a bias that stays fixed while the target keeps its heading (the drone
 model's yaw spread), which :func:`~skyfix.crps.observe` adds separately.
+
+With a :class:`~skyfix.crps.fit.SilhouetteFit` and the helper pose passed to
+:meth:`Tracker.update`, small silhouettes are re-measured by the model fit, each frame
+started from the previous frame's solution (one Gauss-Newton step per yaw hypothesis).
 """
 
 from __future__ import annotations

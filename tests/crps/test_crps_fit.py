@@ -109,3 +109,24 @@ def test_tracker_uses_the_fit_when_given_the_helper_pose():
     assert 0.025 <= sigma / 90.0 <= 0.05
     with pytest.raises(InputError, match="fit"):
         Tracker(DETECT, fit="fit")
+
+
+def test_cli_range_fits_a_distant_target(tmp_path):
+    import json
+
+    import cv2
+
+    from skyfix.cli import main
+
+    rng = np.random.default_rng(9)
+    helper, target = scene(90.0, 15.0, 40.0)
+    view = render_drone_view(CAM, helper, target, DroneModel.quad(), blur_sigma_px=BLUR, noise_sigma=0.01, rng=rng)
+    img = tmp_path / "far.png"
+    cv2.imwrite(str(img), np.clip(view.image * 255 + 0.5, 0, 255).astype(np.uint8))
+    out = tmp_path / "far_range"
+    code = main(["-q", "crps", "range", str(img), "--camera", "80", "--size-m", "0.5",
+                 "--pose", "47,8,400,0,0,20,18", "-o", str(out)])
+    assert code == 0
+    rec = json.loads(out.with_suffix(".json").read_text())["detections"][0]
+    assert rec["kind"] == "model"
+    assert abs(rec["range_m"] - view.truth.range_m) <= 3.0 * rec["range_sigma_m"]
