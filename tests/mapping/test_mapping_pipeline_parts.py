@@ -1,0 +1,114 @@
+"""Pipeline parts on synthetic inputs: GPS overlap check, camera groups, lens pass-through,
+UTM <-> ENU grid maths, DSM from points, configuration errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from skyfix.camera import Camera
+from skyfix.distortion import Barrel, BrownConrady, Fisheye
+from skyfix.errors import ConfigurationError, DataError, InputError
+from skyfix.geo import LocalFrame, destination
+from skyfix.mapping.dsm import build_dsm
+from skyfix.mapping.grid import Grid, UtmToEnu, enu_to_utm, utm_epsg
+from skyfix.mapping.photos import Photo, camera_groups, check_gps_overlap
+from skyfix.mapping.pipeline import PipelineConfig
+from skyfix.mapping.sfm import colmap_camera
+
+LAT0, LON0 = 41.0364, -83.3059
+
+
+def _photo(name: str, lat: float | None, lon: float | None, model: str = "ELPH", focal_px: float = 925.0) -> Photo:
+    return Photo(name, f"/x/{name}", 1200, 900, "Canon", model, focal_px, 1, lat, lon,
+                 None if lat is None else 283.0)
+
+
+def test_overlap_check_flags_the_far_photo():
+    # 120 m AGL with f = 925 px: footprint diagonal 120 * 1500 / 925 = 195 m.
+    near = [_photo(f"p{i}", *map(float, destination(LAT0, LON0, 45.0, 25.0 * i))) for i in range(4)]
+    far = _photo("far", *map(float, destination(LAT0, LON0, 180.0, 400.0)))
+    check = check_gps_overlap([*near, far, _photo("nogps", None, None)], max_agl_m=120.0)
+    assert check.isolated == ["far"]
+    assert check.footprint_m[0] == pytest.approx(120.0 * 1500.0 / 925.0)
+    assert check.nearest_m[1] == pytest.approx(25.0, abs=0.01)
+    assert check_gps_overlap(near).ok
+    with pytest.raises(InputError):
+        check_gps_overlap(near, max_agl_m=-1.0)
+
+
+def test_mixed_cameras_are_grouped():
+    photos = [_photo("a", LAT0, LON0), _photo("b", LAT0, LON0), _photo("c", LAT0, LON0, model="GoPro", focal_px=600.0)]
+    groups = camera_groups(photos)
+    assert sorted(len(v) for v in groups.values()) == [1, 2]
+
+
+def test_calibrated_lenses_pass_through():
+    p = _photo("a", LAT0, LON0)
+    assert colmap_camera(p).model == "SIMPLE_RADIAL"
+    assert colmap_camera(p).params[:3] == (925.0, 600.0, 450.0)
+    bc = Camera(2400, 1800, 1850.0, 1851.0, 1199.5, 899.5, BrownConrady(k1=-0.1, k2=0.02, p1=1e-4, p2=-1e-4, k3=0.0))
+    cam = colmap_camera(p, bc)  # rescaled by 1/2, pixel centres shifted to pycolmap's +0.5
+    assert cam.model == "FULL_OPENCV" and cam.fixed
+    assert cam.params[:4] == pytest.approx((925.0, 925.5, 600.0, 450.0))
+    assert cam.params[4:8] == (-0.1, 0.02, 1e-4, -1e-4)
+    fish = colmap_camera(p, Camera(1200, 900, 500.0, 500.0, 599.5, 449.5, Fisheye(0.1, 0.01, 0.0, 0.0)))
+    assert fish.model == "OPENCV_FISHEYE" and len(fish.params) == 8
+    with pytest.raises(ConfigurationError, match="barrel"):
+        colmap_camera(p, Camera(1200, 900, 500.0, 500.0, 599.5, 449.5, Barrel(0.1, -0.32, 0.0)))
+    with pytest.raises(ConfigurationError, match="aspect"):
+        colmap_camera(p, Camera(1000, 1000, 500.0, 500.0, 499.5, 499.5))
+
+
+def test_utm_zone_and_utm_to_enu_match_pyproj():
+    assert utm_epsg(LAT0, LON0) == 32617
+    assert utm_epsg(-33.9, 18.4) == 32734  # Cape Town: zone 34 S
+    frame = LocalFrame(LAT0, LON0, 283.0)
+    enu = np.array([[-400.0, -300.0, -64.0], [0.0, 0.0, 0.0], [350.0, 420.0, -60.0], [120.0, -250.0, 10.0]])
+    utm = enu_to_utm(frame, enu, 32617)
+    box = (utm[:, 0].min() - 50, utm[:, 1].min() - 50, utm[:, 0].max() + 50, utm[:, 1].max() + 50)
+    to_enu = UtmToEnu(frame, 32617, box)
+    assert to_enu.max_residual_m < 1e-3
+    # Round trip ENU -> UTM (exact) -> ENU (fitted): mm agreement, heights included.
+    np.testing.assert_allclose(to_enu(utm[:, 0], utm[:, 1], utm[:, 2]), enu, atol=1e-3)
+
+
+def test_grid_pixel_centres_round_trip():
+    grid = Grid.covering(32617, 306010.2, 4545180.7, 306400.9, 4545560.1, 0.5)
+    assert grid.west_m == 306010.0 and grid.north_m == 4545560.5
+    west, south, east, north = grid.bounds_m
+    assert west <= 306010.2 and south <= 4545180.7 and east >= 306400.9 and north >= 4545560.1
+    rows, cols = np.array([0, 10, grid.height - 1]), np.array([0, 7, grid.width - 1])
+    e, n = grid.centres_m(rows, cols)
+    c, r = grid.to_pixel(e, n)
+    np.testing.assert_allclose(np.c_[r, c], np.c_[rows, cols], atol=1e-9)
+    assert e[0] == 306010.25 and n[0] == 4545560.25
+
+
+def test_dsm_recovers_a_sloped_plane_and_drops_spikes():
+    rng = np.random.default_rng(3)
+    east = rng.uniform(1000.0, 1200.0, 3000)
+    north = rng.uniform(5000.0, 5150.0, 3000)
+    height = 220.0 + 0.02 * (east - 1000.0) - 0.01 * (north - 5000.0)
+    height[:15] += 40.0  # mis-triangulated points
+    grid = Grid.covering(32617, 1000.0, 5000.0, 1200.0, 5150.0, 5.0)
+    dsm = build_dsm(np.c_[east, north, height], grid)
+    rr, cc = np.mgrid[0:grid.height, 0:grid.width]
+    e, n = grid.centres_m(rr, cc)
+    truth = 220.0 + 0.02 * (e - 1000.0) - 0.01 * (n - 5000.0)
+    inside = np.isfinite(dsm.surface_m)
+    assert inside.mean() > 0.9
+    # Cell medians of a plane with 5 m cells: error below slope * half cell = 0.06 m.
+    assert np.abs(dsm.surface_m[inside] - truth[inside]).max() < 0.1
+    assert np.isfinite(dsm.filled_m).all()
+    with pytest.raises(DataError):
+        build_dsm(np.array([[0.0, 0.0, 1.0]]), grid)
+
+
+def test_config_errors():
+    with pytest.raises(ConfigurationError):
+        PipelineConfig("a", "b", barrel=Barrel(0.1, -0.32, 0.0), calibration=Camera(10, 10, 5.0, 5.0, 4.5, 4.5))
+    with pytest.raises(ConfigurationError, match="stage"):
+        PipelineConfig("a", "b", force=("nope",))
+    with pytest.raises(InputError):
+        PipelineConfig("a", "b", resolution_cm=-2.0)
