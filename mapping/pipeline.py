@@ -29,7 +29,7 @@ import numpy as np
 
 from skyfix.camera import Camera
 from skyfix.distortion import Barrel
-from skyfix.errors import ConfigurationError, DataError, InputError
+from skyfix.errors import ConfigurationError, DataError, InputError, SkyfixError
 from skyfix.mapping.photos import Photo, camera_groups, check_gps_overlap, load_photos
 from skyfix.mapping.report import Report
 
@@ -145,6 +145,9 @@ def run_pipeline(config: PipelineConfig) -> Report:
                 config = dataclasses.replace(config, force=STAGES)
             project.mark(stage, data)
             report.stage_seconds[stage] = data["seconds"]
+    except SkyfixError as exc:
+        report.error = str(exc)
+        raise
     finally:
         report.total_seconds = time.perf_counter() - start
         report.peak_memory_mib = _peak_mib()

@@ -20,6 +20,7 @@ class Report:
     ``models``: one dict per reconstructed model (see ``ModelGeoref.to_dict``), largest first.
     ``stage_seconds``: time of each stage when it ran (a resumed stage keeps its earlier
     time and is listed in ``resumed_stages``). ``warnings``: every user-facing warning.
+    ``error``: why the run stopped, when it did.
     """
 
     photos_dir: str
@@ -51,6 +52,7 @@ class Report:
     peak_memory_mib: float = 0.0
     outputs: dict[str, str] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    error: str | None = None
 
     @property
     def registered_share(self) -> float:

@@ -109,3 +109,5 @@ def test_empty_folder(tmp_path):
     (tmp_path / "in").mkdir()
     with pytest.raises(InputError, match="no JPEG"):
         run_pipeline(PipelineConfig(tmp_path / "in", tmp_path / "out"))
+    saved = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert "no JPEG" in saved["error"] and saved["photos_found"] == 0

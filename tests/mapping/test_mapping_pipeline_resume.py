@@ -62,3 +62,22 @@ def test_no_gps_reconstructs_unreferenced(tmp_path):
     assert any("not georeferenced" in w for w in report.warnings)
     assert (tmp_path / "project" / "points.ply").exists()
     assert not (tmp_path / "project" / "orthophoto.tif").exists()
+
+
+def test_non_overlapping_photos_explained(tmp_path):
+    from skyfix.errors import DataError
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    ends = sorted(DATA.glob("*.jpg"))
+    for p in (ends[0], ends[-1]):  # 151 m apart along the line
+        shutil.copy(p, photos / p.name)
+    # At most 60 m above ground the footprint diagonal is 60 * 1500 / 925 = 97 m < 151 m.
+    with pytest.raises(DataError, match="reconstructed nothing"):
+        run_pipeline(PipelineConfig(photos, tmp_path / "project", max_agl_m=60.0, **FAST))
+    import json
+
+    saved = json.loads((tmp_path / "project" / "report.json").read_text())
+    assert saved["isolated_by_gps"] == [ends[0].name, ends[-1].name]
+    assert any("cannot overlap" in w for w in saved["warnings"])
+    assert "reconstructed nothing" in saved["error"]
