@@ -10,7 +10,9 @@ from skyfix.tags.field import TagField
 
 @pytest.fixture(scope="session")
 def tag_field() -> TagField:
-    return TagField.generate(12, 12, tile_m=0.05, gap_m=0.02, spacing_m=0.25, time_limit_s=1.0, seed=3)
+    # A fixed move budget (not a time limit) so every machine tests the same field.
+    return TagField.generate(12, 12, tile_m=0.05, gap_m=0.02, spacing_m=0.25, time_limit_s=60.0,
+                             max_iterations=25_000, seed=3)
 
 
 @pytest.fixture(scope="session")
