@@ -82,9 +82,9 @@ class Grid:
 
     def affine(self):
         """rasterio ``Affine`` pixel -> UTM transform."""
-        from rasterio.transform import from_origin
+        from affine import Affine
 
-        return from_origin(self.west_m, self.north_m, self.resolution_m, self.resolution_m)
+        return Affine(self.resolution_m, 0.0, self.west_m, 0.0, -self.resolution_m, self.north_m)
 
     def centres_m(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """UTM (easting, northing) of pixel centres at ``rows``/``cols`` (any broadcastable shapes)."""

@@ -112,3 +112,13 @@ def test_config_errors():
         PipelineConfig("a", "b", force=("nope",))
     with pytest.raises(InputError):
         PipelineConfig("a", "b", resolution_cm=-2.0)
+
+
+def test_map_command_help(capsys):
+    from skyfix.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["map", "--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert "--resolution-cm" in out and "--barrel" in out and "--calibration" in out and "resumes" in out
