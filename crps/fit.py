@@ -72,7 +72,7 @@ class FitState:
     """Per-yaw fit parameters of one frame, to start the next frame's fit from (a tracker keeps it).
 
     ``yaw_deg`` (K,) the yaw grid; ``params`` (K, 4) log range per unit span, tilt deg,
-    window shift u, v px.
+    shift u, v px of the model from its projection on the detection's ray.
     """
 
     yaw_deg: np.ndarray
@@ -187,9 +187,10 @@ class SilhouetteFit:
                 starts.append(np.array([math.log(rho0), 0.0, shift[0], shift[1]]))
             iterations = cfg.iterations
         else:
+            # The shift is relative to the model placed on this frame's detection ray, so last
+            # frame's solution is a valid start as it is.
             yaws = start.yaw_deg
-            # Last frame's shift was relative to last frame's window; re-anchor it on the centroid.
-            starts = [np.array([q[0], q[1], q[2] + centre[0], q[3] + centre[1]]) for q in start.params]
+            starts = [q.copy() for q in start.params]
             iterations = cfg.tracked_iterations
         results, kept = [], []
         for psi, q in zip(yaws, starts, strict=True):
@@ -209,9 +210,7 @@ class SilhouetteFit:
         var_noise = float(weight @ np.array([r[2] for r in results]))
         # The spread over yaw hypotheses stays while the target keeps its heading: model error.
         var_yaw = float(weight @ (log_rho - mean) ** 2)
-        params = np.array([r[4] for r in results])
-        params[:, 2:4] -= centre  # store shifts relative to the detection centroid
-        self.last_state = FitState(np.array(kept), params)
+        self.last_state = FitState(np.array(kept), np.array([r[4] for r in results]))
         size_px = self._focal / math.exp(mean)
         return replace(det, kind="model", size_px=size_px, size_sigma_px=size_px * math.sqrt(var_noise),
                        size_model_sigma_rel=math.sqrt(cfg.model_sigma_rel ** 2 + var_yaw))
