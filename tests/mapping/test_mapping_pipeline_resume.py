@@ -27,8 +27,8 @@ def test_interrupt_after_matching_then_resume(tmp_path, monkeypatch):
         raise KeyboardInterrupt  # Ctrl-C while mapping
 
     monkeypatch.setattr(sfm, "reconstruct", interrupted)
-    with pytest.raises(KeyboardInterrupt):
-        run_pipeline(PipelineConfig(photos, out, **FAST))
+    with pytest.raises(KeyboardInterrupt):  # 4 photos > 2: GPS-neighbour (spatial) matching
+        run_pipeline(PipelineConfig(photos, out, exhaustive_max_photos=2, **FAST))
     monkeypatch.undo()
     assert (out / "work" / "stages" / "matches.json").exists()
     assert not (out / "work" / "stages" / "mapping.json").exists()
@@ -42,8 +42,9 @@ def test_interrupt_after_matching_then_resume(tmp_path, monkeypatch):
             return _original(*args, **kwargs)
 
         monkeypatch.setattr(sfm, name, spy)
-    report = run_pipeline(PipelineConfig(photos, out, **FAST))
+    report = run_pipeline(PipelineConfig(photos, out, exhaustive_max_photos=2, **FAST))
     assert calls == []
+    assert report.matching == "spatial"  # recorded by the interrupted run, not redone
     assert {"features", "matches"} <= set(report.resumed_stages)
     assert "mapping" not in report.resumed_stages
     assert len(report.registered) >= 3 and report.georeferenced
