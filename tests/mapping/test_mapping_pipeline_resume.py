@@ -82,3 +82,17 @@ def test_non_overlapping_photos_explained(tmp_path):
     assert saved["isolated_by_gps"] == [ends[0].name, ends[-1].name]
     assert any("cannot overlap" in w for w in saved["warnings"])
     assert "reconstructed nothing" in saved["error"]
+
+
+def test_barrel_correction_stage_feeds_mapping(tmp_path):
+    from skyfix.distortion import Barrel
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for p in sorted(DATA.glob("*.jpg"))[1:5]:
+        shutil.copy(p, photos / p.name)
+    out = tmp_path / "project"
+    report = run_pipeline(PipelineConfig(photos, out, barrel=Barrel(0.0, -0.01, 0.0), **FAST))
+    corrected = sorted(p.name for p in (out / "work" / "corrected").glob("*.jpg"))
+    assert corrected == sorted(p.name for p in photos.glob("*.jpg"))
+    assert len(report.registered) >= 3 and report.georeferenced and report.georef_rms_m <= 5.0
