@@ -1,7 +1,7 @@
 """Correct a folder of photos: remap tables built once per image size, photos in parallel.
 
-Each worker process holds one photo at a time, so memory stays bounded whatever the
-number of photos. A photo that cannot be corrected (corrupt JPEG, missing EXIF, size
+Threads share the tables and hold at most two photos each, so memory stays bounded
+whatever the number of photos. A photo that cannot be corrected (corrupt JPEG, missing EXIF, size
 that does not fit a calibration) is logged, reported and skipped; the batch goes on.
 """
 
@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import json
 import logging
-import multiprocessing
 import os
+import threading
 import time
 from collections.abc import Iterable, Iterator
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, as_completed, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -114,18 +115,20 @@ def list_photos(in_dir: str | os.PathLike) -> list[Path]:
 
 
 class _Worker:
-    """Per-process state: the spec and remap tables cached per image size."""
+    """Shared by the batch threads: the spec and remap tables cached per image size."""
 
     def __init__(self, spec: CorrectionSpec) -> None:
         self.spec = spec
         self.tables: dict[tuple[int, int], Undistortion] = {}
         self.metadata: dict[Path, PhotoMetadata] = {}  # read in decode(), used once in finish()
+        self._tables_lock = threading.Lock()
 
     def tables_for(self, width: int, height: int) -> Undistortion:
         key = (width, height)
-        if key not in self.tables:
-            self.tables[key] = self.spec.undistortion(width, height)
-        return self.tables[key]
+        with self._tables_lock:  # threads share the tables; build each size once
+            if key not in self.tables:
+                self.tables[key] = self.spec.undistortion(width, height)
+            return self.tables[key]
 
     def decode(self, src: Path) -> tuple[bytes, np.ndarray]:
         data = src.read_bytes()
@@ -180,36 +183,24 @@ class _Worker:
             return PhotoResult(str(src), None, str(exc))
 
 
-_WORKER: _Worker | None = None
+def _threaded_results(worker: _Worker, jobs: list[tuple[Path, Path]], n_threads: int) -> Iterator[PhotoResult]:
+    """Run ``worker`` over ``jobs`` on ``n_threads`` threads, at most two photos per thread in flight.
 
-
-#: Set by the parent just before forking the pool (see _prebuilt_worker).
-_PREBUILT: list[_Worker | None] = [None]
-
-
-def _init_worker(spec: CorrectionSpec) -> None:
-    global _WORKER
-    cv2.setNumThreads(1)  # parallelism comes from the processes
-    _WORKER = _PREBUILT[0] if _PREBUILT[0] is not None else _Worker(spec)
-
-
-def _prebuilt_worker(spec: CorrectionSpec, first_photo: Path) -> _Worker | None:
-    """A worker with the tables for the first photo's size, built once before forking so the
-    processes share them (copy-on-write) instead of each building its own."""
-    from PIL import Image
-
-    try:
-        with Image.open(first_photo) as im:  # reads the header only
-            width, height = im.size
-        worker = _Worker(spec)
-        worker.tables_for(width, height)
-        return worker
-    except (OSError, SkyfixError, cv2.error):
-        return None  # a bad first photo is reported by the batch itself
-
-
-def _run_job(job: tuple[Path, Path]) -> PhotoResult:
-    return _WORKER(job)
+    OpenCV's decode, remap and encode release the GIL, so threads run in parallel while
+    sharing one set of remap tables. Threads rather than forked processes: forking a
+    process that already runs threads (a MAVLink reader, OpenCV's or torch's pools) can
+    deadlock the child on a lock held at fork time.
+    """
+    with ThreadPoolExecutor(n_threads, thread_name_prefix="lens-correct") as pool:
+        in_flight: set[Future[PhotoResult]] = set()
+        for job in jobs:
+            in_flight.add(pool.submit(worker, job))
+            if len(in_flight) >= 2 * n_threads:
+                done, in_flight = wait(in_flight, return_when=FIRST_COMPLETED)
+                for future in done:
+                    yield future.result()
+        for future in as_completed(in_flight):
+            yield future.result()
 
 
 def _torch_results(worker: _Worker, jobs: list[tuple[Path, Path]], device: str | None,
@@ -249,8 +240,8 @@ def correct_photos(photos: Iterable[str | os.PathLike], out_dir: str | os.PathLi
                    batch_size: int = 8, progress: bool = True) -> BatchReport:
     """Correct ``photos`` into ``out_dir`` (same file names); never raises for one bad photo.
 
-    ``workers``: processes for the OpenCV backend (default: CPU count; 1 runs in this
-    process). ``backend='torch'`` remaps batches of ``batch_size`` photos with kornia on
+    ``workers``: threads for the OpenCV backend (default: CPU count; 1 runs in the calling
+    thread). ``backend='torch'`` remaps batches of ``batch_size`` photos with kornia on
     ``device`` (default: CUDA when available, else CPU). Returns a :class:`BatchReport`;
     bad photos are logged at WARNING and listed in ``report.skipped``.
     """
@@ -268,7 +259,6 @@ def correct_photos(photos: Iterable[str | os.PathLike], out_dir: str | os.PathLi
     report = BatchReport()
     start = time.perf_counter()
     bar = tqdm(total=len(jobs), desc="lens correct", unit="photo", disable=not progress)
-    pool = None
     try:
         if backend == "torch":
             results: Iterator[PhotoResult] = _torch_results(_Worker(spec), jobs, device, batch_size)
@@ -276,10 +266,7 @@ def correct_photos(photos: Iterable[str | os.PathLike], out_dir: str | os.PathLi
             worker = _Worker(spec)
             results = (worker(job) for job in jobs)
         else:
-            # With fork the prebuilt tables reach the workers without pickling.
-            _PREBUILT[0] = _prebuilt_worker(spec, jobs[0][0])
-            pool = multiprocessing.get_context("fork").Pool(min(n_workers, len(jobs)), _init_worker, (spec,))
-            results = pool.imap_unordered(_run_job, jobs, chunksize=1)
+            results = _threaded_results(_Worker(spec), jobs, min(n_workers, len(jobs)))
         for result in results:
             if result.error is not None:
                 log.warning("skipped %s: %s", result.source, result.error)
@@ -287,10 +274,6 @@ def correct_photos(photos: Iterable[str | os.PathLike], out_dir: str | os.PathLi
             bar.update(1)
     finally:
         bar.close()
-        _PREBUILT[0] = None
-        if pool is not None:
-            pool.terminate()
-            pool.join()
     report.results.sort(key=lambda r: r.source)
     report.seconds = time.perf_counter() - start
     return report

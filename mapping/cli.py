@@ -305,7 +305,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="ImageMagick -distort barrel coefficients, e.g. '0.1 -0.32 0'")
     p.add_argument("--calibration", metavar="CAL.json", help="camera file from 'skyfix lens calibrate'")
     p.add_argument("--crop", action="store_true", help="crop to the largest centred rectangle of valid pixels")
-    p.add_argument("--workers", type=int, default=None, help="worker processes (default: all CPU cores)")
+    p.add_argument("--workers", type=int, default=None, help="worker threads (default: all CPU cores)")
     p.add_argument("--quality", type=int, default=None,
                    help="JPEG quality of the output, 1-100 (default: each photo's own, estimated as ImageMagick does)")
     p.add_argument("--interpolation", default="linear", choices=["nearest", "linear", "cubic", "lanczos"],
