@@ -7,7 +7,8 @@ HFOV helper camera and measures, on the same frames:
    through the shape table) and for the source paper's reference-image method
    (D1 = D0 * S0 / S1 with S the thresholded bounding-box width, S0 measured on a
    reference render at D0 = 20 m); single frames by moments and by the model fit
-   (SilhouetteFit), and 15-frame tracks through the documented path (Tracker with the fit);
+   (SilhouetteFit), and 15-frame tracks through the documented path (Tracker, moments)
+   and, on the same frames, a Tracker with the fit;
 2. two helpers 40-70 m away, >= 60 degrees apart, with noisy own pose, fused by
    ``locate``: position error and how often the truth lies inside the 95 % ellipsoid;
 3. CPU time per frame (``time.process_time`` with ``cv2.setNumThreads(1)``: one core)
@@ -146,13 +147,14 @@ def accuracy(rng, n_per_range: int, detector, fit) -> tuple[dict, dict]:
         allr += err
         alls += src
         allb += berr
-    tracked = {}
+    tracked, tracked_fit = {}, {}
     for rng_m in tqdm(ranges, desc="tracked", leave=False):
-        errs = []
+        errs, errs_fit = [], []
         for _ in range(max(4, n_per_range // 2)):
             helper, target = scene(rng, rng_m)
-            tracker = Tracker(detector, fit=fit)
-            det = None
+            tracker = Tracker(detector)
+            tracker_fit = Tracker(detector, fit=fit)
+            det = det_fit = None
             truth = None
             # The target drifts at 0.5 m/s in a random horizontal direction; 15 frames at 30 Hz.
             heading = rng.uniform(0, 360)
@@ -161,12 +163,16 @@ def accuracy(rng, n_per_range: int, detector, fit) -> tuple[dict, dict]:
                 moved = TargetPose(float(lat), float(lon), target.alt_m, target.yaw_deg, target.pitch_deg,
                                    target.roll_deg)
                 view = render(rng, helper, moved)
-                det = tracker.update(view.image, k / 30.0, helper) or det
+                det = tracker.update(view.image, k / 30.0) or det
+                det_fit = tracker_fit.update(view.image, k / 30.0, helper) or det_fit
                 truth = view.truth
             if det is not None and abs(det.time_s - (TRACK_FRAMES - 1) / 30.0) < 1e-9:
                 errs.append(observe(CAMERA, helper, det, 0.5).range_m / truth.range_m - 1.0)
+            if det_fit is not None and abs(det_fit.time_s - (TRACK_FRAMES - 1) / 30.0) < 1e-9:
+                errs_fit.append(observe(CAMERA, helper, det_fit, 0.5).range_m / truth.range_m - 1.0)
         tracked[rng_m] = errs
-    return rows, {"all": (allr, alls, allb), "tracked": tracked, "z": np.array(zs), "z_fit": np.array(zs_fit)}
+        tracked_fit[rng_m] = errs_fit
+    return rows, {"all": (allr, alls, allb), "tracked": tracked, "tracked_fit": tracked_fit, "z": np.array(zs), "z_fit": np.array(zs_fit)}
 
 
 def two_helpers(rng, n: int, detector) -> tuple[np.ndarray, np.ndarray]:
@@ -222,11 +228,11 @@ def speed(rng, detector, fit, n: int) -> tuple[float, float]:
         found = [d for d in detector(v.image) if shape_consistent(CAMERA, helper, d)]
         observe(CAMERA, helper, found[0], 0.5)
     full = (time.process_time() - t0) / n
-    tracker = Tracker(detector, fit=fit)
-    tracker.update(views[0].image, 0.0, helper)
+    tracker = Tracker(detector)
+    tracker.update(views[0].image, 0.0)
     t0 = time.process_time()
     for k, v in enumerate(views[1:], start=1):
-        det = tracker.update(v.image, k / 30.0, helper)
+        det = tracker.update(v.image, k / 30.0)
         if shape_consistent(CAMERA, helper, det):
             observe(CAMERA, helper, det, 0.5)
     roi = (time.process_time() - t0) / (n - 1)
@@ -326,16 +332,18 @@ def main() -> int:
     rows, extra = accuracy(rng, n_acc, detector, fit)
     print("1. range / bearing vs distance (sky, seen from 5-35 deg below). Single frames: 'moments' = detector +")
     print("   observe; 'fit' = detector + SilhouetteFit (model least squares; extent <= 8 px, else moments) + observe.")
-    print(f"   Tracked = the documented path: Tracker(detector, fit=SilhouetteFit) for {TRACK_FRAMES} frames at "
-          "30 Hz, last frame's observe.")
+    print(f"   TRACKED = the documented path, Tracker(detector) (moments), {TRACK_FRAMES} frames at 30 Hz, last "
+          "frame's observe; 'trk+fit' = Tracker(detector, fit=SilhouetteFit) on the same frames.")
     print(f"{'range':>6} {'n':>4} {'miss':>4} | {'moments med':>11} {'p95':>6} | {'fit med':>7} {'p95':>6} | "
-          f"{'bearing p95':>11} | {'source med':>10} {'p95':>6} | {'TRACKED med':>11} {'p95':>6} {'n':>3}")
+          f"{'bearing p95':>11} | {'source med':>10} {'p95':>6} | {'TRACKED med':>11} {'p95':>6} {'n':>3} | "
+          f"{'trk+fit med':>11} {'p95':>6}")
     for rng_m, (err, src, berr, miss, err_fit) in rows.items():
-        trk = extra["tracked"][rng_m]
+        trk, trkf = extra["tracked"][rng_m], extra["tracked_fit"][rng_m]
         print(f"{rng_m:5d}m {len(err):4d} {miss:4d} | {pct(err, 50) * 100:10.2f}% {pct(err, 95) * 100:5.2f}% | "
               f"{pct(err_fit, 50) * 100:6.2f}% {pct(err_fit, 95) * 100:5.2f}% | {pct(berr, 95):10.4f}° | "
               f"{pct(src, 50) * 100:9.2f}% {pct(src, 95) * 100:5.2f}% | "
-              f"{pct(trk, 50) * 100:10.2f}% {pct(trk, 95) * 100:5.2f}% {len(trk):3d}")
+              f"{pct(trk, 50) * 100:10.2f}% {pct(trk, 95) * 100:5.2f}% {len(trk):3d} | "
+              f"{pct(trkf, 50) * 100:10.2f}% {pct(trkf, 95) * 100:5.2f}%")
     allr, alls, allb = extra["all"]
     allf = [e for r in rows.values() for e in r[4]]
     n_miss = sum(r[3] for r in rows.values())
