@@ -220,7 +220,7 @@ def two_helpers(rng, n: int, detector) -> tuple[np.ndarray, np.ndarray]:
     return np.array(errors), np.array(maha)
 
 
-def speed(rng, detector, fit, n: int) -> tuple[float, float]:
+def speed(rng, detector, n: int) -> tuple[float, float]:
     helper, target = scene(rng, 55.0)
     views = [render(rng, helper, target) for _ in range(n)]
     t0 = time.process_time()
@@ -372,7 +372,7 @@ def main() -> int:
     goals["two-helper median <= 1.5 m"] = float(np.median(errors)) <= 1.5
     goals["95% ellipsoid holds the truth 90-99% of the time"] = 0.90 <= inside <= 0.99
 
-    full_fps, roi_fps = speed(rng, detector, fit, 12 if args.quick else 40)
+    full_fps, roi_fps = speed(rng, detector, 12 if args.quick else 40)
     print(f"3. one core (process_time, cv2.setNumThreads(1)), 1920x1080, detect + observe: full-frame "
           f"{full_fps:.1f} frames/s, tracking (ROI) {roi_fps:.1f} frames/s")
     goals["tracking >= 30 frames/s"] = roi_fps >= 30.0
