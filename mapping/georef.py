@@ -23,8 +23,9 @@ import numpy as np
 
 from skyfix.geo import LocalFrame
 from skyfix.mapping.photos import Photo
+from skyfix.mapping.sfm import PairModel
 
-__all__ = ["ModelGeoref", "georeference", "survey_frame"]
+__all__ = ["ModelGeoref", "attach_pair", "georeference", "survey_frame"]
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +52,7 @@ class ModelGeoref:
     residuals_enu_m: dict[str, list[float]] = field(default_factory=dict)
     inliers: list[str] = field(default_factory=list)
     nadir_assumed: bool = False
+    two_view: dict = field(default_factory=dict)
 
     @property
     def rms_m(self) -> float:
@@ -80,7 +82,8 @@ class ModelGeoref:
                 "translation_m": self.translation_m, "rms_m": self.rms_m,
                 "rms_horizontal_m": self.rms_horizontal_m, "inlier_rms_m": self.inlier_rms_m,
                 "inliers": len(self.inliers), "outliers": sorted(set(self.residuals_enu_m) - set(self.inliers)),
-                "nadir_assumed": self.nadir_assumed, "residuals_enu_m": self.residuals_enu_m}
+                "nadir_assumed": self.nadir_assumed, "residuals_enu_m": self.residuals_enu_m,
+                "two_view": self.two_view}
 
 
 def _apply(sim, points: np.ndarray) -> np.ndarray:
@@ -165,4 +168,86 @@ def georeference(rec, photos: list[Photo], frame: LocalFrame, model_index: int =
     result.inliers = [n for n, r in zip(names, residuals, strict=True) if np.linalg.norm(r) <= max_error_m]
     log.info("model %d georeferenced: %d photos, RMS %.2f m (%d inliers)", model_index, len(names),
              result.rms_m, len(result.inliers))
+    return result
+
+
+def _enu(frame: LocalFrame, photo: Photo) -> np.ndarray:
+    return frame.to_enu_points(np.array([[photo.gps_lat_deg, photo.gps_lon_deg, photo.gps_alt_amsl_m]]))[0]
+
+
+def _median_depth(rec, image) -> float:
+    """Median depth (model units) of the 3-D points ``image`` observes in ``rec``; NaN if none."""
+    ids = [p.point3D_id for p in image.points2D if p.has_point3D()]
+    if not ids:
+        return float("nan")
+    xyz = np.array([rec.points3D[i].xyz for i in ids])
+    m = np.asarray(image.cam_from_world().matrix())
+    return float(np.median(xyz @ m[2, :3] + m[2, 3]))
+
+
+def attach_pair(pair_rec, main_rec, main_georef: ModelGeoref, pair: PairModel, photos: list[Photo],
+                frame: LocalFrame, model_index: int, *, max_offset_m: float = 5.0) -> ModelGeoref:
+    """Place ``pair.photo`` with its two-photo model ``pair_rec`` anchored on ``pair.partner``.
+
+    The similarity takes the partner's rotation and centre from the georeferenced
+    ``main_rec`` (so the partner's pose agrees with the main model exactly) and its scale
+    from the ground: the median depth of the points the partner sees in the main model
+    (metres) over that in the two-photo model. The photo's own GPS is not used to place it,
+    so it is an independent check: the photo counts as placed only when the partner is a
+    GPS inlier of the main model and the photo's centre lies within ``max_offset_m`` of
+    its GPS position. ``pair_rec`` is transformed in place and the
+    partner deregistered from it (it stays in the main model), leaving one posed photo.
+    """
+    import pycolmap
+
+    by_name = {p.name: p for p in photos}
+    result = ModelGeoref(model_index, 1, False)
+    result.two_view = {"photo": pair.photo, "partner": pair.partner, "inliers": pair.inliers}
+    new_p, partner_p = by_name.get(pair.photo), by_name.get(pair.partner)
+    pair_images = {im.name: im for im in pair_rec.images.values() if im.has_pose}
+    main_images = {im.name: im for im in main_rec.images.values() if im.has_pose}
+    if new_p is None or partner_p is None or not (new_p.has_gps and partner_p.has_gps):
+        result.reason = f"{pair.photo}: two-view model needs GPS on both photos"
+    elif pair.partner not in main_georef.inliers or pair.partner not in main_images:
+        result.reason = f"{pair.photo}: partner {pair.partner} is not a GPS inlier of model {main_georef.model_index}"
+    elif set(pair_images) != {pair.photo, pair.partner}:
+        result.reason = f"{pair.photo}: the two-view model does not pose both photos"
+    if result.reason:
+        log.warning("model %d: %s", model_index, result.reason)
+        return result
+    gps_new, gps_partner = _enu(frame, new_p), _enu(frame, partner_p)
+    pair_new, pair_partner = pair_images[pair.photo], pair_images[pair.partner]
+    depth_main_m = _median_depth(main_rec, main_images[pair.partner])
+    depth_pair = _median_depth(pair_rec, pair_partner)
+    if not (depth_main_m > 0 and depth_pair > 0):
+        result.reason = f"{pair.photo}: no ground depth under {pair.partner} to scale its two-view model"
+        log.warning("model %d: %s", model_index, result.reason)
+        return result
+    # world_main_from_pair: rotation R_main^T R_pair (both cam_from_world), partner centre kept.
+    r_main = main_images[pair.partner].cam_from_world().rotation.matrix()
+    r_pair = pair_partner.cam_from_world().rotation.matrix()
+    rotation = r_main.T @ r_pair
+    scale = depth_main_m / depth_pair
+    translation = main_images[pair.partner].projection_center() - scale * rotation @ pair_partner.projection_center()
+    sim = pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), translation)
+    moved = _apply(sim, pair_new.projection_center()[None, :])[0]
+    offset = moved - gps_new
+    baseline_m = scale * np.linalg.norm(pair_new.projection_center() - pair_partner.projection_center())
+    result.two_view.update({"baseline_m": float(baseline_m), "baseline_gps_m": float(np.linalg.norm(gps_new - gps_partner)),
+                            "offset_m": float(np.linalg.norm(offset))})
+    if np.linalg.norm(offset) > max_offset_m:
+        result.reason = (f"{pair.photo}: two-view model with {pair.partner} puts it {np.linalg.norm(offset):.1f} m "
+                         f"from its GPS (more than {max_offset_m} m); not placed")
+        log.warning("model %d: %s", model_index, result.reason)
+        return result
+    pair_rec.transform(sim)
+    pair_rec.deregister_frame(pair_partner.frame_id)
+    result.georeferenced = True
+    result.reason = f"registered via two-view model with {pair.partner} ({pair.inliers} inliers)"
+    result.scale = float(sim.scale)
+    result.rotation_xyzw = [float(v) for v in sim.rotation.quat]
+    result.translation_m = [float(v) for v in sim.translation]
+    result.residuals_enu_m = {pair.photo: [float(v) for v in offset]}
+    result.inliers = [pair.photo]
+    log.info("model %d: %s, %.2f m from GPS", model_index, result.reason, np.linalg.norm(offset))
     return result

@@ -57,6 +57,7 @@ class PipelineConfig:
     spatial_neighbours: int = 12          # GPS neighbours matched per photo in spatial matching
     max_agl_m: float = 120.0              # upper bound of height above ground for the overlap check
     georef_max_error_m: float = 10.0      # RANSAC inlier distance camera centre <-> GPS
+    two_view_max_offset_m: float = 5.0    # a photo placed by a two-view model must be this close to its GPS
     blend_power: float = 2.0              # seam feathering exponent of the edge-distance weight
     threads: int = -1                     # -1: all cores
     force: tuple[str, ...] = ()           # stages to re-run even when their outputs exist
@@ -250,14 +251,20 @@ def _mapping_run(config, project, state, report) -> dict:
     if not models:
         raise DataError("structure from motion reconstructed nothing: the photos share too few features "
                         "(do they overlap? are they sharp?)")
+    registered = {im.name for rec in models for im in rec.images.values() if im.has_pose}
+    unregistered = {p.name for p in state["photos"] if p.has_gps} - registered
     state["models"] = models
-    return {"models": len(models)}
+    state["pairs"] = sfm.pair_models(project.database, state["image_dir"], project.sparse / "pairs", unregistered,
+                                     models, threads=config.threads) if unregistered else []
+    return {"models": len(models), "pairs": [dataclasses.asdict(pair) for _, pair in state["pairs"]]}
 
 
 def _mapping_load(config, project, state, report, marker) -> None:
     from skyfix.mapping import sfm
 
     state["models"] = sfm.load_models(project.sparse)
+    pair_recs = sfm.load_models(project.sparse / "pairs")
+    state["pairs"] = [(rec, sfm.PairModel(**d)) for rec, d in zip(pair_recs, marker.get("pairs", []), strict=True)]
 
 
 def _summarise_models(state, report) -> None:
@@ -290,10 +297,35 @@ def _georef_run(config, project, state, report) -> dict:
         path.mkdir(parents=True, exist_ok=True)
         rec.write(str(path))
     state["frame"] = frame
+    rejected = _attach_pairs(config, project, state, results)
     data = {"frame": None if frame is None else [frame.lat0_deg, frame.lon0_deg, frame.alt0_m],
-            "models": [r.to_dict() for r in results]}
+            "models": [r.to_dict() for r in results], "two_view_rejected": rejected}
     _georef_load(config, project, state, report, data)
     return data
+
+
+def _attach_pairs(config, project, state, results: list) -> list[str]:
+    """Two-view models anchored on georeferenced main models; accepted ones are appended to
+    ``results`` and written as further models, rejected ones only return their reason."""
+    from skyfix.mapping.georef import attach_pair
+
+    models, frame, rejected = state["models"], state.get("frame"), []
+    for pair_rec, pair in state.get("pairs", []):
+        host = next((i for i, rec in enumerate(models[:len(results)]) if results[i].georeferenced
+                     and any(im.name == pair.partner and im.has_pose for im in rec.images.values())), None)
+        if frame is None or host is None:
+            rejected.append(f"{pair.photo}: partner {pair.partner} is in no georeferenced model; not placed")
+            continue
+        found = attach_pair(pair_rec, models[host], results[host], pair, state["photos"], frame, len(results),
+                            max_offset_m=config.two_view_max_offset_m)
+        if not found.georeferenced:
+            rejected.append(found.reason)
+            continue
+        results.append(found)
+        path = project.georef / str(found.model_index)
+        path.mkdir(parents=True, exist_ok=True)
+        pair_rec.write(str(path))
+    return rejected
 
 
 def _georef_load(config, project, state, report, marker) -> None:
@@ -304,14 +336,16 @@ def _georef_load(config, project, state, report, marker) -> None:
     state["frame"] = None if marker["frame"] is None else LocalFrame(*marker["frame"])
     _summarise_models(state, report)
     report.models = marker["models"]
+    report.registered_two_view = [m["two_view"] for m in marker["models"] if m.get("two_view")]
+    report.warnings.extend(marker.get("two_view_rejected", []))
     referenced = [m for m in marker["models"] if m["georeferenced"]]
     report.georeferenced = bool(referenced)
     for m in marker["models"]:
         if not m["georeferenced"]:
             report.warnings.append(f"model {m['model']} ({m['registered']} photos) not georeferenced: {m['reason']}")
-    if len(marker["models"]) > 1:
-        report.warnings.append(f"mapping produced {len(marker['models'])} models; georeferenced ones are merged "
-                               "in the outputs")
+    mapped = [m for m in marker["models"] if not m.get("two_view")]
+    if len(mapped) > 1:
+        report.warnings.append(f"mapping produced {len(mapped)} models; georeferenced ones are merged in the outputs")
     if referenced:
         res = np.array([r for m in referenced for r in m["residuals_enu_m"].values()])
         report.georef_rms_m = float(np.sqrt((res ** 2).sum(axis=1).mean()))

@@ -20,7 +20,8 @@ class Report:
     ``models``: one dict per reconstructed model (see ``ModelGeoref.to_dict``), largest first.
     ``stage_seconds``: time of each stage when it ran (a resumed stage keeps its earlier
     time and is listed in ``resumed_stages``). ``warnings``: every user-facing warning.
-    ``error``: why the run stopped, when it did.
+    ``registered_two_view``: photos registered via a two-view model with one registered
+    neighbour (photo, partner, inliers, distance from GPS). ``error``: why the run stopped.
     """
 
     photos_dir: str
@@ -34,6 +35,7 @@ class Report:
     matching: str = ""
     registered: list[str] = field(default_factory=list)
     unregistered: list[str] = field(default_factory=list)
+    registered_two_view: list[dict] = field(default_factory=list)
     models: list[dict] = field(default_factory=list)
     mean_reprojection_error_px: float = math.nan
     points: int = 0

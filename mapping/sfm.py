@@ -10,6 +10,7 @@ the functions.
 from __future__ import annotations
 
 import logging
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,7 +19,8 @@ from skyfix.distortion import BrownConrady, Fisheye
 from skyfix.errors import ConfigurationError
 from skyfix.mapping.photos import Photo, camera_groups
 
-__all__ = ["ColmapCamera", "colmap_camera", "extract", "load_models", "match", "reconstruct"]
+__all__ = ["ColmapCamera", "PairModel", "colmap_camera", "extract", "load_models", "match", "pair_models",
+           "reconstruct"]
 
 log = logging.getLogger(__name__)
 
@@ -139,6 +141,102 @@ def reconstruct(database: Path, image_dir: Path, out_dir: Path, *, calibrated: b
         path.mkdir(exist_ok=True)
         rec.write(str(path))
     return ordered
+
+
+@dataclass(frozen=True)
+class PairModel:
+    """A two-photo model placing ``photo`` (left out of the main models) next to ``partner``."""
+
+    photo: str
+    partner: str
+    inliers: int
+
+
+def _best_partners(database: Path, unregistered: set[str], registered: set[str],
+                   min_inliers: int) -> dict[str, tuple[str, int]]:
+    """For each unregistered photo, the registered photo it shares the most verified inliers with."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(database))
+    try:
+        names = {im.image_id: im.name for im in db.read_all_images()}
+        pair_ids, geometries = db.read_two_view_geometries()
+    finally:
+        db.close()
+    best: dict[str, tuple[str, int]] = {}
+    for pair_id, geometry in zip(pair_ids, geometries, strict=True):
+        a, b = (names.get(i) for i in pycolmap.pair_id_to_image_pair(pair_id))
+        count = len(geometry.inlier_matches)
+        for new, old in ((a, b), (b, a)):
+            if new in unregistered and old in registered and count >= min_inliers \
+                    and count > best.get(new, ("", 0))[1]:
+                best[new] = (old, count)
+    return best
+
+
+def pair_models(database: Path, image_dir: Path, out_dir: Path, unregistered: set[str], main_models: list, *,
+                min_inliers: int = 30, threads: int = -1) -> list[tuple[object, PairModel]]:
+    """Two-photo models for photos incremental mapping could not place.
+
+    A photo that overlaps only one registered photo has no 3-D points to be located
+    against (no third photo sees the overlap), so PnP cannot register it. Its verified
+    two-view geometry with that photo (at least ``min_inliers`` inliers) still fixes the
+    relative pose: mapping restricted to the pair, started from it, gives a two-photo
+    model (relative pose up to scale), written under ``out_dir/<i>``. Two views of flat
+    ground barely constrain the focal length, so the pair runs with the lens as the
+    model holding the partner refined it, held fixed (its ground depth then scales the
+    pair consistently). The caller anchors it on the partner's pose in the main model and
+    checks it against GPS (:func:`skyfix.mapping.georef.attach_pair`).
+    """
+    import pycolmap
+
+    registered = {im.name for rec in main_models for im in rec.images.values() if im.has_pose}
+    partners = _best_partners(database, unregistered, registered, min_inliers)
+    if not partners:
+        return []
+    out_dir.mkdir(parents=True, exist_ok=True)
+    pair_db = out_dir / "pairs.db"
+    shutil.copyfile(database, pair_db)
+    db = pycolmap.Database.open(str(pair_db))
+    try:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+    finally:
+        db.close()
+    found = []
+    for photo, (partner, count) in sorted(partners.items()):
+        host = next(rec for rec in main_models if any(im.name == partner and im.has_pose
+                                                      for im in rec.images.values()))
+        db = pycolmap.Database.open(str(pair_db))
+        try:
+            for camera in host.cameras.values():  # the database's camera ids are the models' camera ids
+                db.update_camera(camera)
+        finally:
+            db.close()
+        options = pycolmap.IncrementalPipelineOptions()
+        options.num_threads = int(threads)
+        options.image_names = [photo, partner]
+        options.init_image_id1, options.init_image_id2 = ids[photo], ids[partner]
+        options.min_model_size = 2
+        options.multiple_models = False
+        options.mapper.init_min_num_inliers = int(min_inliers)
+        options.triangulation.ignore_two_view_tracks = False
+        options.ba_refine_focal_length = False
+        options.ba_refine_extra_params = False
+        work = out_dir / f"run_{len(found)}"
+        work.mkdir(exist_ok=True)
+        models = pycolmap.incremental_mapping(pair_db, image_dir, work, options=options)
+        rec = next((r for r in models.values() if r.num_reg_images() == 2), None)
+        shutil.rmtree(work)
+        if rec is None:
+            log.info("%s: no two-view model with %s", photo, partner)
+            continue
+        path = out_dir / str(len(found))
+        path.mkdir(exist_ok=True)
+        rec.write(str(path))
+        found.append((rec, PairModel(photo, partner, count)))
+        log.info("%s: two-view model with %s (%d inliers)", photo, partner, count)
+    pair_db.unlink()
+    return found
 
 
 def load_models(out_dir: Path) -> list:

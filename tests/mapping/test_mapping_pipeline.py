@@ -111,3 +111,88 @@ def test_empty_folder(tmp_path):
         run_pipeline(PipelineConfig(tmp_path / "in", tmp_path / "out"))
     saved = json.loads((tmp_path / "out" / "report.json").read_text())
     assert "no JPEG" in saved["error"] and saved["photos_found"] == 0
+
+
+def test_photo_overlapping_one_neighbour_placed_by_two_view_model(run):
+    # IMG_0474 starts the line: it overlaps only IMG_0475 (no third photo sees that ground),
+    # so incremental mapping cannot locate it; its two-view model with IMG_0475 can.
+    report, out = run
+    assert "IMG_0474.jpg" in report.registered
+    [placed] = report.registered_two_view
+    assert (placed["photo"], placed["partner"]) == ("IMG_0474.jpg", "IMG_0475.jpg")
+    assert placed["inliers"] >= 30 and placed["offset_m"] <= 5.0
+    saved = json.loads((out / "report.json").read_text())
+    assert saved["registered_two_view"][0]["photo"] == "IMG_0474.jpg"
+    names = [f["properties"]["photo"] for f in json.loads((out / "cameras.geojson").read_text())["features"]]
+    assert names.count("IMG_0474.jpg") == 1 and names.count("IMG_0475.jpg") == 1  # partner not twice
+
+
+def _main_model(report, out):
+    from skyfix.mapping import sfm
+    from skyfix.mapping.georef import ModelGeoref
+
+    m = report.models[0]
+    inliers = sorted(set(m["residuals_enu_m"]) - set(m["outliers"]))
+    return sfm.load_models(out / "work" / "georef")[0], ModelGeoref(0, m["registered"], True, inliers=inliers)
+
+
+def test_two_view_pose_agrees_with_bundle_adjusted_pose(run, photos_dir, tmp_path):
+    # IMG_0479 is registered by the main model (bundle adjusted over the line); placed
+    # again from its two-view model with IMG_0478 alone it must land on the same pose.
+    # Centre: the two-view scale comes from the median ground depth under IMG_0478 (flat
+    # fields, ~64 m), the ~56 m baseline then agrees to a few per cent -> within 3 m;
+    # orientation: 776 inliers fix the relative rotation to well under a degree -> 1 deg.
+    from skyfix.geo import LocalFrame
+    from skyfix.mapping import sfm
+    from skyfix.mapping.georef import attach_pair
+    from skyfix.mapping.photos import load_photos
+
+    report, out = run
+    frame = LocalFrame(*json.loads((out / "work" / "stages" / "georef.json").read_text())["frame"])
+    photos, _ = load_photos(photos_dir)
+    main, main_georef = _main_model(report, out)
+    without = sfm.load_models(out / "work" / "georef")[0]
+    without.deregister_frame(next(im.frame_id for im in without.images.values() if im.name == "IMG_0479.jpg"))
+    [(pair_rec, pair)] = sfm.pair_models(out / "work" / "database.db", photos_dir, tmp_path, {"IMG_0479.jpg"},
+                                         [without], threads=2)
+    assert (pair.photo, pair.partner) == ("IMG_0479.jpg", "IMG_0478.jpg")
+    found = attach_pair(pair_rec, main, main_georef, pair, photos, frame, 1)
+    assert found.georeferenced, found.reason
+    [placed] = [im for im in pair_rec.images.values() if im.has_pose]
+    [truth] = [im for im in main.images.values() if im.name == "IMG_0479.jpg"]
+    assert np.linalg.norm(placed.projection_center() - truth.projection_center()) < 3.0
+    r_delta = placed.cam_from_world().rotation.matrix() @ truth.cam_from_world().rotation.matrix().T
+    angle_deg = np.degrees(np.arccos(np.clip((np.trace(r_delta) - 1.0) / 2.0, -1.0, 1.0)))
+    assert angle_deg < 1.0
+
+
+def test_two_view_placement_inconsistent_with_gps_is_refused(run, photos_dir, tmp_path):
+    # The same pair with IMG_0479's GPS moved 30 m east: the two-view model puts the photo
+    # (scaled from the ground depth, not from GPS) ~30 m from that position, far beyond the
+    # 5 m limit, so it is not counted.
+    import dataclasses
+
+    from skyfix.geo import LocalFrame
+    from skyfix.mapping import sfm
+    from skyfix.mapping.georef import attach_pair
+    from skyfix.mapping.photos import load_photos
+
+    report, out = run
+    frame = LocalFrame(*json.loads((out / "work" / "stages" / "georef.json").read_text())["frame"])
+    photos, _ = load_photos(photos_dir)
+    moved = []
+    for p in photos:
+        if p.name == "IMG_0479.jpg":
+            e, n, u = frame.to_enu_points(np.array([[p.gps_lat_deg, p.gps_lon_deg, p.gps_alt_amsl_m]]))[0]
+            lat, lon, _ = frame.to_geodetic_points(np.array([[e + 30.0, n, u]]))[0]
+            p = dataclasses.replace(p, gps_lat_deg=float(lat), gps_lon_deg=float(lon))
+        moved.append(p)
+    main, main_georef = _main_model(report, out)
+    without = sfm.load_models(out / "work" / "georef")[0]
+    without.deregister_frame(next(im.frame_id for im in without.images.values() if im.name == "IMG_0479.jpg"))
+    [(pair_rec, pair)] = sfm.pair_models(out / "work" / "database.db", photos_dir, tmp_path, {"IMG_0479.jpg"},
+                                         [without], threads=2)
+    found = attach_pair(pair_rec, main, main_georef, pair, moved, frame, 1)
+    assert not found.georeferenced
+    assert "from its GPS" in found.reason and found.two_view["offset_m"] > 20.0
+    assert pair_rec.num_reg_images() == 2  # left as it was
