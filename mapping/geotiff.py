@@ -23,14 +23,16 @@ def write_orthophoto_tif(path: str | os.PathLike, rgba: np.ndarray, grid: Grid) 
     """RGBA uint8 ``(H, W, 4)`` as a tiled, deflate-compressed GeoTIFF with overviews
     (alpha band marks nodata)."""
     import rasterio
-    from rasterio.enums import ColorInterp, Resampling
+    from rasterio.enums import Resampling
 
     profile = {"driver": "GTiff", "width": grid.width, "height": grid.height, "count": 4, "dtype": "uint8",
                "crs": f"EPSG:{grid.epsg}", "transform": grid.affine(), "tiled": True, "blockxsize": 256,
-               "blockysize": 256, "compress": "deflate", "photometric": "RGB"}
+               "blockysize": 256, "compress": "deflate", "photometric": "RGB",
+               # GTiff creation option: band 4 is alpha. Setting colorinterp after the pixels are
+               # written makes GDAL fail to modify the TIFF ExtraSamples tag.
+               "alpha": "YES"}
     with rasterio.open(path, "w", **profile) as dst:
         dst.write(np.moveaxis(rgba, 2, 0))
-        dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
         dst.build_overviews(_overview_levels(grid), Resampling.average)
         dst.update_tags(ns="rio_overview", resampling="average")
 

@@ -73,6 +73,7 @@ def test_geotiff_crs_and_extent(run):
     with rasterio.open(out / "orthophoto.tif") as ds:
         assert ds.crs.to_epsg() == 32617
         assert ds.count == 4 and ds.overviews(1)
+        assert ds.colorinterp[3] == rasterio.enums.ColorInterp.alpha  # nodata is transparent
         b = ds.bounds
         # The mosaic covers every camera's nadir point, and is not much larger than the
         # strip: 150 m of flight line plus one footprint (about 85 m x 65 m at 64 m AGL).
