@@ -485,10 +485,12 @@ def _export_run(config, project, state, report) -> dict:
     if state["referenced"]:
         xyz, rgb = _points(state["referenced"], max_error_px=4.0, min_track=2)
         write_ply(project.root / "points.ply", enu_to_utm(frame, xyz, report.crs_epsg) if len(xyz) else xyz, rgb)
+        emitted: set[str] = set()  # a photo shared by two models is listed once, from the first model
         for rec in state["referenced"]:
             for image in rec.images.values():
-                if not image.has_pose:
+                if not image.has_pose or image.name in emitted:
                     continue
+                emitted.add(image.name)
                 lat, lon, alt = frame.to_geodetic_points(image.projection_center()[None, :])[0]
                 p = by_name.get(image.name)
                 features.append({"lat_deg": lat, "lon_deg": lon, "alt_m": alt, "properties": {
