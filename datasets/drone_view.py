@@ -25,7 +25,7 @@ import numpy as np
 from skyfix import validate
 from skyfix.camera import Camera, CameraPose
 from skyfix.crps.model import DroneModel, rasterize_convex_parts
-from skyfix.datasets.render import GroundTexture, _motion_kernel, render_ground
+from skyfix.datasets.render import GroundTexture, motion_blur_kernel, render_ground
 from skyfix.errors import GeometryError, InputError
 from skyfix.geo import LocalFrame
 from skyfix.rotation import R_ENU_FROM_NED, r_ned_from_frd
@@ -300,7 +300,7 @@ def render_drone_view(camera: Camera, helper_pose: CameraPose, target: TargetPos
     if blur_sigma_px > 0:
         image = cv2.GaussianBlur(image, (0, 0), validate.positive_scalar("blur_sigma_px", blur_sigma_px))
     if motion_blur_px > 0:
-        image = cv2.filter2D(image, -1, _motion_kernel(validate.positive_scalar("motion_blur_px", motion_blur_px),
+        image = cv2.filter2D(image, -1, motion_blur_kernel(validate.positive_scalar("motion_blur_px", motion_blur_px),
                                                        validate.finite_scalar("motion_blur_angle_deg",
                                                                               motion_blur_angle_deg)))
     if noise_sigma > 0:

@@ -107,7 +107,9 @@ def _pixel_rays(camera: Camera, supersample: int) -> np.ndarray:
     return rays
 
 
-def _motion_kernel(length_px: float, angle_deg: float) -> np.ndarray:
+def motion_blur_kernel(length_px: float, angle_deg: float) -> np.ndarray:
+    """Normalised linear-streak kernel (odd size) of ``length_px`` along ``angle_deg`` (0 = +u,
+    clockwise in the image), for ``cv2.filter2D``; sub-pixel length by bilinear splatting."""
     size = int(math.ceil(length_px)) | 1
     kernel = np.zeros((size, size), np.float32)
     c = (size - 1) / 2.0
@@ -194,7 +196,7 @@ def render_ground(texture: GroundTexture, camera: Camera, pose: CameraPose, *,
     if blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
     if motion_blur_px > 0:
-        img = cv2.filter2D(img, -1, _motion_kernel(motion_blur_px, motion_blur_angle_deg))
+        img = cv2.filter2D(img, -1, motion_blur_kernel(motion_blur_px, motion_blur_angle_deg))
     if noise_sigma > 0:
         rng = rng if rng is not None else np.random.default_rng()
         img = img + rng.normal(0.0, noise_sigma, img.shape).astype(np.float32)
