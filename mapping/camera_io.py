@@ -15,6 +15,7 @@ from pathlib import Path
 from skyfix.camera import Camera
 from skyfix.distortion import Barrel, BrownConrady, Fisheye
 from skyfix.errors import DataError, InputError
+from skyfix.jsonfile import read_json
 
 __all__ = ["camera_from_dict", "camera_to_dict", "load_camera", "save_camera"]
 
@@ -56,12 +57,7 @@ def save_camera(path: str | os.PathLike, camera: Camera, **extra) -> None:
 def load_camera(path: str | os.PathLike) -> Camera:
     """Read a camera JSON file written by :func:`save_camera` or ``skyfix lens calibrate``."""
     p = Path(path)
-    try:
-        data = json.loads(p.read_text())
-    except FileNotFoundError:
-        raise InputError(f"calibration file {str(p)!r} does not exist") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise DataError(f"{p}: not a readable JSON camera file ({exc})") from exc
+    data = read_json(p, "calibration file", missing=InputError)
     if not isinstance(data, dict):
         raise DataError(f"{p}: expected a JSON object describing a camera")
     return camera_from_dict(data, str(p))

@@ -14,6 +14,7 @@ import numpy as np
 
 from skyfix.errors import DataError, InputError
 from skyfix.geo import LocalFrame
+from skyfix.jsonfile import read_json
 from skyfix.mapping.camera_io import camera_from_dict, camera_to_dict
 from skyfix.mapping.survey import SurveyPlan
 
@@ -65,10 +66,4 @@ def save_plan(path: str | os.PathLike, plan: SurveyPlan) -> None:
 
 def load_plan(path: str | os.PathLike) -> SurveyPlan:
     p = Path(path)
-    try:
-        data = json.loads(p.read_text())
-    except FileNotFoundError:
-        raise InputError(f"plan file {str(p)!r} does not exist") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise DataError(f"{p}: not a readable JSON plan ({exc})") from exc
-    return plan_from_dict(data, str(p))
+    return plan_from_dict(read_json(p, "plan file", missing=InputError), str(p))

@@ -115,19 +115,12 @@ def _dimension(args: argparse.Namespace) -> int:
 
 
 def _load_any(path: Path):
-    import json
-
-    from skyfix.errors import DataError
+    from skyfix.jsonfile import read_json
     from skyfix.tags.aruco import FORMAT as BOARD
     from skyfix.tags.aruco import ArucoField
     from skyfix.tags.field import TagField
 
-    if not path.is_file():
-        raise DataError(f"field file {path} does not exist")
-    try:
-        d = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DataError(f"field file {path} is not readable JSON: {exc}") from exc
+    d = read_json(path, "field file")
     return ArucoField.from_dict(d) if isinstance(d, dict) and d.get("format") == BOARD else TagField.from_dict(d)
 
 

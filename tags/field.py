@@ -15,6 +15,7 @@ import numpy as np
 
 from skyfix import validate
 from skyfix.errors import DataError, InputError
+from skyfix.jsonfile import read_json
 from skyfix.tags.codec import TagGeometry, TileCodec
 from skyfix.tags.placement import PlacementReport, optimise_placement
 from skyfix.tags.raster import fill_rects
@@ -199,14 +200,7 @@ class TagField:
 
     @classmethod
     def load(cls, path: str | Path) -> TagField:
-        p = Path(path)
-        if not p.is_file():
-            raise DataError(f"tag field file {p} does not exist")
-        try:
-            d = json.loads(p.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise DataError(f"tag field file {p} is not readable JSON: {exc}") from exc
-        return cls.from_dict(d)
+        return cls.from_dict(read_json(path, "tag field file"))
 
 
 def _hex(rgb: np.ndarray) -> str:

@@ -13,7 +13,6 @@ Ambiguous names such as ``alt`` or ``gimbal_yaw`` are refused.
 from __future__ import annotations
 
 import csv
-import json
 from pathlib import Path
 
 import cv2
@@ -21,6 +20,7 @@ import numpy as np
 
 from skyfix.camera import Camera, CameraPose
 from skyfix.errors import DataError
+from skyfix.jsonfile import read_json
 from skyfix.thermal.pose import camera_pose
 
 POSE_COLUMNS = ("frame", "time_s", "lat_deg", "lon_deg", "alt_ellipsoid_m", "roll_deg", "pitch_deg",
@@ -37,10 +37,7 @@ def camera_to_json(camera: Camera) -> dict:
 def camera_from_json(path: str | Path) -> Camera:
     """Read ``{"width", "height", "fx", "fy", "cx", "cy"}`` or ``{"width", "height",
     "hfov_deg"}`` (principal point at the centre, square pixels)."""
-    try:
-        d = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise DataError(f"cannot read camera file {path}: {exc}") from None
+    d = read_json(path, "camera file")
     try:
         if "hfov_deg" in d:
             return Camera.from_fov(int(d["width"]), int(d["height"]), float(d["hfov_deg"]), d.get("vfov_deg"))
