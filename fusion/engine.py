@@ -1,0 +1,544 @@
+"""FusionEngine: every drone's fused position from GNSS, velocity, altitude, fixes and helpers.
+
+All states live in one local ENU frame about ``origin`` (exact WGS84 through
+:class:`skyfix.geo.LocalFrame`); geodetic inputs are converted on arrival and
+directions measured at a drone (velocity, relative bearings, ENU covariances) are
+rotated from the ENU axes *at that drone* into the frame's axes. One gtsam window
+(:mod:`skyfix.fusion.window`) holds every drone, so a relative observation ties the
+observer's and the target's states with both their uncertainties.
+
+Time: every input is stamped (seconds, one clock for all). A measurement at ``t`` is
+attached to the nearest state on the ``state_dt_s`` grid, moved there with the drone's
+bias-corrected velocity (the move's uncertainty is added). Inputs may arrive out of
+order as long as they are inside the lag; older ones raise :class:`InputError`.
+
+Health (:mod:`skyfix.fusion.health`): each absolute or relative measurement is gated
+against the fused prediction (chi-square, ``gate_probability``) before it is fused;
+failures drop it, repeated failures reject the source, and a lost or rejected source
+must be consistent for ``readmit_after_s`` before it is fused again.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from skyfix import validate
+from skyfix.errors import InputError, NotAvailableError
+from skyfix.fusion.config import FusionConfig
+from skyfix.fusion.estimate import Estimate
+from skyfix.fusion.health import HealthState, SourceHealth, SourceMonitor
+from skyfix.fusion.log import MeasurementLog
+from skyfix.fusion.window import GraphWindow
+from skyfix.geo import LocalFrame
+from skyfix.types import GeoFix, RelativeObservation
+
+log = logging.getLogger(__name__)
+
+_ROTATION_REFRESH_M = 100.0  # ENU axes turn ~0.0009 deg per 100 m: refresh a drone's rotation after this
+_MAX_TIME_JUMP_S = 30.0      # an input this far ahead of the engine's clock is refused (units mix-up, bad clock)
+
+
+@dataclass
+class _Drone:
+    index: int
+    first_k: int | None = None          # oldest and newest grid steps with states (None: not anchored)
+    last_k: int | None = None
+    last_time_s: float = -math.inf       # newest measurement time of this drone
+    velocity: tuple[float, np.ndarray, np.ndarray] | None = None  # (t, v in frame axes, sigma per axis)
+    monitors: dict[str, SourceMonitor] = field(default_factory=dict)
+    r_frame_from_local: np.ndarray = field(default_factory=lambda: np.eye(3))
+    rotation_at_enu: np.ndarray | None = None
+    up_minus_alt_m: float | None = None  # local: up_m = alt_m + this (refreshed with the rotation)
+    cov_cache: tuple[int, np.ndarray] | None = None
+
+    @property
+    def anchored(self) -> bool:
+        return self.last_k is not None
+
+
+class FusionEngine:
+    """Fused positions of several drones in one local ENU frame (see module docs).
+
+    ``origin`` (lat_deg, lon_deg, alt_m ellipsoidal) fixes the frame; ``lag_s`` the
+    window kept for late measurements and smoothing (longer: more latency and CPU);
+    ``log_path`` records every input to a replayable measurement log.
+    """
+
+    def __init__(self, origin: tuple[float, float, float], lag_s: float = 2.0, config: FusionConfig | None = None,
+                 log_path: str | Path | None = None) -> None:
+        try:
+            lat0, lon0, alt0 = origin
+        except (TypeError, ValueError):
+            raise InputError(f"origin must be (lat_deg, lon_deg, alt_m), got {origin!r}") from None
+        self.frame = LocalFrame(lat0, lon0, alt0)
+        self.origin = (self.frame.lat0_deg, self.frame.lon0_deg, self.frame.alt0_m)
+        self.config = config if config is not None else FusionConfig()
+        if not isinstance(self.config, FusionConfig):
+            raise InputError(f"config must be a FusionConfig, got {type(self.config).__name__}")
+        self.lag_s = validate.positive_scalar("lag_s", lag_s)
+        if self.lag_s < 3 * self.config.state_dt_s:
+            raise InputError(f"lag_s must be at least 3 state steps ({3 * self.config.state_dt_s:g} s), got {lag_s}")
+        cfg = self.config
+        self._gate = {dof: cfg.gate_chi2(dof) for dof in (1, 3)}
+        self._vel_sigma_floor = cfg.accel_sigma_mps2 * cfg.state_dt_s / 2.0
+        self._window: GraphWindow | None = None
+        self._drones: dict[str, _Drone] = {}
+        self.now_s = -math.inf
+        self._log: MeasurementLog | None = None
+        if log_path is not None:
+            self._log = MeasurementLog(log_path, {"origin": list(self.origin), "lag_s": self.lag_s,
+                                                  "config": cfg.to_dict()}, fsync_s=cfg.log_fsync_s)
+
+    # -- public inputs -------------------------------------------------------------------
+    def add_gnss(self, drone_id: str, time_s: float, lat_deg: float, lon_deg: float, alt_m: float, *,
+                 h_sigma_m: float | None = None, v_sigma_m: float | None = None, fix_type: int = 3,
+                 satellites: int | None = None, hdop: float | None = None) -> None:
+        """A GNSS position (WGS84, ellipsoidal height) with the receiver's quality figures.
+
+        ``fix_type`` follows MAVLink GPS_FIX_TYPE (0/1 no fix, 2 2-D, 3 3-D, 4 DGPS, 5/6
+        RTK); a no-fix message marks GNSS lost and is never used as a position.
+        ``h_sigma_m``/``v_sigma_m`` 1-sigma accuracy; if absent, ``hdop x gnss_uere_m``.
+        """
+        drone_id = _drone_id(drone_id)
+        t = self._time("time_s", time_s)
+        fix_type = _int_in("fix_type", fix_type, 0, 8)
+        if fix_type >= 2:
+            lat = float(validate.latitude("lat_deg", lat_deg))
+            lon = float(validate.longitude("lon_deg", lon_deg))
+            alt = validate.finite_scalar("alt_m", alt_m)
+        sats = None if satellites is None else _int_in("satellites", satellites, 0, 255)
+        hd = None if hdop is None else validate.positive_scalar("hdop", hdop)
+        h = None if h_sigma_m is None else validate.positive_scalar("h_sigma_m", h_sigma_m)
+        v = None if v_sigma_m is None else validate.positive_scalar("v_sigma_m", v_sigma_m)
+        self._record("gnss", dict(drone_id=drone_id, time_s=t, lat_deg=lat_deg, lon_deg=lon_deg, alt_m=alt_m,
+                                  h_sigma_m=h, v_sigma_m=v, fix_type=fix_type, satellites=sats, hdop=hd))
+        drone = self._drone(drone_id)
+        self._advance(t, drone)
+        cfg = self.config
+        monitor = self._monitor(drone, "gnss", cfg.gnss_timeout_s, t)
+        if fix_type < 2:
+            monitor.no_fix(t, f"receiver reports no fix (fix type {fix_type})")
+            return
+        issues = []
+        if fix_type == 2:
+            issues.append("2-D fix")
+        if sats is not None and sats < cfg.gnss_min_satellites:
+            issues.append(f"{sats} satellites")
+        if hd is not None and hd > cfg.gnss_max_hdop:
+            issues.append(f"HDOP {hd:g}")
+        h_sigma = h if h is not None else cfg.gnss_uere_m * (hd if hd is not None else 1.0)
+        v_sigma = v if v is not None else h_sigma * cfg.gnss_vertical_factor
+        if fix_type == 2:
+            v_sigma = max(v_sigma, 1e3)  # a 2-D fix's altitude carries no information
+        if issues:
+            h_sigma *= cfg.degraded_sigma_factor
+            v_sigma *= cfg.degraded_sigma_factor
+        self._refresh_rotation(drone, lat, lon, alt)
+        enu = np.array([float(c) for c in self.frame.to_enu(lat, lon, alt)])
+        r = drone.r_frame_from_local
+        cov = r @ np.diag([h_sigma**2, h_sigma**2, v_sigma**2]) @ r.T
+        self._absolute(drone, monitor, t, enu, cov, ", ".join(issues) or None)
+
+    def add_velocity(self, drone_id: str, time_s: float, vel_enu_mps, sigma_mps) -> None:
+        """The autopilot's velocity (m/s, ENU axes at the drone) and its white-noise 1-sigma.
+
+        Its slowly varying bias is estimated (random walk ``bias_walk_mps_per_sqrt_s``).
+        """
+        drone_id = _drone_id(drone_id)
+        t = self._time("time_s", time_s)
+        vel = validate.finite_array("vel_enu_mps", vel_enu_mps)
+        if vel.shape != (3,):
+            raise InputError(f"vel_enu_mps must have shape (3,), got {vel.shape}")
+        sigma = validate.finite_array("sigma_mps", sigma_mps) * np.ones(3)
+        if sigma.shape != (3,) or (sigma <= 0).any():
+            raise InputError(f"sigma_mps must be > 0 (a scalar or 3 values), got {sigma_mps!r}")
+        self._record("velocity", dict(drone_id=drone_id, time_s=t, vel_enu_mps=vel, sigma_mps=sigma))
+        drone = self._drone(drone_id)
+        self._advance(t, drone)
+        self._monitor(drone, "velocity", self.config.velocity_timeout_s, t).judge(t, True)
+        vel_frame = drone.r_frame_from_local @ vel
+        if drone.velocity is None or t >= drone.velocity[0]:
+            drone.velocity = (t, vel_frame, sigma)
+        if not drone.anchored:
+            return
+        window = self._window
+        j = int(math.floor((t - window.epoch_s) / window.dt_s + 1e-9))
+        if j < window.oldest_alive_step():
+            raise InputError(f"velocity at time_s={t} is older than the fusion lag ({self.lag_s:g} s)")
+        self._ensure(drone, j)
+        self._ensure(drone, j + 1)
+        window.velocity(drone.index, j, vel_frame, np.hypot(sigma, self._vel_sigma_floor))
+
+    def add_altitude(self, drone_id: str, time_s: float, alt_m: float, sigma_m: float) -> None:
+        """A height (metres above the WGS84 ellipsoid, e.g. a barometer referenced to it)."""
+        drone_id = _drone_id(drone_id)
+        t = self._time("time_s", time_s)
+        alt = validate.finite_scalar("alt_m", alt_m)
+        sigma = validate.positive_scalar("sigma_m", sigma_m)
+        self._record("altitude", dict(drone_id=drone_id, time_s=t, alt_m=alt, sigma_m=sigma))
+        drone = self._drone(drone_id)
+        self._advance(t, drone)
+        monitor = self._monitor(drone, "altitude", self.config.altitude_timeout_s, t)
+        if not drone.anchored or drone.up_minus_alt_m is None:
+            monitor.judge(t, True)
+            return
+        up = alt + drone.up_minus_alt_m
+        k = self._step_checked(t, "altitude")
+        predicted = self._predict(drone, t)
+        consistent = True
+        if predicted is not None:
+            p, cov = predicted
+            consistent = (up - p[2]) ** 2 / (cov[2, 2] + sigma**2) <= self._gate[1]
+        if not monitor.judge(t, consistent):
+            return
+        self._ensure(drone, k)
+        shift, shift_var = self._shift(drone, t, k)
+        self._window.altitude(drone.index, k, up + shift[2], math.sqrt(sigma**2 + shift_var))
+
+    def add_fix(self, drone_id: str, fix: GeoFix) -> None:
+        """An absolute fix of the drone (e.g. from fiducial tags); source ``fix:<source_id>``."""
+        drone_id = _drone_id(drone_id)
+        if not isinstance(fix, GeoFix):
+            raise InputError(f"fix must be a skyfix.types.GeoFix, got {type(fix).__name__}")
+        t = self._time("fix.time_s", fix.time_s)
+        self._record("fix", dict(drone_id=drone_id, fix=fix))
+        drone = self._drone(drone_id)
+        self._advance(t, drone)
+        monitor = self._monitor(drone, f"fix:{fix.source_id or 'fix'}", self.config.fix_timeout_s, t)
+        self._refresh_rotation(drone, fix.lat_deg, fix.lon_deg, fix.alt_m)
+        enu = np.array([float(c) for c in self.frame.to_enu(fix.lat_deg, fix.lon_deg, fix.alt_m)])
+        r = drone.r_frame_from_local
+        self._absolute(drone, monitor, t, enu, r @ fix.cov_enu_m2 @ r.T, None)
+
+    def add_relative(self, obs: RelativeObservation) -> None:
+        """A helper's observation of a target (source ``relative:<observer_id>`` of the target).
+
+        Both drones' states are tied by the observation, so the observer's own
+        uncertainty is accounted for. If the engine cannot place the observer but the
+        observation carries the observer's geodetic position and covariance, it is
+        used as an absolute fix of the target instead.
+        """
+        if not isinstance(obs, RelativeObservation):
+            raise InputError(f"obs must be a skyfix.types.RelativeObservation, got {type(obs).__name__}")
+        observer_id, target_id = _drone_id(obs.observer_id), _drone_id(obs.target_id)
+        if observer_id == target_id:
+            raise InputError(f"RelativeObservation observer and target are the same drone {observer_id!r}")
+        t = self._time("obs.time_s", obs.time_s)
+        self._record("relative", dict(obs=obs))
+        observer, target = self._drone(observer_id), self._drone(target_id)
+        self._advance(t, target)
+        monitor = self._monitor(target, f"relative:{observer_id}", self.config.relative_timeout_s, t)
+        r = observer.r_frame_from_local
+        offset = r @ obs.offset_enu_m
+        cov = r @ obs.cov_enu_m2 @ r.T
+        if not observer.anchored:
+            if obs.has_observer_position and obs.observer_cov_enu_m2 is not None:
+                helper = np.array([float(c) for c in self.frame.to_enu(obs.observer_lat_deg, obs.observer_lon_deg,
+                                                                           obs.observer_alt_m)])
+                self._absolute(target, monitor, t, helper + offset, cov + r @ obs.observer_cov_enu_m2 @ r.T, None)
+            else:
+                monitor.judge(t, True, "observer not localised: observation unused")
+            return
+        k = self._step_checked(t, "relative observation")
+        consistent = True
+        p_obs, p_tgt = self._predict(observer, t), self._predict(target, t)
+        if p_tgt is not None:
+            innovation = offset - (p_tgt[0] - p_obs[0])
+            consistent = self._nis(innovation, p_tgt[1] + p_obs[1] + cov) <= self._gate[3]
+        if not monitor.judge(t, consistent):
+            return
+        self._ensure(observer, k)
+        if not target.anchored:
+            self._anchor(target, k, p_obs[0] + offset)
+        self._ensure(target, k)
+        s_obs, v_obs = self._shift(observer, t, k)
+        s_tgt, v_tgt = self._shift(target, t, k)
+        self._window.relative(observer.index, target.index, k, offset + s_tgt - s_obs,
+                              cov + np.eye(3) * (v_obs + v_tgt))
+
+    # -- solving and answers ----------------------------------------------------------
+    def update(self) -> None:
+        """Run the smoother on everything added since the last update (a no-op if nothing)."""
+        if self._window is None:
+            return
+        now_k = self._window.step_of(self.now_s)
+        for drone in self._drones.values():
+            if drone.anchored and drone.last_k < now_k:
+                self._ensure(drone, now_k)
+        if not self._window.pending:
+            return
+        if self._log is not None:
+            self._log.record("update")
+        tail = []
+        for drone in self._drones.values():
+            if drone.anchored:
+                for k in range(max(drone.first_k, drone.last_k - 1), drone.last_k + 1):
+                    tail += [self._window.key(drone.index, 0, k), self._window.key(drone.index, 1, k)]
+        self._window.update(tail)
+        oldest = self._window.oldest_alive_step()
+        for drone_id, drone in self._drones.items():
+            drone.cov_cache = None
+            if drone.anchored and drone.last_k < oldest:
+                log.warning("drone %s has no states left in the window; it must be re-anchored", drone_id)
+                drone.first_k = drone.last_k = None
+            elif drone.anchored:
+                drone.first_k = max(drone.first_k, oldest)
+
+    def estimate(self, drone_id: str, t: float | None = None) -> Estimate:
+        """Fused state of ``drone_id`` at ``t`` (default: its newest measurement time).
+
+        ``t`` may lie anywhere inside the lag (a smoothed answer) or ahead of the newest
+        state (a prediction with grown covariance).
+        """
+        drone = self._known(drone_id)
+        self.update()
+        if not drone.anchored:
+            raise NotAvailableError(f"drone {drone_id!r} has no absolute position yet (needs GNSS, a fix, or a "
+                                    "relative observation by a localised drone)")
+        t_s = drone.last_time_s if t is None else validate.finite_scalar("t", t)
+        window = self._window
+        k = min(max(window.step_of(t_s), drone.first_k), drone.last_k)
+        p_k = window.value(drone.index, 0, k)
+        cov_k = window.covariance(drone.index, 0, k)
+        shift, shift_var = self._shift(drone, t_s, k)
+        enu = p_k + shift
+        cov = cov_k + np.eye(3) * shift_var
+        vel, vel_cov = self._velocity_estimate(drone, t_s, k)
+        lat, lon, alt = (float(c) for c in self.frame.to_geodetic(*enu))
+        return Estimate(drone_id=_drone_id(drone_id), time_s=t_s, lat_deg=lat, lon_deg=lon, alt_m=alt,
+                        enu_m=enu, cov_enu_m2=0.5 * (cov + cov.T), vel_enu_mps=vel, vel_cov_enu_m2ps2=vel_cov,
+                        sources=self._contributing(drone), health=self._health(drone))
+
+    def health(self, drone_id: str) -> dict[str, SourceHealth]:
+        """State of every source of ``drone_id`` at the engine's current time."""
+        return self._health(self._known(drone_id))
+
+    @property
+    def drone_ids(self) -> tuple[str, ...]:
+        return tuple(self._drones)
+
+    def record_truth(self, drone_id: str, time_s: float, lat_deg: float, lon_deg: float, alt_m: float) -> None:
+        """Write a ground-truth position into the measurement log (simulations; not used by the engine)."""
+        if self._log is not None:
+            self._log.truth(_drone_id(drone_id), time_s, lat_deg, lon_deg, alt_m)
+
+    def close(self) -> None:
+        """Flush and close the measurement log."""
+        if self._log is not None:
+            self._log.close()
+
+    def __enter__(self) -> FusionEngine:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- internals ---------------------------------------------------------------------------
+    def _record(self, op: str, args: dict) -> None:
+        if self._log is not None:
+            self._log.record(op, args)
+
+    def _time(self, name: str, value) -> float:
+        t = validate.finite_scalar(name, value)
+        if self._window is not None:
+            oldest_s = self._window.time_of(self._window.oldest_alive_step()) - self._window.dt_s / 2
+            if t < oldest_s:
+                raise InputError(f"{name}={t} is older than the fusion lag allows (oldest usable {oldest_s:.3f}, "
+                                 f"engine time {self.now_s:.3f}, lag_s {self.lag_s:g})")
+        if self.now_s > -math.inf and t > self.now_s + _MAX_TIME_JUMP_S:
+            raise InputError(f"{name}={t} jumps {t - self.now_s:.1f} s ahead of the engine time {self.now_s:.3f}; "
+                             f"more than {_MAX_TIME_JUMP_S:g} s looks like a clock or unit error")
+        return t
+
+    def _drone(self, drone_id: str) -> _Drone:
+        drone = self._drones.get(drone_id)
+        if drone is None:
+            if len(self._drones) >= 1 << 20:
+                raise InputError("too many drone ids")
+            drone = self._drones[drone_id] = _Drone(index=len(self._drones))
+        return drone
+
+    def _known(self, drone_id) -> _Drone:
+        drone = self._drones.get(_drone_id(drone_id))
+        if drone is None:
+            raise InputError(f"unknown drone id {drone_id!r}; known: {sorted(self._drones)}")
+        return drone
+
+    def _monitor(self, drone: _Drone, source: str, timeout_s: float, t: float) -> SourceMonitor:
+        monitor = drone.monitors.get(source)
+        if monitor is None:
+            cfg = self.config
+            monitor = drone.monitors[source] = SourceMonitor(timeout_s, cfg.reject_after, cfg.readmit_after_s, t)
+        return monitor
+
+    def _advance(self, t: float, drone: _Drone) -> None:
+        if self._window is None:
+            cfg = self.config
+            epoch = math.floor((t - 10.0 * self.lag_s) / cfg.state_dt_s) * cfg.state_dt_s
+            self._window = GraphWindow(self.lag_s, cfg.state_dt_s, epoch, cfg.max_iterations, cfg.robust_k)
+        self.now_s = max(self.now_s, t)
+        drone.last_time_s = max(drone.last_time_s, t)
+
+    def _step_checked(self, t: float, what: str) -> int:
+        k = self._window.step_of(t)
+        if k < self._window.oldest_alive_step():
+            raise InputError(f"{what} at time_s={t} is older than the fusion lag ({self.lag_s:g} s)")
+        return k
+
+    def _refresh_rotation(self, drone: _Drone, lat: float, lon: float, alt: float) -> None:
+        here = np.array([lat, lon])
+        if drone.rotation_at_enu is not None:
+            moved_deg = np.abs(here - drone.rotation_at_enu)
+            if moved_deg[0] * 111e3 < _ROTATION_REFRESH_M and moved_deg[1] * 111e3 < _ROTATION_REFRESH_M:
+                return
+        drone.r_frame_from_local = self.frame.enu_rotation_at(lat, lon)
+        drone.rotation_at_enu = here
+        drone.up_minus_alt_m = float(self.frame.to_enu(lat, lon, alt)[2]) - alt
+
+    def _absolute(self, drone: _Drone, monitor: SourceMonitor, t: float, enu: np.ndarray, cov: np.ndarray,
+                  quality: str | None) -> None:
+        k = self._step_checked(t, "measurement")
+        predicted = self._predict(drone, t)
+        consistent = True
+        if predicted is not None:
+            consistent = self._nis(enu - predicted[0], predicted[1] + cov) <= self._gate[3]
+        if not monitor.judge(t, consistent, quality):
+            return
+        if not drone.anchored:
+            self._anchor(drone, k, enu)
+        self._ensure(drone, k)
+        shift, shift_var = self._shift(drone, t, k)
+        self._window.position(drone.index, k, enu + shift, cov + np.eye(3) * shift_var)
+
+    def _anchor(self, drone: _Drone, k: int, p0: np.ndarray) -> None:
+        """First state of a drone at step k; the caller adds the factor that fixes its position."""
+        self._window.new_state(drone.index, k, p0, np.zeros(3))
+        self._window.prior_bias(drone.index, k, self.config.bias_initial_sigma_mps)
+        drone.first_k = drone.last_k = k
+
+    def _ensure(self, drone: _Drone, k: int) -> None:
+        """Create the drone's states up to step k (forwards or backwards), each tied to its neighbour."""
+        window, cfg = self._window, self.config
+        walk = cfg.max_speed_mps * cfg.state_dt_s
+        bias_walk = cfg.bias_walk_mps_per_sqrt_s * math.sqrt(cfg.state_dt_s)
+        while drone.last_k < k:
+            prev = drone.last_k
+            p_prev = window.value(drone.index, 0, prev)
+            b_prev = window.value(drone.index, 1, prev)
+            step = np.zeros(3)
+            if drone.velocity is not None and abs(window.time_of(prev) - drone.velocity[0]) <= cfg.velocity_timeout_s:
+                step = (drone.velocity[1] - b_prev) * window.dt_s
+            window.new_state(drone.index, prev + 1, p_prev + step, b_prev)
+            window.motion(drone.index, prev, walk, bias_walk)
+            drone.last_k = prev + 1
+        while drone.first_k > k:
+            nxt = drone.first_k
+            if nxt - 1 < window.oldest_alive_step():
+                raise InputError("measurement is older than the fusion lag")
+            window.new_state(drone.index, nxt - 1, window.value(drone.index, 0, nxt), window.value(drone.index, 1, nxt))
+            window.motion(drone.index, nxt - 1, walk, bias_walk)
+            drone.first_k = nxt - 1
+
+    def _velocity_now(self, drone: _Drone, t: float) -> tuple[np.ndarray, float] | None:
+        """Bias-corrected velocity near ``t`` and its per-axis variance, or None if stale."""
+        if drone.velocity is None or abs(t - drone.velocity[0]) > self.config.velocity_timeout_s:
+            return None
+        b = self._window.value(drone.index, 1, drone.last_k) if drone.anchored else np.zeros(3)
+        sigma = drone.velocity[2]
+        return drone.velocity[1] - b, float(np.max(sigma) ** 2 + self._vel_sigma_floor**2)
+
+    def _shift(self, drone: _Drone, t: float, k: int) -> tuple[np.ndarray, float]:
+        """Displacement from time t to grid step k (m) and its per-axis variance."""
+        dt = self._window.time_of(k) - t
+        if abs(dt) < 1e-9:
+            return np.zeros(3), 0.0
+        vel = self._velocity_now(drone, t)
+        if vel is None:
+            return np.zeros(3), (self.config.max_speed_mps * dt) ** 2
+        return vel[0] * dt, vel[1] * dt * dt + (self.config.bias_initial_sigma_mps * dt) ** 2
+
+    def _latest_cov(self, drone: _Drone) -> tuple[int, np.ndarray] | None:
+        """Covariance of the newest optimised position state (cached per update)."""
+        if drone.cov_cache is None:
+            window = self._window
+            for k in range(drone.last_k, drone.first_k - 1, -1):
+                if window.is_optimised(drone.index, 0, k):
+                    drone.cov_cache = (k, window.covariance(drone.index, 0, k))
+                    break
+        return drone.cov_cache
+
+    def _predict(self, drone: _Drone, t: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """Fused prediction of the drone's position at t (without the measurement at hand)."""
+        if not drone.anchored:
+            return None
+        window = self._window
+        k = min(max(window.step_of(t), drone.first_k), drone.last_k)
+        shift, shift_var = self._shift(drone, t, k)
+        p = window.value(drone.index, 0, k) + shift
+        cached = self._latest_cov(drone)
+        if cached is None:  # nothing optimised yet: no basis for gating
+            return p, np.eye(3) * 1e12
+        k_cov, cov = cached
+        gap_s = abs(t - window.time_of(k_cov))
+        vel = self._velocity_now(drone, t)
+        grow = (self.config.max_speed_mps * gap_s) ** 2 if vel is None else \
+            vel[1] * gap_s * window.dt_s + (self.config.bias_initial_sigma_mps * gap_s) ** 2
+        return p, cov + np.eye(3) * (grow + shift_var)
+
+    @staticmethod
+    def _nis(innovation: np.ndarray, cov: np.ndarray) -> float:
+        try:
+            return float(innovation @ np.linalg.solve(cov, innovation))
+        except np.linalg.LinAlgError:
+            return math.inf
+
+    def _velocity_estimate(self, drone: _Drone, t: float, k: int) -> tuple[np.ndarray, np.ndarray]:
+        window = self._window
+        vel = self._velocity_now(drone, t)
+        if vel is not None:
+            b_cov = window.covariance(drone.index, 1, min(k, self._latest_cov(drone)[0]))
+            return vel[0], np.eye(3) * vel[1] + b_cov
+        k0 = max(drone.first_k, k - int(round(1.0 / window.dt_s)))
+        if k0 == k:
+            return np.zeros(3), np.eye(3) * self.config.max_speed_mps**2
+        span_s = (k - k0) * window.dt_s
+        v = (window.value(drone.index, 0, k) - window.value(drone.index, 0, k0)) / span_s
+        cov = (window.covariance(drone.index, 0, k) + window.covariance(drone.index, 0, k0)) / span_s**2
+        return v, cov
+
+    def _tick(self) -> None:
+        for drone in self._drones.values():
+            for monitor in drone.monitors.values():
+                monitor.tick(self.now_s)
+
+    def _health(self, drone: _Drone) -> dict[str, SourceHealth]:
+        self._tick()
+        return {name: monitor.health for name, monitor in drone.monitors.items()}
+
+    def _contributing(self, drone: _Drone) -> tuple[str, ...]:
+        window_s = self.config.contributing_window_s
+        return tuple(sorted(name for name, m in drone.monitors.items()
+                            if self.now_s - m.last_fused_s <= window_s and m.state is not HealthState.LOST))
+
+
+def _drone_id(value) -> str:
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        return str(int(value))
+    if not isinstance(value, str) or not value.strip():
+        raise InputError(f"drone id must be a non-empty string, got {value!r}")
+    return value
+
+
+def _int_in(name: str, value, lo: int, hi: int) -> int:
+    try:
+        out = int(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be an integer, got {value!r}") from None
+    if out != value or not lo <= out <= hi:
+        raise InputError(f"{name} must be an integer in [{lo}, {hi}], got {value!r}")
+    return out

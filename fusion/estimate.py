@@ -1,0 +1,48 @@
+"""What the fusion engine answers: a drone's fused state with its uncertainty."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from skyfix.fusion.health import SourceHealth
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Fused state of one drone at ``time_s``.
+
+    ``lat_deg``/``lon_deg``/``alt_m`` WGS84 (ellipsoidal height); ``enu_m`` the same point
+    in the engine's local ENU frame; ``cov_enu_m2`` its 3x3 covariance (m^2, local ENU
+    axes); ``vel_enu_mps`` velocity with the autopilot's bias removed and its covariance
+    ``vel_cov_enu_m2ps2``; ``sources`` the sources fused within the engine's
+    contributing window; ``health`` every known source's state.
+    """
+
+    drone_id: str
+    time_s: float
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    enu_m: np.ndarray
+    cov_enu_m2: np.ndarray
+    vel_enu_mps: np.ndarray
+    vel_cov_enu_m2ps2: np.ndarray
+    sources: tuple[str, ...] = ()
+    health: dict[str, SourceHealth] = field(default_factory=dict)
+
+    @property
+    def sigma_horizontal_m(self) -> float:
+        """Square root of the larger horizontal covariance eigenvalue, metres (1-sigma)."""
+        return float(np.sqrt(np.linalg.eigvalsh(self.cov_enu_m2[:2, :2]).max()))
+
+    def to_dict(self) -> dict:
+        """JSON-ready form (lists and plain floats)."""
+        return {
+            "drone_id": self.drone_id, "time_s": self.time_s,
+            "lat_deg": self.lat_deg, "lon_deg": self.lon_deg, "alt_m": self.alt_m,
+            "enu_m": self.enu_m.tolist(), "cov_enu_m2": self.cov_enu_m2.tolist(),
+            "vel_enu_mps": self.vel_enu_mps.tolist(), "vel_cov_enu_m2ps2": self.vel_cov_enu_m2ps2.tolist(),
+            "sources": list(self.sources), "health": {k: v.to_dict() for k, v in self.health.items()},
+        }

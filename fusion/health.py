@@ -1,0 +1,129 @@
+"""Positioning-source health: ok / degraded / lost / rejected, per drone and source.
+
+One :class:`SourceMonitor` per (drone, source). It is told when a message arrives,
+whether the message's own quality figures are good, and whether it passed the
+innovation gate against the fused prediction; it answers whether to fuse it.
+
+- **lost**: no usable message for longer than the source's time-out, or the receiver
+  says it has no fix.
+- **rejected**: ``reject_after`` consecutive messages failed the innovation gate (a
+  spoofed jump, a multipath excursion, a misread tag).
+- **degraded**: fused, but with a quality flag (few satellites, high HDOP, 2-D fix) or
+  a single gate failure.
+- A source that was lost or rejected is fused again only after it has been consistent
+  with the fused estimate for ``readmit_after_s`` without a failure.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+
+class HealthState(str, enum.Enum):
+    OK = "ok"
+    DEGRADED = "degraded"
+    LOST = "lost"
+    REJECTED = "rejected"
+
+    def __str__(self) -> str:
+        return self.value
+
+
+@dataclass(frozen=True)
+class SourceHealth:
+    """A source's state, why, and since when (measurement clock, s)."""
+
+    state: HealthState
+    reason: str
+    since_s: float
+
+    def to_dict(self) -> dict:
+        return {"state": self.state.value, "reason": self.reason, "since_s": self.since_s}
+
+
+class SourceMonitor:
+    """The health state machine of one positioning source of one drone."""
+
+    def __init__(self, timeout_s: float, reject_after: int, readmit_after_s: float, now_s: float) -> None:
+        self.timeout_s = timeout_s
+        self.reject_after = reject_after
+        self.readmit_after_s = readmit_after_s
+        self._state = HealthState.OK
+        self._reason = "first message"
+        self._since_s = now_s
+        self.last_heard_s = now_s
+        self.last_fused_s = -float("inf")
+        self._failures = 0
+        self._probation = False
+        self._consistent_since_s: float | None = None
+
+    @property
+    def health(self) -> SourceHealth:
+        return SourceHealth(self._state, self._reason, self._since_s)
+
+    @property
+    def state(self) -> HealthState:
+        return self._state
+
+    def _set(self, state: HealthState, reason: str, t_s: float) -> None:
+        if state != self._state or reason != self._reason:
+            if state != self._state:
+                self._since_s = t_s
+            self._state = state
+            self._reason = reason
+
+    def no_fix(self, t_s: float, reason: str) -> None:
+        """The source reports it has nothing (e.g. GNSS fix type 0/1)."""
+        self.last_heard_s = max(self.last_heard_s, t_s)
+        self._enter_probation()
+        self._set(HealthState.LOST, reason, t_s)
+
+    def _enter_probation(self) -> None:
+        self._probation = True
+        self._consistent_since_s = None
+        self._failures = 0
+
+    def judge(self, t_s: float, consistent: bool, quality_issue: str | None = None) -> bool:
+        """Record a usable message at ``t_s``; return True when it should be fused.
+
+        ``consistent``: it passed the innovation gate (True when nothing to gate against).
+        ``quality_issue``: why its own figures are poor (fused as degraded), or None.
+        """
+        self.last_heard_s = max(self.last_heard_s, t_s)
+        if not consistent:
+            self._consistent_since_s = None
+            self._failures += 1
+            if self._probation:
+                if self._state is HealthState.LOST:
+                    self._set(HealthState.REJECTED, "inconsistent with the fused estimate after recovery", t_s)
+                return False
+            if self._failures >= self.reject_after:
+                self._enter_probation()
+                self._set(HealthState.REJECTED, f"{self.reject_after} consecutive innovation-gate failures", t_s)
+            else:
+                self._set(HealthState.DEGRADED, "innovation outlier dropped", t_s)
+            return False
+        self._failures = 0
+        if self._probation:
+            if self._consistent_since_s is None:
+                self._consistent_since_s = t_s
+            waited_s = t_s - self._consistent_since_s
+            if waited_s < self.readmit_after_s:
+                if self._state is HealthState.LOST:
+                    self._reason = f"back, consistent for {waited_s:.1f} s (re-admitted after {self.readmit_after_s:g} s)"
+                return False
+            self._probation = False
+        if quality_issue:
+            self._set(HealthState.DEGRADED, quality_issue, t_s)
+        else:
+            self._set(HealthState.OK, "consistent", t_s)
+        self.last_fused_s = max(self.last_fused_s, t_s)
+        return True
+
+    def tick(self, now_s: float) -> None:
+        """Apply the time-out at the engine's current time ``now_s``."""
+        silent_s = now_s - self.last_heard_s
+        if silent_s > self.timeout_s and self._state is not HealthState.LOST:
+            self._enter_probation()
+            self._set(HealthState.LOST, f"silent for more than {self.timeout_s:g} s", self.last_heard_s + self.timeout_s)

@@ -1,0 +1,270 @@
+"""The gtsam sliding-window graph behind :class:`skyfix.fusion.FusionEngine`.
+
+Variables (all ``gtsam.Point3`` in the engine's local ENU frame, metres / m/s), one
+pair per drone per grid step k (time ``epoch + k * dt``):
+
+- ``p`` position of the drone,
+- ``b`` bias of the drone's autopilot velocity.
+
+Factors are gtsam's own C++ ones: ``PriorFactorPoint3`` (GNSS, tag fixes),
+``BetweenFactorPoint3`` (relative observations, the bias random walk, the weak motion
+bound), and ``LinearContainerFactor`` around a ``JacobianFactor`` for the two linear
+relations that tie three variables or one axis (velocity: p_k+1 - p_k + b_k dt = v dt;
+altitude: the up component of p_k). GNSS, fixes and relative observations carry a
+Huber robust model.
+
+The window is one this module marginalises itself (gtsam's fixed-lag smoothers were
+measured at 3-5 ms per update here, and its incremental one has known crash and growth
+bugs): at each update the factors of the window are linearised at the current
+estimate and eliminated in time order with gtsam's sequential elimination, the newest
+two steps of every drone last; their joint marginal (a small dense information
+matrix) gives both the newest solution and its covariance, and back-substitution the
+rest. Steps older than the lag are eliminated out of their factors and the result is
+kept as a ``LinearContainerFactor`` on what remains, so memory and time per update
+stay bounded. Every new variable must enter together with a factor that constrains
+it (a new position with its motion factors, a new bias with its random walk or its
+prior); the update refuses a graph where one does not, instead of handing gtsam an
+indeterminate system.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from skyfix.errors import EstimationError
+
+_ZERO = np.zeros(3)
+_EYE = np.eye(3)
+_UP_ROW = np.array([[0.0, 0.0, 1.0]])
+
+
+_STEP_MASK = (1 << 39) - 1
+
+
+class GraphWindow:
+    """Fixed-lag factor graph over per-drone position and velocity-bias chains."""
+
+    def __init__(self, lag_s: float, dt_s: float, epoch_s: float, max_iterations: int, robust_k: float) -> None:
+        self.lag_s = float(lag_s)
+        self.dt_s = float(dt_s)
+        self.epoch_s = float(epoch_s)
+        self.lag_steps = int(np.ceil(self.lag_s / self.dt_s))
+        self.max_iterations = int(max_iterations)
+        self._huber = gtsam.noiseModel.mEstimator.Huber.Create(float(robust_k))
+        self._values = gtsam.Values()              # estimate (and initial guesses of new variables)
+        self._graph = gtsam.NonlinearFactorGraph()  # window factors; marginalised ones leave null slots
+        self._buckets: dict[int, list[int]] = {}   # oldest step a factor touches -> its slots in _graph
+        self._live = 0
+        self._keys_by_step: dict[int, list[int]] = {}
+        self._new_keys: list[int] = []
+        self._n_new_factors = 0
+        self._newest_step = -1
+        self._optimised: set[int] = set()
+        self._tail_index: dict[int, int] = {}      # key -> row block in the tail covariance
+        self._tail_cov: np.ndarray | None = None
+        self._marginals: gtsam.Marginals | None = None
+
+    # -- keys and time -------------------------------------------------------------
+    @staticmethod
+    def key(drone_index: int, kind: int, k: int) -> int:
+        """Integer gtsam key of variable ``kind`` (0 position, 1 bias) of a drone at step k >= 0."""
+        return (drone_index << 40) | (kind << 39) | k
+
+    def step_of(self, t_s: float) -> int:
+        """Nearest grid step of time ``t_s``."""
+        return int(round((t_s - self.epoch_s) / self.dt_s))
+
+    def time_of(self, k: int) -> float:
+        return self.epoch_s + k * self.dt_s
+
+    @property
+    def newest_s(self) -> float:
+        return self.time_of(self._newest_step) if self._newest_step >= 0 else -float("inf")
+
+    def oldest_alive_step(self) -> int:
+        """Steps at or after this one are in the window; older ones are (or will be at the next update) marginalised."""
+        return max(0, self._newest_step - self.lag_steps)
+
+    @property
+    def pending(self) -> bool:
+        return self._n_new_factors > 0 or bool(self._new_keys)
+
+    @property
+    def n_factors(self) -> int:
+        return self._live
+
+    # -- variables ---------------------------------------------------------------------
+    def new_state(self, drone_index: int, k: int, p0: np.ndarray, b0: np.ndarray) -> None:
+        """Insert p_k, b_k with initial guesses; the caller adds their constraining factors."""
+        if k < 0 or k > _STEP_MASK:
+            raise EstimationError(f"grid step {k} outside the window's key range")
+        for kind, guess in ((0, p0), (1, b0)):
+            key = self.key(drone_index, kind, k)
+            self._values.insert(key, gtsam.Point3(*guess))
+            self._keys_by_step.setdefault(k, []).append(key)
+            self._new_keys.append(key)
+        self._newest_step = max(self._newest_step, k)
+
+    def value(self, drone_index: int, kind: int, k: int) -> np.ndarray | None:
+        """Current estimate of a variable (its initial guess if not yet optimised), or None."""
+        key = self.key(drone_index, kind, k)
+        if self._values.exists(key):
+            return np.asarray(self._values.atPoint3(key))
+        return None
+
+    def is_optimised(self, drone_index: int, kind: int, k: int) -> bool:
+        return self.key(drone_index, kind, k) in self._optimised
+
+    def covariance(self, drone_index: int, kind: int, k: int) -> np.ndarray:
+        """Marginal covariance (3, 3) of an optimised variable after the last update."""
+        key = self.key(drone_index, kind, k)
+        if key not in self._optimised:
+            raise EstimationError(f"variable {kind} of drone {drone_index} at step {k} is not in the solved window")
+        row = self._tail_index.get(key)
+        if row is not None:
+            return self._tail_cov[row:row + 3, row:row + 3].copy()
+        if self._marginals is None:  # slow path: a smoothed state inside the window
+            self._marginals = gtsam.Marginals(self._graph, self._values)
+        return np.asarray(self._marginals.marginalCovariance(key))
+
+    # -- factors -----------------------------------------------------------------------
+    def _add(self, factor, min_step: int, new: bool = True) -> None:
+        self._graph.push_back(factor)
+        self._buckets.setdefault(min_step, []).append(self._graph.size() - 1)
+        self._live += 1
+        self._n_new_factors += new
+
+    def _robust(self, cov: np.ndarray) -> gtsam.noiseModel.Base:
+        return gtsam.noiseModel.Robust.Create(self._huber, gtsam.noiseModel.Gaussian.Covariance(cov))
+
+    def prior_bias(self, drone_index: int, k: int, sigma_mps: float) -> None:
+        self._add(gtsam.PriorFactorPoint3(self.key(drone_index, 1, k), gtsam.Point3(0.0, 0.0, 0.0),
+                                          gtsam.noiseModel.Isotropic.Sigma(3, sigma_mps)), k)
+
+    def motion(self, drone_index: int, k: int, walk_sigma_m: float, bias_walk_sigma_mps: float) -> None:
+        """Step k -> k+1: weak bound on the position change and the bias random walk."""
+        for kind, sigma in ((0, walk_sigma_m), (1, bias_walk_sigma_mps)):
+            self._add(gtsam.BetweenFactorPoint3(
+                self.key(drone_index, kind, k), self.key(drone_index, kind, k + 1), gtsam.Point3(0.0, 0.0, 0.0),
+                gtsam.noiseModel.Isotropic.Sigma(3, sigma)), k)
+
+    def velocity(self, drone_index: int, k: int, vel_mps: np.ndarray, sigma_mps: np.ndarray) -> None:
+        """p_k+1 - p_k + b_k dt = v dt, sigma per axis ``sigma_mps * dt``."""
+        dt = self.dt_s
+        keys = (self.key(drone_index, 0, k), self.key(drone_index, 0, k + 1), self.key(drone_index, 1, k))
+        factor = gtsam.JacobianFactor(keys[0], -_EYE, keys[1], _EYE, keys[2], dt * _EYE, np.asarray(vel_mps) * dt,
+                                      gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigma_mps) * dt))
+        self._add(gtsam.LinearContainerFactor(factor, self._zeros(keys)), k)
+
+    def altitude(self, drone_index: int, k: int, up_m: float, sigma_m: float) -> None:
+        """The up component of p_k (local ENU) is ``up_m``."""
+        key = self.key(drone_index, 0, k)
+        factor = gtsam.JacobianFactor(key, _UP_ROW, np.array([up_m]), gtsam.noiseModel.Isotropic.Sigma(1, sigma_m))
+        self._add(gtsam.LinearContainerFactor(factor, self._zeros((key,))), k)
+
+    def position(self, drone_index: int, k: int, enu_m: np.ndarray, cov_m2: np.ndarray) -> None:
+        """Absolute position of p_k (GNSS, tag fix), robust."""
+        self._add(gtsam.PriorFactorPoint3(self.key(drone_index, 0, k), gtsam.Point3(*enu_m), self._robust(cov_m2)), k)
+
+    def relative(self, observer_index: int, target_index: int, k: int, offset_m: np.ndarray, cov_m2: np.ndarray) -> None:
+        """p_target,k - p_observer,k = offset, robust."""
+        self._add(gtsam.BetweenFactorPoint3(self.key(observer_index, 0, k), self.key(target_index, 0, k),
+                                            gtsam.Point3(*offset_m), self._robust(cov_m2)), k)
+
+    @staticmethod
+    def _zeros(keys) -> gtsam.Values:
+        lin = gtsam.Values()
+        for key in keys:
+            lin.insert(key, gtsam.Point3(0.0, 0.0, 0.0))
+        return lin
+
+    # -- solve ---------------------------------------------------------------------------
+    def _compact(self) -> None:
+        """Rebuild the graph without the null slots marginalisation left behind."""
+        graph = gtsam.NonlinearFactorGraph()
+        buckets: dict[int, list[int]] = {}
+        for step in sorted(self._buckets):
+            for slot in self._buckets[step]:
+                graph.push_back(self._graph.at(slot))
+                buckets.setdefault(step, []).append(graph.size() - 1)
+        self._graph, self._buckets = graph, buckets
+
+    def _check_constrained(self) -> None:
+        """The guard: every new variable must appear in at least one factor."""
+        if not self._new_keys:
+            return
+        touched: set[int] = set()
+        for k in {key & _STEP_MASK for key in self._new_keys} | {(key & _STEP_MASK) - 1 for key in self._new_keys}:
+            for slot in self._buckets.get(k, ()):
+                touched.update(self._graph.at(slot).keys())
+        loose = [key for key in self._new_keys if key not in touched]
+        if loose:
+            raise EstimationError(f"{len(loose)} new fusion variable(s) without any factor (first key {loose[0]}); "
+                                  "refusing to update an indeterminate system")
+
+    def update(self, tail_keys: list[int]) -> None:
+        """Marginalise steps older than the lag, then solve; ``tail_keys`` get a cheap joint covariance.
+
+        ``tail_keys`` must be variables of the window (the newest per drone).
+        """
+        if not self.pending:
+            return
+        self._check_constrained()
+        self._marginalise(self._newest_step - self.lag_steps)
+        if self._graph.size() > 4 * self._live + 64:
+            self._compact()
+        graph = self._graph
+        tail = [key for key in tail_keys if self._values.exists(key)]
+        tail_set = set(tail)
+        head = [key for step in sorted(self._keys_by_step) for key in self._keys_by_step[step] if key not in tail_set]
+        try:
+            for _ in range(self.max_iterations):
+                gfg = graph.linearize(self._values)
+                head_net, tail_graph = gfg.eliminatePartialSequential(gtsam.Ordering(head))
+                info, eta = tail_graph.hessian(gtsam.Ordering(tail))
+                tail_cov = np.linalg.inv(info)
+                tail_delta = tail_cov @ eta.ravel()
+                given = gtsam.VectorValues()
+                for i, key in enumerate(tail):
+                    given.insert(key, tail_delta[3 * i:3 * i + 3])
+                delta = head_net.optimize(given)  # includes the given tail
+                self._values = self._values.retract(delta)
+        except (RuntimeError, np.linalg.LinAlgError) as exc:  # gtsam: indeterminant system
+            raise EstimationError(f"fusion window solve failed: {exc}") from exc
+        self._tail_index = {key: 3 * i for i, key in enumerate(tail)}
+        self._tail_cov = 0.5 * (tail_cov + tail_cov.T)
+        self._optimised = set(tail) | set(head)
+        self._marginals = None
+        self._new_keys = []
+        self._n_new_factors = 0
+
+    def _marginalise(self, before_step: int) -> None:
+        """Eliminate every variable of steps < before_step; keep their information as a prior."""
+        old_steps = sorted(k for k in self._keys_by_step if k < before_step)
+        if not old_steps:
+            return
+        old_keys = [key for k in old_steps for key in self._keys_by_step[k]]
+        slots = [slot for k in sorted(b for b in self._buckets if b < before_step) for slot in self._buckets.pop(k)]
+        sub = gtsam.NonlinearFactorGraph()
+        for slot in slots:
+            sub.push_back(self._graph.at(slot))
+            self._graph.remove(slot)
+        self._live -= len(slots)
+        _, remaining = sub.linearize(self._values).eliminatePartialSequential(gtsam.Ordering(old_keys))
+        for i in range(remaining.size()):
+            marginal = remaining.at(i)
+            if marginal is None:
+                continue
+            keys = list(marginal.keys())
+            if not keys:
+                continue
+            lin = gtsam.Values()
+            for key in keys:
+                lin.insert(key, self._values.atPoint3(key))
+            self._add(gtsam.LinearContainerFactor(marginal, lin), min(key & _STEP_MASK for key in keys), new=False)
+        for k in old_steps:
+            del self._keys_by_step[k]
+        for key in old_keys:
+            self._values.erase(key)
+            self._optimised.discard(key)
