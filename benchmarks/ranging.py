@@ -42,6 +42,8 @@ from tqdm import tqdm
 from skyfix.camera import Camera, CameraPose
 from skyfix.crps import (
     DroneModel,
+    GroundMotionConfig,
+    GroundMotionFilter,
     SilhouetteConfig,
     SilhouetteDetector,
     SilhouetteFit,
@@ -72,6 +74,7 @@ NOISE = 0.01
 LAT0, LON0, ALT0 = 47.0, 8.0, 400.0
 CHI2_3DOF_95 = 7.814727903251178
 TRACK_FRAMES = 15  # 0.5 s at 30 frames/s
+SEQ_FRAMES = 16  # terrain sequences: 0.53 s at 30 frames/s
 
 
 def scene(rng: np.random.Generator, range_m: float, below: bool = True,
@@ -239,7 +242,7 @@ def speed(rng, detector, n: int) -> tuple[float, float]:
     return 1.0 / full, 1.0 / roi
 
 
-def false_detections(rng, detector, n_sky: int, n_terrain: int) -> tuple[int, int, int, int, int]:
+def sky_false_detections(rng, detector, n_sky: int) -> int:
     fp_sky = 0
     for _ in tqdm(range(n_sky), desc="sky, no target", leave=False):
         helper = CameraPose(LAT0, LON0, ALT0, yaw_deg=rng.uniform(0, 360), gimbal_pitch_deg=rng.uniform(0, 60),
@@ -247,50 +250,101 @@ def false_detections(rng, detector, n_sky: int, n_terrain: int) -> tuple[int, in
         img = sky_background(CAMERA, helper, rng, clouds=rng.uniform(0.0, 0.15), cloud_cells=int(rng.integers(4, 16)))
         img = cv2.GaussianBlur(img, (0, 0), BLUR_PX) + rng.standard_normal(img.shape, dtype=np.float32) * NOISE
         fp_sky += sum(shape_consistent(CAMERA, helper, d) for d in detector(img))
-    fp_ter = fp_prior = 0
-    paths = sorted(glob.glob("/work/shared/data/seneca-subset/*.jpg"))
-    textures = []
-    frame = LocalFrame(LAT0, LON0, ALT0)
-    for p in paths:
-        g = cv2.imread(p, cv2.IMREAD_GRAYSCALE)
-        textures.append(GroundTexture(g.astype(np.float32) / 255.0, 0.15, frame))
-    for i in tqdm(range(n_terrain), desc="terrain, no target", leave=False):
-        tex = textures[i % len(textures)]
-        helper = CameraPose(LAT0, LON0, ALT0 + rng.uniform(30, 60), yaw_deg=rng.uniform(0, 360),
-                            gimbal_pitch_deg=rng.uniform(-90, -60))
-        img = terrain_background(tex, CAMERA, helper, rng)
-        img = cv2.GaussianBlur(img, (0, 0), BLUR_PX) + rng.standard_normal(img.shape, dtype=np.float32) * NOISE
-        found = [d for d in detector(img) if shape_consistent(CAMERA, helper, d)]
-        fp_ter += len(found)
-        # Directed search (option): the help request's last known position, 20-40 m along a
-        # random ray in the view, 5 m horizontal / 3 m vertical 1-sigma, gates the detections.
-        ray = CAMERA.pixel_to_ray(np.array([[rng.uniform(300, 1620), rng.uniform(200, 880)]]))[0]
-        cam_enu, r_frame_from_cam = helper.in_frame(frame)
-        lat, lon, alt = frame.to_geodetic(*(cam_enu + r_frame_from_cam @ ray * rng.uniform(20.0, 40.0)))
-        prior = GeoFix(float(lat), float(lon), float(alt), np.diag([25.0, 25.0, 9.0]))
-        fp_prior += len(prior_gate(prior_window(CAMERA, helper, prior), found))
-    return fp_sky, n_sky, fp_ter, n_terrain, fp_prior
+    return fp_sky
 
 
-def terrain_targets(rng, detector, n: int) -> tuple[float, list]:
+def _textures() -> list[GroundTexture]:
     frame = LocalFrame(LAT0, LON0, ALT0)
-    paths = sorted(glob.glob("/work/shared/data/seneca-subset/*.jpg"))
-    hits, errs = 0, []
-    for i in tqdm(range(n), desc="terrain targets", leave=False):
-        g = cv2.imread(paths[i % len(paths)], cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255.0
-        tex = GroundTexture(g, 0.15, frame)
-        helper, target = scene(rng, rng.uniform(10, 40), below=False, elev_range=(40.0, 70.0))
-        helper = CameraPose(helper.lat, helper.lon, ALT0 + 60.0, yaw_deg=helper.yaw_deg,
-                            gimbal_pitch_deg=helper.gimbal_pitch_deg)
-        target = TargetPose(target.lat, target.lon, target.alt_m + 60.0, target.yaw_deg, target.pitch_deg,
-                            target.roll_deg)
-        view = render(rng, helper, target, background=tex)
-        found = [d for d in detector(view.image) if shape_consistent(CAMERA, helper, d)
-                 and np.linalg.norm(d.centroid_uv - view.truth.centroid_uv) < 10 + d.extent_px]
-        if found:
-            hits += 1
-            errs.append(observe(CAMERA, helper, found[0], 0.5).range_m / view.truth.range_m - 1.0)
-    return hits / max(n, 1), errs
+    return [GroundTexture(cv2.imread(p, cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255.0, 0.15, frame)
+            for p in sorted(glob.glob("/work/shared/data/seneca-subset/*.jpg"))]
+
+
+class _ShapeGated:
+    """The detector followed by the shape gate for the current frame's helper pose (a Detector)."""
+
+    def __init__(self, detector) -> None:
+        self.detector = detector
+        self.pose: CameraPose | None = None
+
+    def __call__(self, image, roi=None):
+        return [d for d in self.detector(image, roi) if shape_consistent(CAMERA, self.pose, d)]
+
+
+def terrain_sequences(rng, detector, textures, n_seq: int, with_target: bool) -> dict:
+    """Helper flying over terrain (real aerial photos), SEQ_FRAMES frames at 30 Hz per sequence.
+
+    Helper 30-60 m above the ground, camera 60-90 deg down, 3-8 m/s, yawing 2 deg/s; the
+    pose given to skyfix has 0.3 m / 0.3 deg of independent noise per frame. Paths on
+    the same frames: the default single-frame path (detector + shape gate), the prior gate
+    option, and the sequence path recommended for terrain, Tracker(detector + shape gate,
+    ground=GroundMotionFilter). With a target: a 0.5 m quad 12-35 m from the helper
+    (below it, over the ground), drifting 0-3 m/s.
+    """
+    frame = LocalFrame(LAT0, LON0, ALT0)
+    out = {"frames": 0, "seq_frames": 0, "single": 0, "prior": 0, "seq": 0, "single_hit": 0, "seq_hit": 0,
+           "seq_wrong": 0, "seq_range": [], "cpu_s": 0.0}
+    desc = "terrain sequences, target" if with_target else "terrain sequences, no target"
+    for _ in tqdm(range(n_seq), desc=desc, leave=False):
+        tex = textures[int(rng.integers(len(textures)))]
+        agl = rng.uniform(30.0, 60.0)
+        heading, speed = rng.uniform(0, 360), rng.uniform(3.0, 8.0)
+        yaw0, pitch = rng.uniform(0, 360), rng.uniform(-90.0, -60.0)
+        start = destination(LAT0, LON0, heading + 180.0, speed * SEQ_FRAMES / 60.0)
+        gated = _ShapeGated(detector)
+        ground = GroundMotionFilter(CAMERA, ALT0, 0.5, config=GroundMotionConfig(psf_sigma_px=BLUR_PX))
+        tracker = Tracker(gated, ground=ground)
+        target = None
+        for k in range(SEQ_FRAMES):
+            t = k / 30.0
+            lat, lon = destination(float(start[0]), float(start[1]), heading, speed * t)
+            truth = CameraPose(float(lat), float(lon), ALT0 + agl, yaw_deg=yaw0 + 2.0 * t, gimbal_pitch_deg=pitch)
+            e, n, u = (float(x) for x in frame.to_enu(truth.lat, truth.lon, truth.alt_m))
+            est = frame.to_geodetic(e + rng.normal(0, 0.3), n + rng.normal(0, 0.3), u + rng.normal(0, 0.3))
+            pose = CameraPose(float(est[0]), float(est[1]), float(est[2]), yaw_deg=truth.yaw_deg + rng.normal(0, 0.3),
+                              gimbal_pitch_deg=pitch + rng.normal(0, 0.3), gimbal_roll_deg=rng.normal(0, 0.3))
+            if with_target:
+                if target is None:
+                    ray = CAMERA.pixel_to_ray(np.array([[rng.uniform(400, 1520), rng.uniform(250, 830)]]))[0]
+                    cam_enu, r_frame_from_cam = truth.in_frame(frame)
+                    p = cam_enu + r_frame_from_cam @ ray * rng.uniform(12.0, 35.0)
+                    target = (*frame.to_geodetic(*p), rng.uniform(0, 360), rng.uniform(0, 3.0), rng.uniform(0, 360))
+                tlat, tlon = destination(float(target[0]), float(target[1]), target[5], target[4] * t)
+                view = render(rng, truth, TargetPose(float(tlat), float(tlon), float(target[2]), target[3],
+                                                     rng.normal(0, 3), rng.normal(0, 3)), background=tex)
+                img = view.image
+            else:
+                img = terrain_background(tex, CAMERA, truth, rng)
+                img = cv2.GaussianBlur(img, (0, 0), BLUR_PX) + rng.standard_normal(img.shape, dtype=np.float32) * NOISE
+            gated.pose = pose
+            found = gated(img)
+            t0 = time.process_time()
+            det = tracker.update(img, t, pose)
+            out["cpu_s"] += time.process_time() - t0
+            out["frames"] += 1
+            if with_target:
+                near = [d for d in found if np.linalg.norm(d.centroid_uv - view.truth.centroid_uv) < 10 + d.extent_px]
+                out["single_hit"] += bool(near)
+                out["single"] += len(found) - len(near)
+            else:
+                out["single"] += len(found)
+                ray = CAMERA.pixel_to_ray(np.array([[rng.uniform(300, 1620), rng.uniform(200, 880)]]))[0]
+                cam_enu, r_frame_from_cam = pose.in_frame(frame)
+                plat, plon, palt = frame.to_geodetic(*(cam_enu + r_frame_from_cam @ ray * rng.uniform(20.0, 40.0)))
+                prior = GeoFix(float(plat), float(plon), float(palt), np.diag([25.0, 25.0, 9.0]))
+                out["prior"] += len(prior_gate(prior_window(CAMERA, pose, prior), found))
+            if k == 0:
+                continue  # the sequence path has no earlier frame yet: it cannot report
+            out["seq_frames"] += 1
+            if det is None:
+                continue
+            if with_target and np.linalg.norm(det.centroid_uv - view.truth.centroid_uv) < 10 + det.extent_px:
+                out["seq_hit"] += 1
+                out["seq_range"].append(observe(CAMERA, pose, det, 0.5).range_m / view.truth.range_m - 1.0)
+            elif with_target:
+                out["seq_wrong"] += 1
+            else:
+                out["seq"] += 1
+    return out
 
 
 def bad_inputs() -> list[str]:
@@ -327,6 +381,7 @@ def main() -> int:
     detector = SilhouetteDetector(SilhouetteConfig(psf_sigma_px=BLUR_PX))
     fit = SilhouetteFit(CAMERA, MODEL, SilhouetteFitConfig(psf_sigma_px=BLUR_PX))
     n_acc, n_two, n_fp = (12, 40, 100) if args.quick else (40, 200, 1000)
+    n_seq_free, n_seq_target = (6, 3) if args.quick else (70, 20)
     goals = {}
 
     rows, extra = accuracy(rng, n_acc, detector, fit)
@@ -378,17 +433,35 @@ def main() -> int:
     goals["tracking >= 30 frames/s"] = roi_fps >= 30.0
     goals["full-frame >= 5 frames/s"] = full_fps >= 5.0
 
-    fp_sky, n_sky, fp_ter, n_ter, fp_prior = false_detections(rng, detector, n_fp, n_fp)
-    rate = (fp_sky + fp_ter) / (n_sky + n_ter) * 1000
-    print(f"4. false detections without a target, DEFAULT full-frame single-frame path (detector + shape gate): "
-          f"sky {fp_sky}/{n_sky}, terrain {fp_ter}/{n_ter} ({rate:.2f} per 1000 frames)")
-    print(f"   option, directed search with a prior gate (last known position 20-40 m, 5 m 1-sigma): terrain "
-          f"{fp_prior}/{n_ter} (not the goal's mode)")
-    goals["<= 1 false detection per 1000 frames (sky and terrain each)"] = (
-        fp_sky <= max(1, n_sky // 1000) and fp_ter <= max(1, n_ter // 1000))
-    hit, terr = terrain_targets(rng, detector, 10 if args.quick else 40)
-    print(f"   (no goal) drone over terrain, seen from above 40-70 deg, 10-40 m: detected {hit * 100:.0f}%, "
-          f"range median {pct(terr, 50) * 100:.2f}%")
+    fp_sky = sky_false_detections(rng, detector, n_fp)
+    textures = _textures()
+    free = terrain_sequences(rng, detector, textures, n_seq_free, with_target=False)
+    tgt = terrain_sequences(rng, detector, textures, n_seq_target, with_target=True)
+    print(f"4. false detections without a target. Sky, single frames (random attitude, clouds): {fp_sky}/{n_fp}.")
+    print(f"   Terrain: {n_seq_free} sequences x {SEQ_FRAMES} frames over real aerial photos, helper 30-60 m up, "
+          "3-8 m/s, pose noise 0.3 m / 0.3 deg per frame:")
+    print(f"   - DEFAULT single-frame path (detector + shape gate): {free['single']}/{free['frames']} frames "
+          f"({free['single'] / free['frames'] * 1000:.1f} per 1000)")
+    print(f"   - option, single frame + prior gate (last known position 20-40 m, 5 m 1-sigma): "
+          f"{free['prior']}/{free['frames']}")
+    print(f"   - SEQUENCE path for terrain (Tracker + GroundMotionFilter), frames after the first of each sequence: "
+          f"{free['seq']}/{free['seq_frames']} ({free['seq'] / free['seq_frames'] * 1000:.2f} per 1000)")
+    hit_single = tgt["single_hit"] / max(tgt["frames"], 1)
+    hit_seq = tgt["seq_hit"] / max(tgt["seq_frames"], 1)
+    print(f"   With a target over terrain ({n_seq_target} sequences, 0.5 m quad 12-35 m away below the helper, "
+          f"0-3 m/s): detected in {hit_single * 100:.1f}% of frames single-frame, {hit_seq * 100:.1f}% by the "
+          f"sequence path (after the first frame); sequence path reported something else in "
+          f"{tgt['seq_wrong']}/{tgt['seq_frames']} frames; its range median "
+          f"{pct(tgt['seq_range'], 50) * 100:.2f}% p95 {pct(tgt['seq_range'], 95) * 100:.2f}%")
+    print(f"   sequence path speed, one core (process_time): {free['frames'] / free['cpu_s']:.1f} frames/s "
+          "without a track (full-frame search + ground check), "
+          f"{tgt['frames'] / tgt['cpu_s']:.1f} frames/s on the target sequences (mostly tracking)")
+    goals["sky: <= 1 false detection per 1000 frames (single frame)"] = fp_sky <= max(1, n_fp // 1000)
+    fp_terrain = free["seq"] + tgt["seq_wrong"]
+    n_terrain = free["seq_frames"] + tgt["seq_frames"]
+    goals["terrain: <= 1 false detection per 1000 frames (sequence path, the documented one for terrain)"] = (
+        fp_terrain <= max(1, n_terrain // 1000))
+    goals["terrain: target still detected by the sequence path (>= 80% of frames)"] = hit_seq >= 0.8
     print("5. bad inputs:")
     lines = bad_inputs()
     print("\n".join(lines))
@@ -399,7 +472,8 @@ def main() -> int:
     met = sum(goals.values())
     print(f"ranging: {met}/{len(goals)} goals met; range median {pct(allr, 50) * 100:.2f}% (source "
           f"{pct(alls, 50) * 100:.2f}%), two-helper median {np.median(errors):.2f} m, "
-          f"{roi_fps:.0f}/{full_fps:.0f} fps ROI/full, false detections {fp_sky + fp_ter}/{n_sky + n_ter}")
+          f"{roi_fps:.0f}/{full_fps:.0f} fps ROI/full, false detections sky {fp_sky}/{n_fp}, terrain "
+          f"{fp_terrain}/{n_terrain} (sequence path; single-frame {free['single']}/{free['frames']})")
     return 0 if met == len(goals) else 1
 
 

@@ -5,7 +5,8 @@ ground, :class:`MarkerDetector` for a marker on the drone, :class:`BoxDetector` 
 user's own model) finds the target in pixels; :class:`Tracker` follows it with a region
 of interest; :class:`SilhouetteFit` re-measures small silhouettes by fitting the drone
 model to the pixels; :func:`prior_window`/:func:`prior_gate` restrict a directed search to
-where the help request puts the target; :func:`observe` turns a detection into a :class:`skyfix.types.RelativeObservation`
+where the help request puts the target; :class:`GroundMotionFilter` drops detections that
+move with the ground over a sequence (terrain backgrounds); :func:`observe` turns a detection into a :class:`skyfix.types.RelativeObservation`
 (bearing in ENU, range, covariance) and :func:`locate` fuses several helpers' observations
 into a :class:`skyfix.types.GeoFix`.
 
@@ -19,6 +20,7 @@ from typing import Any
 
 _EXPORTS = {
     "BoxDetector": "detection", "Detection": "detection", "Detector": "detection", "to_gray": "detection",
+    "GroundCheck": "ground", "GroundMotionConfig": "ground", "GroundMotionFilter": "ground",
     "FitState": "fit", "SilhouetteFit": "fit", "SilhouetteFitConfig": "fit",
     "PriorWindow": "prior", "prior_gate": "prior", "prior_window": "prior",
     "MarkerDetector": "marker",

@@ -13,6 +13,11 @@ model's yaw spread), which :func:`~skyfix.crps.observe` adds separately.
 With a :class:`~skyfix.crps.fit.SilhouetteFit` and the helper pose passed to
 :meth:`Tracker.update`, small silhouettes are re-measured by the model fit, each frame
 started from the previous frame's solution (one Gauss-Newton step per yaw hypothesis).
+
+With a :class:`~skyfix.crps.ground.GroundMotionFilter` (the path for terrain backgrounds),
+every frame's detections are checked against the ground's motion before gating, so the
+track neither starts on nor jumps to an object lying on the ground; ``update`` then needs
+the helper pose of every frame.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from skyfix import validate
 from skyfix.camera import CameraPose
 from skyfix.crps.detection import Detection, Detector
 from skyfix.crps.fit import FitState, SilhouetteFit
+from skyfix.crps.ground import GroundMotionFilter
 from skyfix.errors import InputError
 
 __all__ = ["Tracker", "TrackerConfig"]
@@ -60,13 +66,17 @@ class Tracker:
     """Track one target with any :class:`~skyfix.crps.detection.Detector`."""
 
     def __init__(self, detector: Detector, config: TrackerConfig | None = None,
-                 fit: SilhouetteFit | None = None) -> None:
-        """``fit`` re-measures small silhouettes by the model fit when ``update`` gets the helper pose."""
+                 fit: SilhouetteFit | None = None, ground: GroundMotionFilter | None = None) -> None:
+        """``fit`` re-measures small silhouettes by the model fit when ``update`` gets the helper pose;
+        ``ground`` drops detections that move with the ground (``update`` must then get the pose)."""
         if not callable(detector):
             raise InputError(f"detector must be callable (the Detector protocol), got {type(detector).__name__}")
         if fit is not None and not isinstance(fit, SilhouetteFit):
             raise InputError(f"fit must be a skyfix.crps.SilhouetteFit, got {type(fit).__name__}")
+        if ground is not None and not isinstance(ground, GroundMotionFilter):
+            raise InputError(f"ground must be a skyfix.crps.GroundMotionFilter, got {type(ground).__name__}")
         self.detector = detector
+        self.ground = ground
         self.config = config if config is not None else TrackerConfig()
         self.fit = fit
         self.reset()
@@ -112,6 +122,10 @@ class Tracker:
         h, w = np.shape(image)[:2]
         roi = self.roi(w, h, t)
         found = self.detector(image, roi)
+        if self.ground is not None:
+            if helper_pose is None:
+                raise InputError("Tracker.update needs helper_pose when the tracker has a ground filter")
+            found = self.ground(image, helper_pose, found, t)
         if self._uv is None:
             if not found:
                 return None
