@@ -64,6 +64,7 @@ TICK_S = 0.1
 WARMUP_S = 5.0  # estimates are scored from here (every drone has had GNSS for a few seconds)
 NEES_LO, NEES_HI = chi2.ppf(0.025, 3), chi2.ppf(0.975, 3)
 GATE_CHI2_3 = chi2.ppf(0.999, 3)
+BAD_RUN_S, BAD_AT_S = 90.0, 45.0  # bad-input run: length, when the bad inputs are given
 
 GOALS = {
     "outage_rmse_m": 2.0, "outage_max_m": 4.0, "dr_ratio": 10.0, "spoof_move_m": 2.0,
@@ -231,7 +232,8 @@ class Track:
     gnss_state: list = field(default_factory=list)
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return np.asarray(self.t_s), np.asarray(self.enu_m), np.asarray(self.cov_m2)
+        return (np.asarray(self.t_s, float), np.asarray(self.enu_m, float).reshape(-1, 3),
+                np.asarray(self.cov_m2, float).reshape(-1, 3, 3))
 
 
 def run_ekf(scen: FusionScenario, ticks: np.ndarray) -> tuple[dict[str, Track], dict[str, DroneEKF]]:
@@ -284,6 +286,8 @@ class SkyfixRun:
     after_bad_ok: bool
     input_errors: int
     estimate_errors: int
+    update_errors: int
+    first_update_error: str | None
 
 
 def run_skyfix(engine_cls, scen: FusionScenario, ticks: np.ndarray, lag_s: float | None,
@@ -294,7 +298,8 @@ def run_skyfix(engine_cls, scen: FusionScenario, ticks: np.ndarray, lag_s: float
     wall = np.full(ticks.size, np.nan)
     evs = scen.events()
     pending = next(evs, None)
-    n_input_err = n_est_err = 0
+    n_input_err = n_est_err = n_update_err = 0
+    first_update_err: str | None = None
     bad: list[tuple[str, str, bool]] = []
     bad_done = bad_input_at_s is None
     for k, tick in enumerate(progress(ticks, desc="skyfix", unit="tick")):
@@ -310,13 +315,20 @@ def run_skyfix(engine_cls, scen: FusionScenario, ticks: np.ndarray, lag_s: float
                 n_input_err += 1
                 logging.getLogger("benchmarks.fusion").debug("dropped %s: %s", pending.kind, exc)
             pending = next(evs, None)
-        engine.update()
+        try:
+            engine.update()
+        except Exception as exc:  # any failure is reported as a failed goal; the run goes on
+            n_update_err += 1
+            if first_update_err is None:
+                first_update_err = f"t = {tick:.1f} s: {_oneline(exc, 160)}"
         ests = {}
         for d in DRONE_IDS:
             try:
                 ests[d] = engine.estimate(d)
-            except SkyfixError:
+            except Exception as exc:  # counted after warm-up (no GNSS yet before it)
                 n_est_err += tick >= WARMUP_S
+                if tick >= WARMUP_S and first_update_err is None and not isinstance(exc, SkyfixError):
+                    first_update_err = f"t = {tick:.1f} s estimate({d}): {_oneline(exc, 160)}"
         c1, w1 = time.process_time(), time.perf_counter()
         if tick < WARMUP_S:
             continue
@@ -332,7 +344,7 @@ def run_skyfix(engine_cls, scen: FusionScenario, ticks: np.ndarray, lag_s: float
     if bad_input_at_s is not None:
         after_ok = _estimates_continue(scen, tracks, bad_input_at_s)
     return SkyfixRun(tracks, cpu[np.isfinite(cpu)], wall[np.isfinite(wall)], bad, after_ok,
-                     n_input_err, n_est_err)
+                     n_input_err, n_est_err, n_update_err, first_update_err)
 
 
 def bad_inputs(engine, scen: FusionScenario, now_s: float) -> list[tuple[str, str, bool]]:
@@ -364,13 +376,21 @@ def bad_inputs(engine, scen: FusionScenario, now_s: float) -> list[tuple[str, st
             ok = handler.count > 0
             how = "logged and dropped" if ok else "ACCEPTED silently"
         except InputError as exc:
-            ok, how = True, f"InputError: {str(exc)[:70]}"
+            ok, how = True, _oneline(exc)
         except Exception as exc:  # noqa: BLE001 - any other type is a finding
-            ok, how = False, f"{type(exc).__name__}: {str(exc)[:70]}"
+            ok, how = False, _oneline(exc)
         finally:
             logging.getLogger().removeHandler(handler)
+        try:  # each case on its own: did it leave the engine able to solve?
+            engine.update()
+        except Exception as exc:  # noqa: BLE001
+            ok, how = False, f"{how}; then update() failed: {_oneline(exc)}"
         out.append((name, how, ok))
     return out
+
+
+def _oneline(exc: BaseException, n: int = 90) -> str:
+    return f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:n]
 
 
 class _Capture(logging.Handler):
@@ -466,6 +486,14 @@ def _pct(x: np.ndarray, q: float) -> float:
     return float(np.percentile(x, q)) if x.size else float("nan")
 
 
+def _max(x: np.ndarray) -> float:
+    return float(np.max(x)) if x.size else float("nan")
+
+
+def _mean(x: np.ndarray) -> float:
+    return float(np.mean(x)) if x.size else float("nan")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="500 s survey and a 900 s memory run")
@@ -521,12 +549,16 @@ def main(argv: list[str] | None = None) -> int:
             why = f"skyfix.fusion.FusionEngine unavailable: {exc}"
     sk: SkyfixRun | None = None
     if engine_cls is not None:
-        bad_at = 380.0 if duration > 390.0 else None
-        sk = run_skyfix(engine_cls, scen, ticks, args.lag_s, bad_at)
+        sk = run_skyfix(engine_cls, scen, ticks, args.lag_s, None)
+        # Bad input goes to a separate engine on a separate fault-free run, so that an
+        # engine broken by it cannot spoil the figures above.
+        scen_bad = survey_scenario(BAD_RUN_S, seed=args.seed + 2, outage=None, spoof=None)
+        ticks_bad = np.round(np.arange(1, int(round(BAD_RUN_S / TICK_S)) + 1) * TICK_S, 6)
+        sk_bad = run_skyfix(engine_cls, scen_bad, ticks_bad, args.lag_s, BAD_AT_S)
         t_s, p_s, _ = sk.tracks[out.drone_id].arrays()
         m_s = _window(t_s, out.start_s, out.end_s)
         e_s = horizontal_errors(scen, out.drone_id, t_s[m_s], p_s[m_s])
-        res["skyfix"] = {"rmse": _rmse(e_s), "max": float(e_s.max()) if e_s.size else float("nan")}
+        res["skyfix"] = {"rmse": _rmse(e_s), "max": _max(e_s)}
 
     print(f"\nGNSS outage of {out.drone_id}, {out.start_s:g}-{out.end_s:g} s: horizontal error")
     print(f"  {'estimator':<16} {'RMSE m':>8} {'max m':>8}")
@@ -544,7 +576,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{res['dead reckoning']['rmse']:.2f} m ({dr_ekf:.1f}x) -> skyfix NOT MEASURED")
         return 2
 
-    return _report_skyfix(scen, args, sk, res, engine_cls, memory_s)
+    return _report_skyfix(scen, args, sk, sk_bad, res, engine_cls, memory_s)
 
 
 def _spoof_move(scen: FusionScenario, spf, t: np.ndarray, p: np.ndarray) -> float:
@@ -558,7 +590,8 @@ def _spoof_move(scen: FusionScenario, spf, t: np.ndarray, p: np.ndarray) -> floa
     return float(np.linalg.norm(e[during] - e[before].mean(0), axis=1).max())
 
 
-def _report_skyfix(scen: FusionScenario, args, sk: SkyfixRun, res, engine_cls, memory_s: float) -> int:
+def _report_skyfix(scen: FusionScenario, args, sk: SkyfixRun, sk_bad: SkyfixRun, res, engine_cls,
+                   memory_s: float) -> int:
     out, spf = scen.outage, scen.spoof
     ok: dict[str, bool] = {}
     s, ekf, dr = res["skyfix"], res["EKF (filterpy)"], res["dead reckoning"]
@@ -582,7 +615,7 @@ def _report_skyfix(scen: FusionScenario, args, sk: SkyfixRun, res, engine_cls, m
     ok["spoof: rejected within 2 s"] = flag_s <= GOALS["spoof_flag_s"]
     print(f"\nspoof of {spf.drone_id} ({np.linalg.norm(spf.offset_enu_m):.0f} m, {spf.start_s:g}-{spf.end_s:g} s): "
           f"fused track moved {move:.2f} m from its pre-spoof error (horizontal error before mean "
-          f"{before.mean():.2f} m, during max {during.max():.2f} m); GNSS 'rejected' after {flag_s:.1f} s")
+          f"{_mean(before):.2f} m, during max {_max(during):.2f} m); GNSS 'rejected' after {flag_s:.1f} s")
 
     # GNSS loss and re-admission
     tr_a = sk.tracks[out.drone_id]
@@ -596,33 +629,34 @@ def _report_skyfix(scen: FusionScenario, args, sk: SkyfixRun, res, engine_cls, m
     # latency
     cpu, wall = sk.cpu_ms, sk.wall_ms
     print(f"\nlatency per 0.1 s tick (feed + update + 3 estimates), {cpu.size} ticks, one CPU: "
-          f"CPU time p50 {_pct(cpu, 50):.2f} / p99 {_pct(cpu, 99):.2f} / max {cpu.max():.2f} ms; "
-          f"wall p50 {_pct(wall, 50):.2f} / p99 {_pct(wall, 99):.2f} / max {wall.max():.2f} ms")
+          f"CPU time p50 {_pct(cpu, 50):.2f} / p99 {_pct(cpu, 99):.2f} / max {_max(cpu):.2f} ms; "
+          f"wall p50 {_pct(wall, 50):.2f} / p99 {_pct(wall, 99):.2f} / max {_max(wall):.2f} ms")
     ok["latency p99 <= 10 ms (CPU time, one core)"] = _pct(cpu, 99) <= GOALS["latency_p99_ms"]
 
     # NEES
     n_all = {d: nees(scen, d, sk.tracks[d]) for d in DRONE_IDS}
-    fr = {d: float(np.mean((v >= NEES_LO) & (v <= NEES_HI))) for d, v in n_all.items()}
+    fr = {d: _mean((v >= NEES_LO) & (v <= NEES_HI)) for d, v in n_all.items()}
     cat = np.concatenate(list(n_all.values()))
-    frac = float(np.mean((cat >= NEES_LO) & (cat <= NEES_HI)))
+    frac = _mean((cat >= NEES_LO) & (cat <= NEES_HI))
     print(f"\nposition NEES (3 dof) in [{NEES_LO:.3f}, {NEES_HI:.2f}]: {100 * frac:.1f} % of drone-ticks "
-          f"(" + ", ".join(f"{d} {100 * v:.1f} %" for d, v in fr.items()) + f"); mean NEES {cat.mean():.2f}, "
-          f"below band {100 * np.mean(cat < NEES_LO):.1f} %, above {100 * np.mean(cat > NEES_HI):.1f} %")
+          f"(" + ", ".join(f"{d} {100 * v:.1f} %" for d, v in fr.items()) + f"); mean NEES {_mean(cat):.2f}, "
+          f"below band {100 * _mean(cat < NEES_LO):.1f} %, above {100 * _mean(cat > NEES_HI):.1f} %")
     ok["NEES in band >= 90 %"] = frac >= GOALS["nees_frac"]
     whole = {d: _rmse(horizontal_errors(scen, d, *sk.tracks[d].arrays()[:2])) for d in DRONE_IDS}
     print("skyfix whole-run horizontal RMSE " + ", ".join(f"{d} {v:.2f} m" for d, v in whole.items())
-          + f"; inputs refused {sk.input_errors}, estimate errors after warm-up {sk.estimate_errors}")
+          + f"; inputs refused {sk.input_errors}, estimate errors after warm-up {sk.estimate_errors}, "
+          f"update() errors {sk.update_errors}" + (f" (first at {sk.first_update_error})" if sk.update_errors else ""))
+    ok["update() never fails"] = sk.update_errors == 0
 
     # bad input
-    if sk.bad_input:
-        print("\nbad input at t = 380 s:")
-        for name, how, good in sk.bad_input:
-            print(f"  {'ok ' if good else 'BAD'} {name}: {how}")
-        print(f"  estimates for every drone within 5 m of truth in the next 10 s: {sk.after_bad_ok}")
-        ok["bad input refused, engine keeps running"] = all(g for *_, g in sk.bad_input) and sk.after_bad_ok
-    else:
-        print("\nbad input: not checked (run shorter than 390 s)")
-        ok["bad input refused, engine keeps running"] = False
+    print(f"\nbad input at t = {BAD_AT_S:g} s of a separate {BAD_RUN_S:g} s fault-free run (new engine):")
+    for name, how, good in sk_bad.bad_input:
+        print(f"  {'ok ' if good else 'BAD'} {name}: {how}")
+    print(f"  afterwards: estimates for every drone within 5 m of truth over the next 10 s: {sk_bad.after_bad_ok}; "
+          f"update() errors {sk_bad.update_errors}"
+          + (f" (first at {sk_bad.first_update_error})" if sk_bad.update_errors else ""))
+    ok["bad input refused, engine keeps running"] = (all(g for *_, g in sk_bad.bad_input)
+                                                      and sk_bad.after_bad_ok and sk_bad.update_errors == 0)
 
     # memory
     growth = float("nan")
@@ -633,7 +667,7 @@ def _report_skyfix(scen: FusionScenario, args, sk: SkyfixRun, res, engine_cls, m
         growth = (rss[-1][1] - rss[0][1]) / rss[0][1]
         print(f"  growth from {rss[0][0] / 60:.0f} to {rss[-1][0] / 60:.0f} min: "
               f"{rss[-1][1] - rss[0][1]:+.1f} MB ({100 * growth:+.2f} %); CPU per tick over the run "
-              f"p50 {_pct(cpu_mem, 50):.2f} / p99 {_pct(cpu_mem, 99):.2f} / max {cpu_mem.max():.2f} ms")
+              f"p50 {_pct(cpu_mem, 50):.2f} / p99 {_pct(cpu_mem, 99):.2f} / max {_max(cpu_mem):.2f} ms")
         ok[f"memory flat (< 5 % from {rss[0][0] / 60:.0f} to {rss[-1][0] / 60:.0f} min)"] = \
             growth < GOALS["memory_growth_frac"]
     else:
