@@ -13,17 +13,17 @@ class FusionConfig:
     """Model and health parameters of :class:`skyfix.fusion.FusionEngine`.
 
     State model (per drone, on a grid of ``state_dt_s``): position p_k (ENU, m) and the
-    bias b_k of the autopilot's velocity (m/s). A velocity message v at time t in
-    [t_k, t_k+1) says ``p_k+1 - p_k = (v - b_k) dt`` with sigma ``sqrt(sigma_v^2 +
-    (accel_sigma_mps2 dt / 2)^2) dt`` (the second term: a sample inside the interval is
-    not the interval's mean velocity). The bias walks with ``bias_walk_mps_per_sqrt_s``.
-    Every step also carries a weak ``p_k+1 - p_k ~ N(0, (max_speed_mps dt)^2)`` so a
-    drone whose velocity stops arriving stays constrained, with honestly growing sigma.
+    bias b_k of the autopilot's velocity (m/s). Velocity samples are integrated exactly
+    over each interval (:mod:`skyfix.fusion.velocity`), giving ``p_k+1 - p_k = (v_mean -
+    b_k) dt`` with sigma ``sqrt(sigma_v^2 + velocity_model_sigma_mps^2) dt``. The bias
+    walks with ``bias_walk_mps_per_sqrt_s``. Every step also carries a weak ``p_k+1 - p_k
+    ~ N(0, (max_speed_mps dt)^2)`` so a drone whose velocity stops arriving stays
+    constrained, with honestly growing sigma.
     """
 
     state_dt_s: float = 0.1
     max_speed_mps: float = 30.0
-    accel_sigma_mps2: float = 1.0
+    velocity_model_sigma_mps: float = 0.02  # interpolation between samples (jerk), added to the white sigma
     bias_initial_sigma_mps: float = 0.3
     bias_walk_mps_per_sqrt_s: float = 0.01
     # GNSS
@@ -37,7 +37,7 @@ class FusionConfig:
     gate_probability: float = 0.999
     reject_after: int = 2               # consecutive gate failures -> rejected
     readmit_after_s: float = 5.0        # consistent this long before a lost/rejected source is fused again
-    robust_k: float = 1.345             # Huber threshold in sigmas on GNSS, fixes and relative observations
+    robust_k: float = 2.8               # Huber threshold on the whitened 3-D residual norm (95 % of inliers below)
     # other sources
     velocity_timeout_s: float = 1.0
     altitude_timeout_s: float = 1.0

@@ -33,6 +33,7 @@ from skyfix.fusion.config import FusionConfig
 from skyfix.fusion.estimate import Estimate
 from skyfix.fusion.health import HealthState, SourceHealth, SourceMonitor
 from skyfix.fusion.log import MeasurementLog
+from skyfix.fusion.velocity import IntervalVelocity
 from skyfix.fusion.window import GraphWindow
 from skyfix.geo import LocalFrame
 from skyfix.types import GeoFix, RelativeObservation
@@ -55,6 +56,7 @@ class _Drone:
     rotation_at_enu: np.ndarray | None = None
     up_minus_alt_m: float | None = None  # local: up_m = alt_m + this (refreshed with the rotation)
     cov_cache: tuple[int, np.ndarray] | None = None
+    intervals: IntervalVelocity | None = None
 
     @property
     def anchored(self) -> bool:
@@ -85,7 +87,7 @@ class FusionEngine:
             raise InputError(f"lag_s must be at least 3 state steps ({3 * self.config.state_dt_s:g} s), got {lag_s}")
         cfg = self.config
         self._gate = {dof: cfg.gate_chi2(dof) for dof in (1, 3)}
-        self._vel_sigma_floor = cfg.accel_sigma_mps2 * cfg.state_dt_s / 2.0
+        self._vel_sigma_floor = cfg.velocity_model_sigma_mps
         self._window: GraphWindow | None = None
         self._drones: dict[str, _Drone] = {}
         self.now_s = -math.inf
@@ -164,15 +166,13 @@ class FusionEngine:
         vel_frame = drone.r_frame_from_local @ vel
         if drone.velocity is None or t >= drone.velocity[0]:
             drone.velocity = (t, vel_frame, sigma)
-        if not drone.anchored:
-            return
-        window = self._window
-        j = int(math.floor((t - window.epoch_s) / window.dt_s + 1e-9))
-        if j < window.oldest_alive_step():
-            raise InputError(f"velocity at time_s={t} is older than the fusion lag ({self.lag_s:g} s)")
-        self._ensure(drone, j)
-        self._ensure(drone, j + 1)
-        window.velocity(drone.index, j, vel_frame, np.hypot(sigma, self._vel_sigma_floor))
+        if drone.intervals is None:
+            drone.intervals = IntervalVelocity(self._window.epoch_s, self._window.dt_s, self.config.velocity_timeout_s)
+        for j, mean, sig in drone.intervals.add(t, vel_frame, sigma):
+            if not drone.anchored or j < self._window.oldest_alive_step() or j < drone.first_k:
+                continue
+            self._ensure(drone, j + 1)
+            self._window.velocity(drone.index, j, mean, np.hypot(sig, self.config.velocity_model_sigma_mps))
 
     def add_altitude(self, drone_id: str, time_s: float, alt_m: float, sigma_m: float) -> None:
         """A height (metres above the WGS84 ellipsoid, e.g. a barometer referenced to it)."""
@@ -206,6 +206,7 @@ class FusionEngine:
         if not isinstance(fix, GeoFix):
             raise InputError(f"fix must be a skyfix.types.GeoFix, got {type(fix).__name__}")
         t = self._time("fix.time_s", fix.time_s)
+        _positive_definite("fix.cov_enu_m2", fix.cov_enu_m2)
         self._record("fix", dict(drone_id=drone_id, fix=fix))
         drone = self._drone(drone_id)
         self._advance(t, drone)
@@ -229,6 +230,9 @@ class FusionEngine:
         if observer_id == target_id:
             raise InputError(f"RelativeObservation observer and target are the same drone {observer_id!r}")
         t = self._time("obs.time_s", obs.time_s)
+        _positive_definite("obs.cov_enu_m2", obs.cov_enu_m2)
+        if obs.observer_cov_enu_m2 is not None:
+            _positive_definite("obs.observer_cov_enu_m2", obs.observer_cov_enu_m2)
         self._record("relative", dict(obs=obs))
         observer, target = self._drone(observer_id), self._drone(target_id)
         self._advance(t, target)
@@ -266,10 +270,11 @@ class FusionEngine:
         """Run the smoother on everything added since the last update (a no-op if nothing)."""
         if self._window is None:
             return
-        now_k = self._window.step_of(self.now_s)
+        # A drone that stopped reporting keeps states near the present so it stays in the window.
+        keep_k = self._window.step_of(self.now_s) - self._window.lag_steps // 2
         for drone in self._drones.values():
-            if drone.anchored and drone.last_k < now_k:
-                self._ensure(drone, now_k)
+            if drone.anchored and drone.last_k < keep_k:
+                self._ensure(drone, keep_k)
         if not self._window.pending:
             return
         if self._log is not None:
@@ -277,7 +282,7 @@ class FusionEngine:
         tail = []
         for drone in self._drones.values():
             if drone.anchored:
-                for k in range(max(drone.first_k, drone.last_k - 1), drone.last_k + 1):
+                for k in range(max(drone.first_k, self._settled_step(drone) - 1), drone.last_k + 1):
                     tail += [self._window.key(drone.index, 0, k), self._window.key(drone.index, 1, k)]
         self._window.update(tail)
         oldest = self._window.oldest_alive_step()
@@ -302,11 +307,11 @@ class FusionEngine:
                                     "relative observation by a localised drone)")
         t_s = drone.last_time_s if t is None else validate.finite_scalar("t", t)
         window = self._window
-        k = min(max(window.step_of(t_s), drone.first_k), drone.last_k)
+        k = min(max(window.step_of(t_s), drone.first_k), self._settled_step(drone))
         p_k = window.value(drone.index, 0, k)
         cov_k = window.covariance(drone.index, 0, k)
         shift, shift_var = self._shift(drone, t_s, k)
-        enu = p_k + shift
+        enu = p_k - shift  # shift moves from t to the grid; the estimate goes the other way
         cov = cov_k + np.eye(3) * shift_var
         vel, vel_cov = self._velocity_estimate(drone, t_s, k)
         lat, lon, alt = (float(c) for c in self.frame.to_geodetic(*enu))
@@ -420,6 +425,9 @@ class FusionEngine:
         self._window.new_state(drone.index, k, p0, np.zeros(3))
         self._window.prior_bias(drone.index, k, self.config.bias_initial_sigma_mps)
         drone.first_k = drone.last_k = k
+        if drone.intervals is None:
+            drone.intervals = IntervalVelocity(self._window.epoch_s, self._window.dt_s, self.config.velocity_timeout_s)
+        drone.intervals.start_at(k)
 
     def _ensure(self, drone: _Drone, k: int) -> None:
         """Create the drone's states up to step k (forwards or backwards), each tied to its neighbour."""
@@ -462,11 +470,23 @@ class FusionEngine:
             return np.zeros(3), (self.config.max_speed_mps * dt) ** 2
         return vel[0] * dt, vel[1] * dt * dt + (self.config.bias_initial_sigma_mps * dt) ** 2
 
+    def _settled_step(self, drone: _Drone) -> int:
+        """Newest step whose motion from the previous one is known (velocity integrated up to it).
+
+        Later steps exist only because a measurement landed there before the velocity
+        covering them arrived; answers are taken from the settled step and moved in time.
+        """
+        iv = drone.intervals
+        if iv is None or iv.next_interval is None or drone.velocity is None \
+                or self.now_s - drone.velocity[0] > self.config.velocity_timeout_s:
+            return drone.last_k
+        return max(drone.first_k, min(drone.last_k, iv.next_interval))
+
     def _latest_cov(self, drone: _Drone) -> tuple[int, np.ndarray] | None:
-        """Covariance of the newest optimised position state (cached per update)."""
+        """Covariance of the settled (else newest optimised) position state, cached per update."""
         if drone.cov_cache is None:
             window = self._window
-            for k in range(drone.last_k, drone.first_k - 1, -1):
+            for k in range(self._settled_step(drone), drone.first_k - 1, -1):
                 if window.is_optimised(drone.index, 0, k):
                     drone.cov_cache = (k, window.covariance(drone.index, 0, k))
                     break
@@ -477,9 +497,9 @@ class FusionEngine:
         if not drone.anchored:
             return None
         window = self._window
-        k = min(max(window.step_of(t), drone.first_k), drone.last_k)
+        k = min(max(window.step_of(t), drone.first_k), self._settled_step(drone))
         shift, shift_var = self._shift(drone, t, k)
-        p = window.value(drone.index, 0, k) + shift
+        p = window.value(drone.index, 0, k) - shift
         cached = self._latest_cov(drone)
         if cached is None:  # nothing optimised yet: no basis for gating
             return p, np.eye(3) * 1e12
@@ -532,6 +552,14 @@ def _drone_id(value) -> str:
     if not isinstance(value, str) or not value.strip():
         raise InputError(f"drone id must be a non-empty string, got {value!r}")
     return value
+
+
+def _positive_definite(name: str, cov: np.ndarray) -> None:
+    """Covariances become gtsam noise models: singular or indefinite ones would poison the solve."""
+    eig = np.linalg.eigvalsh(0.5 * (cov + cov.T))
+    if not eig[0] > 1e-12 * max(1.0, eig[-1]):
+        raise InputError(f"{name} must be positive definite (a measurement with zero uncertainty cannot be "
+                         f"fused), got eigenvalues {eig}")
 
 
 def _int_in(name: str, value, lo: int, hi: int) -> int:

@@ -29,10 +29,14 @@ indeterminate system.
 
 from __future__ import annotations
 
+import logging
+
 import gtsam
 import numpy as np
 
 from skyfix.errors import EstimationError
+
+log = logging.getLogger(__name__)
 
 _ZERO = np.zeros(3)
 _EYE = np.eye(3)
@@ -58,6 +62,7 @@ class GraphWindow:
         self._live = 0
         self._keys_by_step: dict[int, list[int]] = {}
         self._new_keys: list[int] = []
+        self._new_measurements: list[tuple[int, int]] = []  # (bucket, slot) of measurement factors since the last solve
         self._n_new_factors = 0
         self._newest_step = -1
         self._optimised: set[int] = set()
@@ -129,11 +134,14 @@ class GraphWindow:
         return np.asarray(self._marginals.marginalCovariance(key))
 
     # -- factors -----------------------------------------------------------------------
-    def _add(self, factor, min_step: int, new: bool = True) -> None:
+    def _add(self, factor, min_step: int, new: bool = True, measurement: bool = False) -> None:
         self._graph.push_back(factor)
-        self._buckets.setdefault(min_step, []).append(self._graph.size() - 1)
+        slot = self._graph.size() - 1
+        self._buckets.setdefault(min_step, []).append(slot)
         self._live += 1
         self._n_new_factors += new
+        if measurement:
+            self._new_measurements.append((min_step, slot))
 
     def _robust(self, cov: np.ndarray) -> gtsam.noiseModel.Base:
         return gtsam.noiseModel.Robust.Create(self._huber, gtsam.noiseModel.Gaussian.Covariance(cov))
@@ -161,16 +169,17 @@ class GraphWindow:
         """The up component of p_k (local ENU) is ``up_m``."""
         key = self.key(drone_index, 0, k)
         factor = gtsam.JacobianFactor(key, _UP_ROW, np.array([up_m]), gtsam.noiseModel.Isotropic.Sigma(1, sigma_m))
-        self._add(gtsam.LinearContainerFactor(factor, self._zeros((key,))), k)
+        self._add(gtsam.LinearContainerFactor(factor, self._zeros((key,))), k, measurement=True)
 
     def position(self, drone_index: int, k: int, enu_m: np.ndarray, cov_m2: np.ndarray) -> None:
         """Absolute position of p_k (GNSS, tag fix), robust."""
-        self._add(gtsam.PriorFactorPoint3(self.key(drone_index, 0, k), gtsam.Point3(*enu_m), self._robust(cov_m2)), k)
+        self._add(gtsam.PriorFactorPoint3(self.key(drone_index, 0, k), gtsam.Point3(*enu_m), self._robust(cov_m2)), k,
+                  measurement=True)
 
     def relative(self, observer_index: int, target_index: int, k: int, offset_m: np.ndarray, cov_m2: np.ndarray) -> None:
         """p_target,k - p_observer,k = offset, robust."""
         self._add(gtsam.BetweenFactorPoint3(self.key(observer_index, 0, k), self.key(target_index, 0, k),
-                                            gtsam.Point3(*offset_m), self._robust(cov_m2)), k)
+                                            gtsam.Point3(*offset_m), self._robust(cov_m2)), k, measurement=True)
 
     @staticmethod
     def _zeros(keys) -> gtsam.Values:
@@ -212,32 +221,53 @@ class GraphWindow:
             return
         self._check_constrained()
         self._marginalise(self._newest_step - self.lag_steps)
+        tail = [key for key in tail_keys if self._values.exists(key)]
+        try:
+            tail_cov = self._solve(tail)
+        except EstimationError as exc:
+            if not self._new_measurements:
+                raise
+            # Keep the window usable: drop this batch's measurements, keep the states and their motion.
+            log.error("%s; dropping the %d measurement(s) added since the last update", exc, len(self._new_measurements))
+            for bucket, slot in self._new_measurements:
+                if slot in self._buckets.get(bucket, ()):
+                    self._buckets[bucket].remove(slot)
+                    self._graph.remove(slot)
+                    self._live -= 1
+            self._new_measurements = []
+            tail_cov = self._solve(tail)
+        self._tail_index = {key: 3 * i for i, key in enumerate(tail)}
+        self._tail_cov = 0.5 * (tail_cov + tail_cov.T)
+        self._optimised = {key for keys in self._keys_by_step.values() for key in keys}
+        self._marginals = None
+        self._new_keys = []
+        self._new_measurements = []
+        self._n_new_factors = 0
         if self._graph.size() > 4 * self._live + 64:
             self._compact()
-        graph = self._graph
-        tail = [key for key in tail_keys if self._values.exists(key)]
+
+    def _solve(self, tail: list[int]) -> np.ndarray:
+        """Gauss-Newton step(s) on the window; returns the joint covariance of ``tail``."""
         tail_set = set(tail)
         head = [key for step in sorted(self._keys_by_step) for key in self._keys_by_step[step] if key not in tail_set]
+        values = self._values
         try:
             for _ in range(self.max_iterations):
-                gfg = graph.linearize(self._values)
+                gfg = self._graph.linearize(values)
                 head_net, tail_graph = gfg.eliminatePartialSequential(gtsam.Ordering(head))
                 info, eta = tail_graph.hessian(gtsam.Ordering(tail))
                 tail_cov = np.linalg.inv(info)
                 tail_delta = tail_cov @ eta.ravel()
+                if not np.isfinite(tail_delta).all():
+                    raise np.linalg.LinAlgError("non-finite solution")
                 given = gtsam.VectorValues()
                 for i, key in enumerate(tail):
                     given.insert(key, tail_delta[3 * i:3 * i + 3])
-                delta = head_net.optimize(given)  # includes the given tail
-                self._values = self._values.retract(delta)
+                values = values.retract(head_net.optimize(given))  # the solution includes the given tail
         except (RuntimeError, np.linalg.LinAlgError) as exc:  # gtsam: indeterminant system
             raise EstimationError(f"fusion window solve failed: {exc}") from exc
-        self._tail_index = {key: 3 * i for i, key in enumerate(tail)}
-        self._tail_cov = 0.5 * (tail_cov + tail_cov.T)
-        self._optimised = set(tail) | set(head)
-        self._marginals = None
-        self._new_keys = []
-        self._n_new_factors = 0
+        self._values = values
+        return tail_cov
 
     def _marginalise(self, before_step: int) -> None:
         """Eliminate every variable of steps < before_step; keep their information as a prior."""
