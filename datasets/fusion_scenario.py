@@ -219,8 +219,11 @@ DEFAULT_FORMATIONS: dict[str, Formation] = {
 # ------------------------------------------------------------------------- scenario
 
 @dataclass
-class _Table:
-    """Columnar messages of one kind: times, drone index, and named columns (N, ...)."""
+class MessageTable:
+    """Columnar messages of one kind, in measurement order: ``time_s``/``arrival_s`` (N,),
+    ``drone`` (N,) index into ``DRONE_IDS``, and ``cols`` of (N, ...) arrays named like the
+    ``add_*`` arguments (relative observations also carry ``range_true_m`` and
+    ``bearing_true_enu``, the noise-free values)."""
 
     time_s: np.ndarray
     arrival_s: np.ndarray
@@ -250,7 +253,7 @@ class FusionScenario:
     truth_enu_m: dict[str, np.ndarray] = field(repr=False)
     truth_vel_enu_mps: dict[str, np.ndarray] = field(repr=False)
     velocity_bias_mps: dict[str, np.ndarray] = field(repr=False)  # (N_vel, 3) per drone, ENU at drone
-    _tables: dict[str, _Table] = field(repr=False)
+    _tables: dict[str, MessageTable] = field(repr=False)
     _order: np.ndarray = field(repr=False)  # (n_events, 2): kind index, row, in arrival order
 
     drone_ids: tuple[str, ...] = DRONE_IDS
@@ -276,7 +279,7 @@ class FusionScenario:
         """True (lat_deg, lon_deg, alt_m) (N, 3) of ``drone_id`` at times ``t_s``."""
         return self.frame.to_geodetic_points(self.truth_enu(drone_id, t_s))
 
-    def table(self, kind: str) -> _Table:
+    def table(self, kind: str) -> MessageTable:
         """All messages of ``kind`` as columns (measurement order, not arrival order)."""
         if kind not in self._tables:
             raise InputError(f"kind must be one of {KINDS}, got {kind!r}")
@@ -419,7 +422,7 @@ def survey_scenario(duration_s: float = 600.0, seed: int = 0, *,
 
     # Per-drone phases so that the sensors of different drones are not synchronous.
     phases = {"A": 0.0, "B": 0.013, "C": 0.027}
-    tabs: dict[str, list[_Table]] = {k: [] for k in KINDS}
+    tabs: dict[str, list[MessageTable]] = {k: [] for k in KINDS}
     biases: dict[str, np.ndarray] = {}
     for i, d in enumerate(DRONE_IDS):
         rng = rngs[i]
@@ -433,7 +436,7 @@ def survey_scenario(duration_s: float = 600.0, seed: int = 0, *,
                             nm.velocity_bias_walk_mps_per_sqrt_s)
         biases[d] = bias
         vel_meas = np.einsum("nij,nj->ni", r_loc, v) + bias + rng.normal(0, nm.velocity_sigma_mps, v.shape)
-        tabs["velocity"].append(_Table(tv, tv + lat_["velocity"], np.full(tv.size, i),
+        tabs["velocity"].append(MessageTable(tv, tv + lat_["velocity"], np.full(tv.size, i),
                                        {"vel_enu_mps": vel_meas,
                                         "sigma_mps": np.full(tv.size, nm.velocity_sigma_mps)}))
         # --- barometric altitude (ellipsoidal)
@@ -445,7 +448,7 @@ def survey_scenario(duration_s: float = 600.0, seed: int = 0, *,
             drift = _random_walk(rng, ta.size, 1.0 / nm.altitude_rate_hz, np.zeros(1),
                                  nm.altitude_drift_m_per_sqrt_s)[:, 0]
         alt_meas = alt_true + drift + rng.normal(0, nm.altitude_sigma_m, ta.size)
-        tabs["altitude"].append(_Table(ta, ta + lat_["altitude"], np.full(ta.size, i),
+        tabs["altitude"].append(MessageTable(ta, ta + lat_["altitude"], np.full(ta.size, i),
                                        {"alt_m": alt_meas,
                                         "sigma_m": np.full(ta.size, nm.altitude_sigma_m)}))
         # --- GNSS
@@ -480,15 +483,15 @@ def _check_window(name: str, start_s: float, end_s: float, duration_s: float) ->
         raise InputError(f"{name} window [{start_s}, {end_s}) s must lie inside the run [0, {duration_s}] s")
 
 
-def _concat(parts: list[_Table]) -> _Table:
-    return _Table(np.concatenate([p.time_s for p in parts]), np.concatenate([p.arrival_s for p in parts]),
+def _concat(parts: list[MessageTable]) -> MessageTable:
+    return MessageTable(np.concatenate([p.time_s for p in parts]), np.concatenate([p.arrival_s for p in parts]),
                   np.concatenate([p.drone for p in parts]),
                   {k: np.concatenate([p.cols[k] for p in parts]) for k in parts[0].cols})
 
 
 def _gnss(frame: LocalFrame, sp: SurveyPath, forms: dict[str, Formation], d: str, i: int,
           dur: float, nm: NoiseModel, phase_s: float, rng: np.random.Generator,
-          out_w: Outage | None, spoof_w: Spoof | None, latency_s: float) -> _Table:
+          out_w: Outage | None, spoof_w: Spoof | None, latency_s: float) -> MessageTable:
     t = _times(dur, nm.gnss_rate_hz, phase_s)
     p, _ = _truth(sp, forms, d, t)
     sig = np.array([nm.gnss_h_sigma_m, nm.gnss_h_sigma_m, nm.gnss_v_sigma_m])
@@ -519,13 +522,13 @@ def _gnss(frame: LocalFrame, sp: SurveyPath, forms: dict[str, Formation], d: str
     cols = {"lat_deg": lla[:, 0], "lon_deg": lla[:, 1], "alt_m": lla[:, 2], "fix_type": fix,
             "satellites": sats, "hdop": hdop, "h_sigma_m": np.full(t.size, nm.gnss_h_sigma_m),
             "v_sigma_m": np.full(t.size, nm.gnss_v_sigma_m)}
-    return _Table(t[keep], (t + latency_s + late)[keep], np.full(int(keep.sum()), i),
+    return MessageTable(t[keep], (t + latency_s + late)[keep], np.full(int(keep.sum()), i),
                   {k: v[keep] for k, v in cols.items()})
 
 
 def _relative(frame: LocalFrame, sp: SurveyPath, forms: dict[str, Formation], d: str, i: int,
               dur: float, nm: NoiseModel, phase_s: float, rng: np.random.Generator,
-              latency_s: float) -> _Table:
+              latency_s: float) -> MessageTable:
     """Observations by helper ``d`` of A: offset A - helper in the ENU axes at ``d``."""
     t = _times(dur, nm.relative_rate_hz, phase_s)
     p_obs, _ = _truth(sp, forms, d, t)
@@ -552,6 +555,6 @@ def _relative(frame: LocalFrame, sp: SurveyPath, forms: dict[str, Formation], d:
         + ((r * sig_th) ** 2)[:, None, None] * (np.eye(3) - bbt)
     cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
     late = _late(rng, t.size, nm.late_relative_frac, nm.late_min_s, nm.late_max_s)
-    return _Table(t, t + latency_s + late, np.full(t.size, i),
+    return MessageTable(t, t + latency_s + late, np.full(t.size, i),
                   {"bearing_enu": b, "range_m": r, "cov_enu_m2": cov, "target": np.zeros(t.size, int),
                    "range_true_m": rng_true, "bearing_true_enu": b_true})
