@@ -24,6 +24,7 @@ class Track:
     """Time series of one drone (local ENU of the log's origin)."""
 
     time_s: list[float] = field(default_factory=list)
+    lla: list[tuple[float, float, float]] = field(default_factory=list)
     enu_m: list[np.ndarray] = field(default_factory=list)
     cov_enu_m2: list[np.ndarray] = field(default_factory=list)
     gnss_state: list[str] = field(default_factory=list)
@@ -105,6 +106,7 @@ def _enu(engine: FusionEngine, lat: float, lon: float, alt: float) -> np.ndarray
 
 def _append(track: Track, est: Estimate) -> None:
     track.time_s.append(est.time_s)
+    track.lla.append((est.lat_deg, est.lon_deg, est.alt_m))
     track.enu_m.append(est.enu_m)
     track.cov_enu_m2.append(est.cov_enu_m2)
     gnss = est.health.get("gnss")
