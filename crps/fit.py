@@ -3,18 +3,24 @@
 Moments weight every pixel of the support by its squared distance from the centroid, so
 at a few pixels of extent the noise in the blur tails dominates the size. Fitting the
 model instead (the :class:`~skyfix.crps.model.DroneModel` placed along the detection's
-ray at range ``rho * span``, level, yaw ``psi``, projected through the camera at the
-helper's attitude, rasterized with area coverage and convolved with the known Gaussian
-PSF) uses each pixel in proportion to what it says about the size.
+ray at range ``rho * span``, yaw ``psi``, tilted about both horizontal axes, projected
+through the camera at the helper's attitude, rasterized with area coverage and convolved
+with the known Gaussian PSF) uses each pixel in proportion to what it says about the size.
 
-Image model in the window: ``I = a * T(rho, psi, du, dv) + b0 + bu * x + bv * y``.
-Gauss-Newton on all eight parameters; derivatives in rho and psi by finite differences
-of renders, in (du, dv) from the template gradient. The size sigma is the Gauss-Newton
-covariance of log(rho) (noise from the fit residual, yaw marginalised through a weak
-prior over the symmetry period); the error that remains without noise is reported
-separately as ``size_model_sigma_rel`` because it does not average out along a track.
-The result is a :class:`~skyfix.crps.detection.Detection` of kind ``"model"`` whose
-``size_px`` is the on-axis apparent span, ``focal / rho``.
+Image model in the window: ``I = a * T(rho, tilts, psi, du, dv) + b0 + bu * x + bv * y``.
+Gauss-Newton on all ten parameters from each start of a yaw grid over the symmetry
+period; derivatives in rho, tilts and psi by finite differences of renders, in (du, dv)
+from the template gradient; the tilts have a Gaussian prior (a flying drone leans a few
+degrees). Yaw and the sideways tilt are fitted because at a few pixels both trade against
+the size: on noise-free renders at 100 m (target tilted 3 deg 1-sigma) the p95 size error
+was 10.6 % with yaw only weighed on a 4-step grid and one tilt, 6.2 % with yaw fitted,
+4.5 % with both tilts fitted. The hypotheses are averaged in log range with their
+posterior weights ``exp(-cost / 2 noise^2)``; the size sigma is the Gauss-Newton
+covariance of log(rho) from the fit residual, and the error that remains without noise
+(plus the spread over yaw hypotheses) is reported separately as ``size_model_sigma_rel``
+because it does not average out along a track. The result is a
+:class:`~skyfix.crps.detection.Detection` of kind ``"model"`` whose ``size_px`` is the
+on-axis apparent span, ``focal / rho``.
 """
 
 from __future__ import annotations
@@ -41,19 +47,20 @@ class SilhouetteFitConfig:
 
     psf_sigma_px: float = 0.7  # Gaussian optical blur of the camera, 1-sigma px (as SilhouetteConfig)
     # Fit detections up to this extent (4 x major RMS, px); larger ones keep their moments.
-    # Where noise is small the moments are the better size (the fit's model error, below,
-    # does not average out along a track); 8 px is where their noise passes it (~65 m for
-    # a 0.5 m drone at 1144 px focal, 0.01 noise against sky).
-    max_extent_px: float = 8.0
+    # Measured on the benchmark's sky renders (0.5 m quad, 1144 px focal, noise 0.01):
+    # single-frame p95 range error fit / moments 1.8 / 4.9 % at 40 m (~13 px), 2.6 / 7.8 %
+    # at 55 m, 6.4 / 8.7 % at 70 m; at 25-30 m (19-23 px) the moments win (2.3-3.4 % vs 6 %).
+    max_extent_px: float = 14.0
     canvas_px: int = 320  # longest side of the supersampled canvas; sets the supersampling (2..8)
     yaw_steps: int = 4  # yaw hypotheses over the symmetry period, each fitted and weighted
     iterations: int = 5  # Gauss-Newton iterations (at most) from a yaw search
     tracked_iterations: int = 1  # ... when started from the previous frame's solution
-    tilt_sigma_deg: float = 4.0  # prior 1-sigma of the target's tilt towards the viewer, deg
-    # Relative size error left without noise (rotor shading, motion blur, yaw/tilt ambiguity
-    # at a few pixels): 2.5-3 % RMS measured on noise-free renders at 40-100 m. It stays
+    tilt_sigma_deg: float = 4.0  # prior 1-sigma of the target's tilt about each horizontal axis, deg
+    # Relative size error left without noise (yaw and tilt trade against size at a few
+    # pixels, rotors lighter than the frame, motion blur): RMS 2.8 % (target tilted 3 deg
+    # 1-sigma) and 3.3 % (level) on noise-free renders at 100 m, less when nearer. It stays
     # fixed along a track, so it goes to Detection.size_model_sigma_rel, not size_sigma_px.
-    model_sigma_rel: float = 0.025
+    model_sigma_rel: float = 0.03
 
     def __post_init__(self) -> None:
         validate.positive_scalar("SilhouetteFitConfig.psf_sigma_px", self.psf_sigma_px)
@@ -71,8 +78,9 @@ class SilhouetteFitConfig:
 class FitState:
     """Per-yaw fit parameters of one frame, to start the next frame's fit from (a tracker keeps it).
 
-    ``yaw_deg`` (K,) the yaw grid; ``params`` (K, 4) log range per unit span, tilt deg,
-    shift u, v px of the model from its projection on the detection's ray.
+    ``yaw_deg`` (K,) the fitted yaw of each hypothesis; ``params`` (K, 6) log range per unit
+    span, the two tilts and yaw in degrees, shift u, v px of the model from its projection on
+    the detection's ray.
     """
 
     yaw_deg: np.ndarray
@@ -119,26 +127,29 @@ class SilhouetteFit:
 
     # -- rendering --------------------------------------------------------------------
     def _setup(self, detection: Detection, helper_pose: CameraPose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(target direction (3,) camera frame, rotation camera-from-NED, tilt axis (3,) NED).
+        """(target direction (3,) camera frame, rotation camera-from-NED, tilt axes (2, 3) NED).
 
-        The tilt axis is horizontal and perpendicular to the line of sight: tilting about
-        it changes how far the viewer sees onto the rotor plane, which the fit must not
-        mistake for a size change.
+        Both tilt axes are horizontal: the first perpendicular to the line of sight
+        (tilting about it changes how far the viewer sees onto the rotor plane, which the
+        fit must not mistake for a size change), the second along it (the silhouette
+        leans sideways, an in-plane rotation when seen near edge-on).
         """
         ray = self.camera.pixel_to_ray(detection.centroid_uv[None, :])[0]
         r_cam_from_ned = helper_pose.r_enu_from_cam().T @ R_ENU_FROM_NED
         los_ned = r_cam_from_ned.T @ ray
-        axis = np.array([-los_ned[1], los_ned[0], 0.0])
-        n = float(np.linalg.norm(axis))
-        return ray, r_cam_from_ned, (axis / n if n > 1e-9 else np.array([1.0, 0.0, 0.0]))
+        across = np.array([-los_ned[1], los_ned[0], 0.0])
+        n = float(np.linalg.norm(across))
+        across = across / n if n > 1e-9 else np.array([1.0, 0.0, 0.0])
+        along = np.cross(np.array([0.0, 0.0, 1.0]), across)
+        return ray, r_cam_from_ned, np.stack((across, along))
 
-    def _template(self, geometry: tuple[np.ndarray, np.ndarray, np.ndarray], rho: float, psi_deg: float,
-                  tilt_deg: float, origin: np.ndarray, shape: tuple[int, int], ss: int) -> np.ndarray:
-        """Blurred coverage (H, W) of the unit model at range ``rho``, yaw ``psi_deg``, tilt ``tilt_deg``."""
-        ray, r_cam_from_ned, axis = geometry
-        tilt, _ = cv2.Rodrigues(axis * math.radians(tilt_deg))
-        rot = r_cam_from_ned @ tilt @ r_ned_from_frd(psi_deg, 0.0, 0.0)
-        uv = (self.camera.project(self._points @ rot.T + rho * ray) - origin) * ss + (ss - 1) / 2.0
+    def _template(self, geometry: tuple[np.ndarray, np.ndarray, np.ndarray], q: np.ndarray, origin: np.ndarray,
+                  shape: tuple[int, int], ss: int) -> np.ndarray:
+        """Blurred coverage (H, W) of the unit model at ``q`` = (log range, tilt a, tilt b, yaw), degrees."""
+        ray, r_cam_from_ned, axes = geometry
+        tilt, _ = cv2.Rodrigues(axes.T @ np.radians(q[1:3]))
+        rot = r_cam_from_ned @ tilt @ r_ned_from_frd(float(q[3]), 0.0, 0.0)
+        uv = (self.camera.project(self._points @ rot.T + math.exp(q[0]) * ray) - origin) * ss + (ss - 1) / 2.0
         cover, _ = rasterize_convex_parts(np.split(uv, self._splits), [1.0] * (len(self._splits) + 1),
                                           (shape[0] * ss, shape[1] * ss))
         px = cover.reshape(shape[0], ss, shape[1], ss).mean(axis=(1, 3))
@@ -167,12 +178,6 @@ class SilhouetteFit:
         rho0 = self._focal * 0.224 / max(det.major_rms_px, 0.3)
         origin = np.array([u0, v0], float)
 
-        def solve_linear(t: np.ndarray) -> tuple[np.ndarray, float]:
-            a = np.column_stack((t.ravel(), np.ones(obs.size), xs.ravel(), ys.ravel()))
-            coef, *_ = np.linalg.lstsq(a, obs, rcond=None)
-            res = obs - a @ coef
-            return coef, float(res @ res)
-
         # Yaw is rarely resolvable at a few pixels, and a wrong yaw changes the fitted size:
         # fit range, tilt and shift at each yaw of a grid over the symmetry period and average
         # the log range over yaw with the posterior weights exp(-cost / 2 noise^2).
@@ -181,24 +186,23 @@ class SilhouetteFit:
             yaws = np.arange(cfg.yaw_steps) * self._period_deg / cfg.yaw_steps
             starts = []
             for psi in yaws:
-                t = self._template(geometry, rho0, float(psi), 0.0, origin, shape, ss)
+                t = self._template(geometry, np.array([math.log(rho0), 0.0, 0.0, psi]), origin, shape, ss)
                 m0 = max(float(t.sum()), 1e-12)
                 shift = centre - np.array([float((t * xx).sum()), float((t * yy).sum())]) / m0
-                starts.append(np.array([math.log(rho0), 0.0, shift[0], shift[1]]))
+                starts.append(np.array([math.log(rho0), 0.0, 0.0, float(psi), shift[0], shift[1]]))
             iterations = cfg.iterations
         else:
             # The shift is relative to the model placed on this frame's detection ray, so last
             # frame's solution is a valid start as it is.
-            yaws = start.yaw_deg
             starts = [q.copy() for q in start.params]
             iterations = cfg.tracked_iterations
         results, kept = [], []
-        for psi, q in zip(yaws, starts, strict=True):
-            out = self._gauss_newton(geometry, obs, (xs, ys), origin, shape, ss, float(psi), q, iterations,
+        for q in starts:
+            out = self._gauss_newton(geometry, obs, (xs, ys), origin, shape, ss, q, iterations,
                                      final_cost=start is None)
             if out is not None:
                 results.append(out)
-                kept.append(float(psi))
+                kept.append(float(out[4][3]))
         if not results:
             return None
         cost = np.array([r[0] for r in results])
@@ -216,9 +220,9 @@ class SilhouetteFit:
                        size_model_sigma_rel=math.sqrt(cfg.model_sigma_rel ** 2 + var_yaw))
 
     def _gauss_newton(self, geometry, obs: np.ndarray, plane: tuple[np.ndarray, np.ndarray], origin: np.ndarray,
-                      shape: tuple[int, int], ss: int, psi: float, p: np.ndarray,
+                      shape: tuple[int, int], ss: int, p: np.ndarray,
                       iterations: int, final_cost: bool) -> tuple[float, float, float, float, np.ndarray] | None:
-        """Fit ``p`` = (log range, tilt, shift u, v) at yaw ``psi``.
+        """Fit ``p`` = (log range, tilt a, tilt b, yaw (deg), shift u, v (px)) from the start ``p``.
 
         Returns (cost, log range, its variance, noise^2, fitted ``p``). ``final_cost``
         renders once more for the cost at the solution; otherwise the cost is the one
@@ -226,47 +230,48 @@ class SilhouetteFit:
         """
         cfg = self.config
         base = np.column_stack((np.ones(obs.size), plane[0].ravel(), plane[1].ravel()))
-        steps = np.array([1.0 / max(self._focal / math.exp(p[0]), 4.0), 2.0])
-        prior = np.array([0.0, cfg.tilt_sigma_deg ** -2, 0.0, 0.0])  # per unit noise variance
+        steps = np.array([1.0 / max(self._focal / math.exp(p[0]), 4.0), 2.0, 2.0, 2.0])
+        tilt_info = cfg.tilt_sigma_deg ** -2
+        prior = np.array([0.0, tilt_info, tilt_info, 0.0, 0.0, 0.0])  # per unit noise variance
+        clip = np.array([0.2, 5.0, 5.0, 10.0, 1.0, 1.0])
         cov = None
-        for _ in range(iterations):
-            t = self._template(geometry, math.exp(p[0]), psi, p[1], origin - p[2:4], shape, ss)
+
+        def linear(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            """(design matrix, coefficients, residual) of the amplitude and background plane."""
             a = np.column_stack((t.ravel(), base))
             coef, *_ = np.linalg.lstsq(a, obs, rcond=None)
+            return a, coef, obs - a @ coef
+
+        for _ in range(iterations):
+            t = self._template(geometry, p[:4], origin - p[4:6], shape, ss)
+            a, coef, res = linear(t)
             amp = coef[0]
             if amp >= 0:  # a drone darker than its background (the silhouette detector's default)
                 return None
             cols = []
-            for k in range(2):
-                q = p[:2].copy()
+            for k in range(4):
+                q = p[:4].copy()
                 q[k] += steps[k]
-                tk = self._template(geometry, math.exp(q[0]), psi, q[1], origin - p[2:4], shape, ss)
+                tk = self._template(geometry, q, origin - p[4:6], shape, ss)
                 cols.append((amp * (tk - t) / steps[k]).ravel())
             gv, gu = np.gradient(t)
             jac = np.column_stack((*cols, -amp * gu.ravel(), -amp * gv.ravel(), a))
-            res = obs - a @ coef
-            noise2 = max(float(res @ res) / max(obs.size - 8, 1), 1e-12)
+            noise2 = max(float(res @ res) / max(obs.size - jac.shape[1], 1), 1e-12)
             info = jac.T @ jac
-            info[np.arange(4), np.arange(4)] += prior * noise2
+            info[np.arange(6), np.arange(6)] += prior * noise2
             try:
                 cov = np.linalg.inv(info)
             except np.linalg.LinAlgError:
                 return None
             step = cov @ (jac.T @ res)
-            step[:4] -= cov[:4, :4] @ (prior * noise2 * np.array([0.0, p[1], 0.0, 0.0]))
-            step[0] = float(np.clip(step[0], -0.2, 0.2))
-            step[1] = float(np.clip(step[1], -5.0, 5.0))
-            step[2:4] = np.clip(step[2:4], -1.0, 1.0)
-            p = p + step[:4]
-            if abs(step[0]) < 1e-4 and np.all(np.abs(step[2:4]) < 1e-3):
+            step[:6] -= cov[:6, :6] @ (prior * noise2 * p)
+            p = p + np.clip(step[:6], -clip, clip)
+            if abs(step[0]) < 1e-4 and np.all(np.abs(step[4:6]) < 1e-3):
                 break
         if cov is None or not np.isfinite(p).all():
             return None
         cost = float(res @ res)
         if final_cost:
-            t = self._template(geometry, math.exp(p[0]), psi, p[1], origin - p[2:4], shape, ss)
-            a = np.column_stack((t.ravel(), base))
-            coef, *_ = np.linalg.lstsq(a, obs, rcond=None)
-            res = obs - a @ coef
+            _, _, res = linear(self._template(geometry, p[:4], origin - p[4:6], shape, ss))
             cost = float(res @ res)
         return cost, float(p[0]), float(cov[0, 0]) * noise2, noise2, p

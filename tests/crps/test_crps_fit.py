@@ -45,7 +45,11 @@ def test_fit_recovers_range_of_a_noise_free_level_target():
     det = DETECT(view.image)[0]
     fitted = FIT(view.image, det, helper)
     assert fitted.kind == "model"
-    assert FIT.last_state is not None and FIT.last_state.params.shape == (4, 4)
+    assert FIT.last_state is not None and FIT.last_state.params.shape == (4, 6)
+    # Yaw is fitted: noise-free, most hypotheses of the 4-step grid converge on the true 30 deg
+    # (mod the quad's 90 deg symmetry).
+    yaw_off = np.abs((FIT.last_state.yaw_deg - 30.0 + 45.0) % 90.0 - 45.0)
+    assert np.sum(yaw_off < 5.0) >= 2
     err, sigma = range_error(view, helper, fitted)
     # Without noise only the model error is left (lighter rotors, yaw ambiguity): ~2.5 % stated.
     assert abs(err) <= 2.0 * sigma
