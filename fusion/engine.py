@@ -214,7 +214,7 @@ class FusionEngine:
         self._refresh_rotation(drone, fix.lat_deg, fix.lon_deg, fix.alt_m)
         enu = np.array([float(c) for c in self.frame.to_enu(fix.lat_deg, fix.lon_deg, fix.alt_m)])
         r = drone.r_frame_from_local
-        self._absolute(drone, monitor, t, enu, r @ fix.cov_enu_m2 @ r.T, None)
+        self._absolute(drone, monitor, t, enu, r @ fix.cov_enu_m2 @ r.T, None, robust=False)
 
     def add_relative(self, obs: RelativeObservation) -> None:
         """A helper's observation of a target (source ``relative:<observer_id>`` of the target).
@@ -406,7 +406,7 @@ class FusionEngine:
         drone.up_minus_alt_m = float(self.frame.to_enu(lat, lon, alt)[2]) - alt
 
     def _absolute(self, drone: _Drone, monitor: SourceMonitor, t: float, enu: np.ndarray, cov: np.ndarray,
-                  quality: str | None) -> None:
+                  quality: str | None, robust: bool = True) -> None:
         k = self._step_checked(t, "measurement")
         predicted = self._predict(drone, t)
         consistent = True
@@ -418,7 +418,7 @@ class FusionEngine:
             self._anchor(drone, k, enu)
         self._ensure(drone, k)
         shift, shift_var = self._shift(drone, t, k)
-        self._window.position(drone.index, k, enu + shift, cov + np.eye(3) * shift_var)
+        self._window.position(drone.index, k, enu + shift, cov + np.eye(3) * shift_var, robust)
 
     def _anchor(self, drone: _Drone, k: int, p0: np.ndarray) -> None:
         """First state of a drone at step k; the caller adds the factor that fixes its position."""

@@ -11,7 +11,7 @@ Factors are gtsam's own C++ ones: ``PriorFactorPoint3`` (GNSS, tag fixes),
 bound), and ``LinearContainerFactor`` around a ``JacobianFactor`` for the two linear
 relations that tie three variables or one axis (velocity: p_k+1 - p_k + b_k dt = v dt;
 altitude: the up component of p_k). GNSS, fixes and relative observations carry a
-Huber robust model.
+Huber robust model (a fix is gated only, see :meth:`GraphWindow.position`).
 
 The window is one this module marginalises itself (gtsam's fixed-lag smoothers were
 measured at 3-5 ms per update here, and its incremental one has known crash and growth
@@ -171,9 +171,15 @@ class GraphWindow:
         factor = gtsam.JacobianFactor(key, _UP_ROW, np.array([up_m]), gtsam.noiseModel.Isotropic.Sigma(1, sigma_m))
         self._add(gtsam.LinearContainerFactor(factor, self._zeros((key,))), k, measurement=True)
 
-    def position(self, drone_index: int, k: int, enu_m: np.ndarray, cov_m2: np.ndarray) -> None:
-        """Absolute position of p_k (GNSS, tag fix), robust."""
-        self._add(gtsam.PriorFactorPoint3(self.key(drone_index, 0, k), gtsam.Point3(*enu_m), self._robust(cov_m2)), k,
+    def position(self, drone_index: int, k: int, enu_m: np.ndarray, cov_m2: np.ndarray, robust: bool = True) -> None:
+        """Absolute position of p_k (GNSS robust; a precise fix, e.g. from tags, Gaussian).
+
+        The robust kernel is evaluated at the current estimate, so a fix much more precise
+        than the drone's prediction would be down-weighted as an outlier for its first update;
+        such fixes are gated (chi-square on the full innovation covariance) but not re-weighted.
+        """
+        noise = self._robust(cov_m2) if robust else gtsam.noiseModel.Gaussian.Covariance(cov_m2)
+        self._add(gtsam.PriorFactorPoint3(self.key(drone_index, 0, k), gtsam.Point3(*enu_m), noise), k,
                   measurement=True)
 
     def relative(self, observer_index: int, target_index: int, k: int, offset_m: np.ndarray, cov_m2: np.ndarray) -> None:
