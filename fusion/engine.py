@@ -41,6 +41,7 @@ from skyfix.types import GeoFix, RelativeObservation
 log = logging.getLogger(__name__)
 
 _ROTATION_REFRESH_M = 100.0  # ENU axes turn ~0.0009 deg per 100 m: refresh a drone's rotation after this
+_EYE3 = np.eye(3)
 _MAX_TIME_JUMP_S = 30.0      # an input this far ahead of the engine's clock is refused (units mix-up, bad clock)
 
 
@@ -50,7 +51,7 @@ class _Drone:
     first_k: int | None = None          # oldest and newest grid steps with states (None: not anchored)
     last_k: int | None = None
     last_time_s: float = -math.inf       # newest measurement time of this drone
-    velocity: tuple[float, np.ndarray, np.ndarray] | None = None  # (t, v in frame axes, sigma per axis)
+    velocity: tuple[float, np.ndarray, float] | None = None  # (t, v in frame axes, per-axis variance incl. model)
     monitors: dict[str, SourceMonitor] = field(default_factory=dict)
     r_frame_from_local: np.ndarray = field(default_factory=lambda: np.eye(3))
     rotation_at_enu: np.ndarray | None = None
@@ -165,7 +166,7 @@ class FusionEngine:
         self._monitor(drone, "velocity", self.config.velocity_timeout_s, t).judge(t, True)
         vel_frame = drone.r_frame_from_local @ vel
         if drone.velocity is None or t >= drone.velocity[0]:
-            drone.velocity = (t, vel_frame, sigma)
+            drone.velocity = (t, vel_frame, float(sigma.max()) ** 2 + self._vel_sigma_floor**2)
         if drone.intervals is None:
             drone.intervals = IntervalVelocity(self._window.epoch_s, self._window.dt_s, self.config.velocity_timeout_s)
         for j, mean, sig in drone.intervals.add(t, vel_frame, sigma):
@@ -263,7 +264,7 @@ class FusionEngine:
         s_obs, v_obs = self._shift(observer, t, k)
         s_tgt, v_tgt = self._shift(target, t, k)
         self._window.relative(observer.index, target.index, k, offset + s_tgt - s_obs,
-                              cov + np.eye(3) * (v_obs + v_tgt))
+                              cov + _EYE3 * (v_obs + v_tgt))
 
     # -- solving and answers ----------------------------------------------------------
     def update(self) -> None:
@@ -312,7 +313,7 @@ class FusionEngine:
         cov_k = window.covariance(drone.index, 0, k)
         shift, shift_var = self._shift(drone, t_s, k)
         enu = p_k - shift  # shift moves from t to the grid; the estimate goes the other way
-        cov = cov_k + np.eye(3) * shift_var
+        cov = cov_k + _EYE3 * shift_var
         vel, vel_cov = self._velocity_estimate(drone, t_s, k)
         lat, lon, alt = (float(c) for c in self.frame.to_geodetic(*enu))
         return Estimate(drone_id=_drone_id(drone_id), time_s=t_s, lat_deg=lat, lon_deg=lon, alt_m=alt,
@@ -418,7 +419,7 @@ class FusionEngine:
             self._anchor(drone, k, enu)
         self._ensure(drone, k)
         shift, shift_var = self._shift(drone, t, k)
-        self._window.position(drone.index, k, enu + shift, cov + np.eye(3) * shift_var, robust)
+        self._window.position(drone.index, k, enu + shift, cov + _EYE3 * shift_var, robust)
 
     def _anchor(self, drone: _Drone, k: int, p0: np.ndarray) -> None:
         """First state of a drone at step k; the caller adds the factor that fixes its position."""
@@ -456,9 +457,9 @@ class FusionEngine:
         """Bias-corrected velocity near ``t`` and its per-axis variance, or None if stale."""
         if drone.velocity is None or abs(t - drone.velocity[0]) > self.config.velocity_timeout_s:
             return None
-        b = self._window.value(drone.index, 1, drone.last_k) if drone.anchored else np.zeros(3)
-        sigma = drone.velocity[2]
-        return drone.velocity[1] - b, float(np.max(sigma) ** 2 + self._vel_sigma_floor**2)
+        if not drone.anchored:
+            return drone.velocity[1], drone.velocity[2]
+        return drone.velocity[1] - self._window.value(drone.index, 1, drone.last_k), drone.velocity[2]
 
     def _shift(self, drone: _Drone, t: float, k: int) -> tuple[np.ndarray, float]:
         """Displacement from time t to grid step k (m) and its per-axis variance."""
@@ -502,13 +503,13 @@ class FusionEngine:
         p = window.value(drone.index, 0, k) - shift
         cached = self._latest_cov(drone)
         if cached is None:  # nothing optimised yet: no basis for gating
-            return p, np.eye(3) * 1e12
+            return p, _EYE3 * 1e12
         k_cov, cov = cached
         gap_s = abs(t - window.time_of(k_cov))
         vel = self._velocity_now(drone, t)
         grow = (self.config.max_speed_mps * gap_s) ** 2 if vel is None else \
             vel[1] * gap_s * window.dt_s + (self.config.bias_initial_sigma_mps * gap_s) ** 2
-        return p, cov + np.eye(3) * (grow + shift_var)
+        return p, cov + _EYE3 * (grow + shift_var)
 
     @staticmethod
     def _nis(innovation: np.ndarray, cov: np.ndarray) -> float:
@@ -522,10 +523,10 @@ class FusionEngine:
         vel = self._velocity_now(drone, t)
         if vel is not None:
             b_cov = window.covariance(drone.index, 1, min(k, self._latest_cov(drone)[0]))
-            return vel[0], np.eye(3) * vel[1] + b_cov
+            return vel[0], _EYE3 * vel[1] + b_cov
         k0 = max(drone.first_k, k - int(round(1.0 / window.dt_s)))
         if k0 == k:
-            return np.zeros(3), np.eye(3) * self.config.max_speed_mps**2
+            return np.zeros(3), _EYE3 * self.config.max_speed_mps**2
         span_s = (k - k0) * window.dt_s
         v = (window.value(drone.index, 0, k) - window.value(drone.index, 0, k0)) / span_s
         cov = (window.covariance(drone.index, 0, k) + window.covariance(drone.index, 0, k0)) / span_s**2
