@@ -453,6 +453,7 @@ def memory_run(engine_cls, memory_s: float, seed: int, lag_s: float | None
 
 
 def _rss_mb() -> float:
+    """Resident set size from /proc/self/status, MB."""
     with open("/proc/self/status") as f:
         for line in f:
             if line.startswith("VmRSS:"):
@@ -668,12 +669,12 @@ def _report_skyfix(scen: FusionScenario, args, sk: SkyfixRun, sk_bad: SkyfixRun,
     if memory_s > 0:
         rss, cpu_mem = memory_run(engine_cls, memory_s, args.seed, args.lag_s)
         print(f"\nmemory run, {memory_s:g} s simulated: RSS " +
-              ", ".join(f"{t / 60:g} min {mb:.1f} MB" for t, mb in rss))
+              ", ".join(f"{t / 60:.3g} min {mb:.2f} MB" for t, mb in rss))
         growth = (rss[-1][1] - rss[0][1]) / rss[0][1]
-        print(f"  growth from {rss[0][0] / 60:g} to {rss[-1][0] / 60:g} min: "
-              f"{rss[-1][1] - rss[0][1]:+.1f} MB ({100 * growth:+.2f} %); CPU per tick over the run "
+        print(f"  growth from {rss[0][0] / 60:.3g} to {rss[-1][0] / 60:.3g} min: "
+              f"{rss[-1][1] - rss[0][1]:+.2f} MB ({100 * growth:+.2f} %); CPU per tick over the run "
               f"p50 {_pct(cpu_mem, 50):.2f} / p99 {_pct(cpu_mem, 99):.2f} / max {_max(cpu_mem):.2f} ms")
-        ok[f"memory flat (< 5 % from {rss[0][0] / 60:g} to {rss[-1][0] / 60:g} min)"] = \
+        ok[f"memory flat (< 5 % from {rss[0][0] / 60:.3g} to {rss[-1][0] / 60:.3g} min)"] = \
             growth < GOALS["memory_growth_frac"]
     else:
         print("\nmemory run skipped (--memory-s 0)")
