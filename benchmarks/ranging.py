@@ -331,7 +331,7 @@ def terrain_sequences(rng, detector, textures, n_seq: int, with_target: bool) ->
             out["frames"] += 1
             if with_target:
                 near = [d for d in found if np.linalg.norm(d.centroid_uv - view.truth.centroid_uv) < 10 + d.extent_px]
-                out["single_hit"] += bool(near)
+                out["single_hit"] += bool(near) and k > 0  # the frames the sequence path is scored on
                 out["single"] += len(found) - len(near)
             else:
                 out["single"] += len(found)
@@ -464,12 +464,13 @@ def main() -> int:
           f"{free['prior']}/{free['frames']}")
     print(f"   - SEQUENCE path for terrain (Tracker + GroundMotionFilter), frames after the first of each sequence: "
           f"{free['seq']}/{free['seq_frames']} ({free['seq'] / free['seq_frames'] * 1000:.2f} per 1000)")
-    hit_single = tgt["single_hit"] / max(tgt["frames"], 1)
+    hit_single = tgt["single_hit"] / max(tgt["seq_frames"], 1)
     hit_seq = tgt["seq_hit"] / max(tgt["seq_frames"], 1)
     print(f"   With a target over terrain ({n_seq_target} sequences, 0.5 m quad 12-35 m away below the helper, "
-          f"0-3 m/s): detected in {hit_single * 100:.1f}% of frames single-frame, {hit_seq * 100:.1f}% by the "
-          f"sequence path (after the first frame); sequence path reported something else in "
-          f"{tgt['seq_wrong']}/{tgt['seq_frames']} frames; its range median "
+          f"0-3 m/s), frames after the first: target detected in {hit_single * 100:.1f}% of frames by the "
+          f"single-frame path, {hit_seq * 100:.1f}% by the sequence path ({tgt['seq_hit']}/{tgt['seq_frames']}); "
+          f"the sequence path reported something else in {tgt['seq_wrong']}/{tgt['seq_frames']} frames, the "
+          f"single-frame path {tgt['single']} times; sequence-path range median "
           f"{pct(tgt['seq_range'], 50) * 100:.2f}% p95 {pct(tgt['seq_range'], 95) * 100:.2f}%")
     print(f"   sequence path speed, one core (process_time): {free['frames'] / free['cpu_s']:.1f} frames/s "
           "without a track (full-frame search + ground check), "
@@ -479,7 +480,9 @@ def main() -> int:
     n_terrain = free["seq_frames"] + tgt["seq_frames"]
     goals["terrain: <= 1 false detection per 1000 frames (sequence path, the documented one for terrain)"] = (
         fp_terrain <= max(1, n_terrain // 1000))
-    goals["terrain: target still detected by the sequence path (>= 80% of frames)"] = hit_seq >= 0.8
+    # Guard, not an issue goal: a ground filter that dropped everything would meet the line above.
+    goals["terrain: the sequence path keeps >= 80% of the single-frame path's target detections"] = (
+        hit_seq >= 0.8 * hit_single and tgt["seq_hit"] > 0)
     print("5. bad inputs:")
     lines = bad_inputs()
     print("\n".join(lines))

@@ -214,7 +214,10 @@ class SilhouetteFit:
         var_noise = float(weight @ np.array([r[2] for r in results]))
         # The spread over yaw hypotheses stays while the target keeps its heading: model error.
         var_yaw = float(weight @ (log_rho - mean) ** 2)
-        self.last_state = FitState(np.array(kept), np.array([r[4] for r in results]))
+        # Hypotheses with negligible posterior weight are not carried to the next frame (a
+        # tracker then refits only the plausible yaws); each keeps fitting its yaw freely.
+        alive = weight >= 1e-3
+        self.last_state = FitState(np.array(kept)[alive], np.array([r[4] for r in results])[alive])
         size_px = self._focal / math.exp(mean)
         return replace(det, kind="model", size_px=size_px, size_sigma_px=size_px * math.sqrt(var_noise),
                        size_model_sigma_rel=math.sqrt(cfg.model_sigma_rel ** 2 + var_yaw))

@@ -45,13 +45,14 @@ def test_fit_recovers_range_of_a_noise_free_level_target():
     det = DETECT(view.image)[0]
     fitted = FIT(view.image, det, helper)
     assert fitted.kind == "model"
-    assert FIT.last_state is not None and FIT.last_state.params.shape == (4, 6)
-    # Yaw is fitted: noise-free, most hypotheses of the 4-step grid converge on the true 30 deg
-    # (mod the quad's 90 deg symmetry).
-    yaw_off = np.abs((FIT.last_state.yaw_deg - 30.0 + 45.0) % 90.0 - 45.0)
-    assert np.sum(yaw_off < 5.0) >= 2
+    state = FIT.last_state
+    assert state is not None and state.params.shape[1] == 6 and 1 <= state.params.shape[0] <= 4
+    # Yaw is fitted: noise-free, the hypotheses of the 4-step grid that stay plausible (the
+    # others are not carried to the next frame) sit on the true 30 deg (mod the quad's 90 deg).
+    yaw_off = np.abs((state.yaw_deg - 30.0 + 45.0) % 90.0 - 45.0)
+    assert np.all(yaw_off < 5.0)
     err, sigma = range_error(view, helper, fitted)
-    # Without noise only the model error is left (lighter rotors, yaw ambiguity): ~2.5 % stated.
+    # Without noise only the model error is left (lighter rotors, yaw/tilt ambiguity): 3 % stated.
     assert abs(err) <= 2.0 * sigma
     assert abs(err) / view.truth.range_m <= 0.04
     np.testing.assert_allclose(fitted.centroid_uv, det.centroid_uv)  # the bearing is the detector's
@@ -107,10 +108,10 @@ def test_tracker_uses_the_fit_when_given_the_helper_pose():
         assert plain.update(view.image, k / 30.0).kind == "silhouette"
         errs.append(range_error(view, helper, det))
     # Each frame is warm-started from the last; the error stays within the stated sigma, which
-    # keeps the model error (not averaged by tracking) and so stays above 2.5 %.
+    # keeps the model error (not averaged by tracking) and so stays at or above 3 %.
     err, sigma = errs[-1]
     assert abs(err) <= 3.0 * sigma
-    assert 0.025 <= sigma / 90.0 <= 0.05
+    assert 0.03 <= sigma / 90.0 <= 0.05
     with pytest.raises(InputError, match="fit"):
         Tracker(DETECT, fit="fit")
 
