@@ -16,7 +16,10 @@ Estimators, on the same events in arrival order, sampled every 0.1 s of sim time
   chi-square gate 99.9 %), altitude and relative updates (target = helper's EKF position
   + observed offset, R = observation covariance + helper's position covariance, gated).
   Late measurements are processed on arrival: shifted to the filter's time with the
-  filter's velocity (bias removed), their covariance grown by the velocity noise.
+  filter's velocity (bias removed), their covariance grown by the velocity noise. The
+  filters share no cross-covariance, so a helper's slowly varying error counts as new
+  at every observation: A's EKF covariance is too small (its NEES shows it), not its
+  accuracy.
 * skyfix: FusionEngine fed by arrival; ``update()`` every 0.1 s after that tick's events,
   then ``estimate()`` for each drone.
 
