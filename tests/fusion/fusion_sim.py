@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from skyfix.datasets.observations import relative_observation
 from skyfix.geo import LocalFrame
 from skyfix.types import RelativeObservation
 
@@ -38,22 +38,9 @@ def velocity_args(rng, line: Line, bias=(0.0, 0.0, 0.0)) -> dict:
     return dict(vel_enu_mps=v, sigma_mps=VEL_SIGMA)
 
 
-def relative(rng, observer: str, target: str, p_obs: np.ndarray, p_tgt: np.ndarray, t_s: float,
-             range_frac: float = 0.03, bearing_sigma_deg: float = 0.2) -> RelativeObservation:
-    """Noisy observation of ``target`` by ``observer`` (ENU axes at the observer)."""
-    lat, lon, _ = (float(c) for c in FRAME.to_geodetic(*p_obs))
-    off = FRAME.enu_rotation_at(lat, lon).T @ (p_tgt - p_obs)
-    r = float(np.linalg.norm(off))
-    b = off / r
-    e1 = np.cross(b, [0.0, 0.0, 1.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(e1, b)
-    sig = math.radians(bearing_sigma_deg)
-    bm = b + rng.normal(0, sig) * e1 + rng.normal(0, sig) * e2
-    bm /= np.linalg.norm(bm)
-    rm = r * (1 + range_frac * rng.normal())
-    cov = (range_frac * rm) ** 2 * np.outer(bm, bm) + (rm * sig) ** 2 * (np.eye(3) - np.outer(bm, bm))
-    return RelativeObservation(observer, target, t_s, bm, rm, cov)
+def relative(rng, observer: str, target: str, p_obs: np.ndarray, p_tgt: np.ndarray, t_s: float) -> RelativeObservation:
+    """Noisy observation of ``target`` by ``observer`` (3 % range, 0.2 deg bearing)."""
+    return relative_observation(FRAME, observer, target, t_s, p_obs, p_tgt, rng)
 
 
 def fly(engine, rng, lines: dict[str, Line], duration_s: float, *, gnss_off: dict | None = None,
