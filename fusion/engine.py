@@ -134,6 +134,9 @@ class FusionEngine:
             issues.append(f"{sats} satellites")
         if hd is not None and hd > cfg.gnss_max_hdop:
             issues.append(f"HDOP {hd:g}")
+        slow = monitor.rate_issue(t)
+        if slow:
+            issues.append(slow)
         h_sigma = h if h is not None else cfg.gnss_uere_m * (hd if hd is not None else 1.0)
         v_sigma = v if v is not None else h_sigma * cfg.gnss_vertical_factor
         if fix_type == 2:

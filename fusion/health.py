@@ -57,6 +57,27 @@ class SourceMonitor:
         self._failures = 0
         self._probation = False
         self._consistent_since_s: float | None = None
+        self._recent_s: list[float] = []   # last message times, for the rate
+        self._usual_rate_hz = 0.0
+
+    def rate_issue(self, t_s: float) -> str | None:
+        """Record a message time; describe the problem if the rate fell below half the usual one.
+
+        The usual rate is the highest rate seen over 10 messages (a receiver's nominal rate).
+        """
+        recent = self._recent_s
+        if recent and t_s <= recent[-1]:
+            return None  # late or repeated: says nothing about the rate
+        recent.append(t_s)
+        if len(recent) > 10:
+            del recent[0]
+        if len(recent) < 10:
+            return None
+        rate = (len(recent) - 1) / (recent[-1] - recent[0])
+        self._usual_rate_hz = max(self._usual_rate_hz, rate)
+        if rate < 0.5 * self._usual_rate_hz:
+            return f"rate {rate:.1f} Hz (usually {self._usual_rate_hz:.1f} Hz)"
+        return None
 
     @property
     def health(self) -> SourceHealth:

@@ -91,3 +91,12 @@ def test_window_marginalises_into_an_exact_prior():
     assert np.allclose(w.value(0, 0, 39), batch[-3:], atol=1e-9)
     assert np.allclose(w.covariance(0, 0, 39), np.linalg.inv(info)[-3:, -3:], atol=1e-9)
     assert w.n_factors < 40  # the window holds ~0.5 s, not the whole history
+
+
+def test_monitor_reports_a_rate_drop():
+    m = SourceMonitor(timeout_s=5.0, reject_after=2, readmit_after_s=5.0, now_s=0.0)
+    issues = [m.rate_issue(0.2 * i) for i in range(1, 21)]          # 5 Hz
+    assert not any(issues)
+    issues = [m.rate_issue(4.0 + 0.5 * i) for i in range(1, 11)]    # 2 Hz
+    assert issues[-1] == "rate 2.0 Hz (usually 5.0 Hz)"
+    assert m.rate_issue(1.0) is None                               # a late message says nothing
