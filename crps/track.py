@@ -15,9 +15,10 @@ With a :class:`~skyfix.crps.fit.SilhouetteFit` and the helper pose passed to
 started from the previous frame's solution (one Gauss-Newton step per yaw hypothesis).
 
 With a :class:`~skyfix.crps.ground.GroundMotionFilter` (the path for terrain backgrounds),
-every frame's detections are checked against the ground's motion before gating, so the
-track neither starts on nor jumps to an object lying on the ground; ``update`` then needs
-the helper pose of every frame.
+detections are checked against the ground's motion before gating, so the track does not
+start on an object lying on the ground, and is dropped if a later check finds it there;
+once confirmed over a few frames the check runs every ``ground_recheck_frames`` frames
+(it costs a homography refinement). ``update`` then needs the helper pose of every frame.
 """
 
 from __future__ import annotations
@@ -48,6 +49,12 @@ class TrackerConfig:
     size_accel_sigma: float = 0.1  # random walk of the log-size rate, 1/s^2 (range-rate changes)
     size_rate_sigma: float = 0.05  # prior 1-sigma of the log-size rate, 1/s (closing speed / range)
     max_misses: int = 5  # consecutive misses before the track is dropped
+    # With a ground filter: once the tracked detection has passed the ground check in
+    # ``ground_confirm_frames`` consecutive frames, the check runs only every
+    # ``ground_recheck_frames`` frames (the filter still stores every frame); a track the
+    # check finds on the ground is dropped at once. 1 checks every frame.
+    ground_confirm_frames: int = 3
+    ground_recheck_frames: int = 10
 
     def __post_init__(self) -> None:
         for name in ("gate_px", "roi_scale"):
@@ -58,8 +65,10 @@ class TrackerConfig:
             value = validate.finite_scalar(f"TrackerConfig.{name}", getattr(self, name))
             if not 0.0 < value <= 1.0:
                 raise InputError(f"TrackerConfig.{name} must be in (0, 1], got {value}")
-        if not isinstance(self.max_misses, int) or self.max_misses < 1:
-            raise InputError(f"TrackerConfig.max_misses must be a positive integer, got {self.max_misses!r}")
+        for name in ("max_misses", "ground_confirm_frames", "ground_recheck_frames"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise InputError(f"TrackerConfig.{name} must be a positive integer, got {value!r}")
 
 
 class Tracker:
@@ -79,6 +88,7 @@ class Tracker:
         self.ground = ground
         self.config = config if config is not None else TrackerConfig()
         self.fit = fit
+        self.ground_checked = False  # whether the last update ran the ground check
         self.reset()
 
     def reset(self) -> None:
@@ -89,6 +99,8 @@ class Tracker:
         self._size_cov = np.eye(2)
         self._time_s = 0.0
         self._kind = ""
+        self._verified = 0  # consecutive ground checks the tracked detection passed
+        self._since_check = 0  # frames since the last ground check
         self._fit_state: FitState | None = None
         self.misses = 0
 
@@ -122,15 +134,32 @@ class Tracker:
         h, w = np.shape(image)[:2]
         roi = self.roi(w, h, t)
         found = self.detector(image, roi)
+        checked = False
+        self.ground_checked = False
         if self.ground is not None:
             if helper_pose is None:
                 raise InputError("Tracker.update needs helper_pose when the tracker has a ground filter")
-            found = self.ground(image, helper_pose, found, t)
+            cfg = self.config
+            checked = (self._uv is None or self._verified < cfg.ground_confirm_frames
+                       or self._since_check + 1 >= cfg.ground_recheck_frames)
+            self.ground_checked = checked
+            if checked:
+                unfiltered = found
+                found = self.ground(image, helper_pose, found, t)
+                self._since_check = 0
+                if self._uv is not None and self._on_ground(unfiltered, t):
+                    self.reset()  # the track sits on the ground: drop it
+                    return None
+            else:
+                self.ground(image, helper_pose, [], t)  # keep the frame for later checks
+                self._since_check += 1
         if self._uv is None:
             if not found:
                 return None
-            best = self._refine(image, max(found, key=lambda d: d.score), helper_pose)
+            chosen = max(found, key=lambda d: d.score)
+            best = self._refine(image, chosen, helper_pose)
             self._start(best, t)
+            self._verified = int(checked and self._passed(chosen))
             return replace(best, time_s=t)
         dt = t - self._time_s
         if dt <= 0:
@@ -147,8 +176,10 @@ class Tracker:
             if self.misses >= self.config.max_misses:
                 self.reset()
             return None
-        det = self._refine(image, min(near, key=lambda d: float(np.linalg.norm(d.centroid_uv - pred))),
-                           helper_pose)
+        chosen = min(near, key=lambda d: float(np.linalg.norm(d.centroid_uv - pred)))
+        if checked:
+            self._verified = self._verified + 1 if self._passed(chosen) else 0
+        det = self._refine(image, chosen, helper_pose)
         cfg = self.config
         if det.kind != self._kind:
             # Sizes of different kinds measure different things (4 x RMS, apparent span):
@@ -172,6 +203,21 @@ class Tracker:
         self._time_s = t
         self.misses = 0
         return _with_size(det, math.exp(self._size[0]), math.sqrt(self._size_cov[0, 0]), t)
+
+    def _passed(self, det: Detection) -> bool:
+        """Whether this frame's ground check kept ``det`` for a reason (not ground, or in the sky)."""
+        return any(c.detection is det and c.verdict in ("target", "sky") for c in self.ground.last_checks)
+
+    def _on_ground(self, unfiltered: list[Detection], t: float) -> bool:
+        """Whether the ground check judged the detection the track would take this frame to be ground."""
+        dt = t - self._time_s
+        pred = self._uv + self._vel * dt
+        gate = self.config.gate_px * (1 + self.misses) + math.exp(self._size[0] + self._size[1] * dt)
+        near = [d for d in unfiltered if np.linalg.norm(d.centroid_uv - pred) <= gate]
+        if not near:
+            return False
+        taken = min(near, key=lambda d: float(np.linalg.norm(d.centroid_uv - pred)))
+        return any(c.detection is taken and c.verdict == "ground" for c in self.ground.last_checks)
 
     def _refine(self, image: np.ndarray, det: Detection, helper_pose: CameraPose | None) -> Detection:
         # Hysteresis: a fitted track keeps fitting up to 1.25 x the size limit, so that noise

@@ -106,6 +106,7 @@ def test_drone_over_terrain_is_kept_and_tracked_through_the_ground_filter():
     p = cam_enu + rot @ CAM.pixel_to_ray(np.array([[700.0, 400.0]]))[0] * 20.0
     lat, lon, alt = FRAME.to_geodetic(*p)
     hits = 0
+    checked = []
     for k in range(12):
         truth, known = flight(k, rng)
         tlat, tlon = destination(float(lat), float(lon), 160.0, 2.0 * k / 30.0)
@@ -119,10 +120,13 @@ def test_drone_over_terrain_is_kept_and_tracked_through_the_ground_filter():
             hits += 1
         checks = [c for c in ground.last_checks
                   if np.linalg.norm(c.detection.centroid_uv - view.truth.centroid_uv) < 5.0]
-        if k >= 4:  # >= 0.13 s: the drone has moved off its own window relative to the ground
-            assert checks and checks[0].verdict == "target" and checks[0].residual_fraction > 0.7
+        if checks:
+            # The drone is nearer than the ground and moving: most of its contrast is not explained.
+            assert checks[0].verdict == "target" and checks[0].residual_fraction > 0.5
+            checked.append(k)
     assert hits >= 9
-
+    # Checked until confirmed in 3 consecutive frames (1-3), then every 10th frame (next: 13).
+    assert checked == [1, 2, 3]
 
 def test_sky_detection_is_kept_and_bad_input_is_refused():
     ground = GroundMotionFilter(CAM, GROUND, 0.5)
@@ -145,3 +149,22 @@ def test_sky_detection_is_kept_and_bad_input_is_refused():
     with pytest.raises(InputError, match="helper_pose"):
         Tracker(DETECT, ground=ground).update(view.image, 2.0)
     assert math.isfinite(ground.ground_alt_m)
+
+
+def test_a_track_the_ground_check_finds_on_the_ground_is_dropped():
+    # keep_undecided lets the first frame (nothing to compare with) start a track on the
+    # painted ground object; the next frame's check finds it on the ground and drops the track.
+    tex, rock_en = texture_with_rock()
+    rng = np.random.default_rng(6)
+    ground = GroundMotionFilter(CAM, GROUND, 0.5, config=GroundMotionConfig(psf_sigma_px=BLUR, keep_undecided=True))
+    tracker = Tracker(DETECT, ground=ground)
+    for k in range(4):
+        truth, known = flight(k, rng)
+        image = render(tex, truth, rng)
+        det = tracker.update(image, k / 30.0, known)
+        uv = rock_pixel(truth, rock_en)
+        if k == 0:
+            assert det is not None and np.linalg.norm(det.centroid_uv - uv) < 6.0
+        else:
+            assert det is None or np.linalg.norm(det.centroid_uv - uv) > 20.0, f"frame {k}: still on the rock"
+    assert not tracker.tracking or np.linalg.norm(tracker._uv - uv) > 20.0
