@@ -1,0 +1,224 @@
+"""Camera JSON: the one file format in which skyfix reads and writes a camera and its lens.
+
+Written form (what :func:`save_camera` produces)::
+
+    {"width": 4000, "height": 3000,          # image size, pixels (integers)
+     "fx_px": 2900.0, "fy_px": 2900.0,       # focal lengths, pixels
+     "cx_px": 1999.5, "cy_px": 1499.5,       # principal point, OpenCV pixels (centre of the
+                                             #   top-left pixel is (0, 0))
+     "model": "brown_conrady",               # pinhole | brown_conrady | fisheye | barrel
+     "coefficients": {"k1": -0.1, "k2": 0.02, "p1": 0.0, "p2": 0.0, "k3": 0.0}}
+
+``coefficients`` per ``model`` (see :mod:`skyfix.distortion`): ``brown_conrady`` k1 k2 p1
+p2 k3 (OpenCV, dimensionless), ``fisheye`` k1 k2 k3 k4 (OpenCV Kannala-Brandt), ``barrel``
+a b c d (ImageMagick ``-distort barrel``), ``pinhole`` none (``{}`` or absent). Missing
+Brown-Conrady and fisheye coefficients are 0; barrel needs a, b, c (``d`` defaults to
+1 - a - b - c). ``model`` absent means pinhole.
+Any other key (``rms_px``, ``note``...) is kept in the file and ignored by the reader.
+
+Also read, for files written by older skyfix versions and by hand:
+
+- ``fx``, ``fy``, ``cx``, ``cy`` (pixels) instead of the ``_px`` names;
+- ``"hfov_deg"`` [and ``"vfov_deg"``] instead of focal lengths: the field of view spans
+  the full image width (height), the principal point is the image centre, and pixels are
+  square when ``vfov_deg`` is absent (see :meth:`skyfix.camera.Camera.from_fov`).
+
+A file gives its intrinsics in exactly one of these three ways. ``width``/``height`` may be
+left out when the reader is told the image size (``image_size``); when the file gives a size
+and the image has another one with the same aspect ratio, the camera is rescaled to the
+image (:meth:`~skyfix.camera.Camera.scaled`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import numbers
+import os
+from dataclasses import MISSING, asdict, fields
+from pathlib import Path
+from typing import Any
+
+from skyfix.camera import Camera
+from skyfix.distortion import Barrel, BrownConrady, Fisheye
+from skyfix.errors import DataError, InputError
+from skyfix.jsonfile import read_json
+
+__all__ = ["CAMERA_KEYS", "LENS_MODELS", "camera_from_dict", "camera_to_dict", "load_camera", "save_camera"]
+
+LENS_MODELS = {"brown_conrady": BrownConrady, "fisheye": Fisheye, "barrel": Barrel}
+"""Lens model name in the file -> distortion class (``pinhole`` means no distortion)."""
+
+CAMERA_KEYS = ("width", "height", "fx_px", "fy_px", "cx_px", "cy_px", "model", "coefficients")
+"""Keys :func:`camera_to_dict` writes; ``extra`` fields may not reuse them."""
+
+_FORMS = {  # the three ways a file may give the intrinsics -> keys each one needs
+    "fx_px, fy_px, cx_px, cy_px": ("fx_px", "fy_px", "cx_px", "cy_px"),
+    "fx, fy, cx, cy": ("fx", "fy", "cx", "cy"),
+    "hfov_deg [, vfov_deg]": ("hfov_deg",),
+}
+_EXPECTED = ("a JSON object with width, height (pixels) and one of: "
+             + "; ".join(_FORMS) + " (see skyfix.camera_io)")
+
+
+def camera_to_dict(camera: Camera, **extra: Any) -> dict:
+    """JSON-ready dict of ``camera`` in the written form; ``extra`` items (e.g. ``rms_px``)
+    are added as they are. InputError for an unknown distortion class or an ``extra`` key
+    that would overwrite a camera key."""
+    if not isinstance(camera, Camera):
+        raise InputError(f"camera must be a skyfix.camera.Camera, got {type(camera).__name__}")
+    clash = sorted(set(extra) & set(CAMERA_KEYS))
+    if clash:
+        raise InputError(f"extra field(s) {clash} would overwrite the camera's own keys {list(CAMERA_KEYS)}")
+    dist = camera.distortion
+    model = next((name for name, cls in LENS_MODELS.items() if type(dist) is cls), None)
+    if dist is not None and model is None:
+        raise InputError(f"cannot write distortion model {type(dist).__name__} to camera JSON; "
+                         f"supported: {list(LENS_MODELS)}")
+    return {"width": camera.width, "height": camera.height, "fx_px": camera.fx, "fy_px": camera.fy,
+            "cx_px": camera.cx, "cy_px": camera.cy, "model": model or "pinhole",
+            "coefficients": asdict(dist) if dist is not None else {}, **extra}
+
+
+def camera_from_dict(data: Any, source: str = "camera", *,
+                     image_size: tuple[int, int] | None = None) -> Camera:
+    """Camera described by ``data`` (any form in the module docstring).
+
+    ``source`` names the file (or object) in error messages. ``image_size`` is the
+    ``(width, height)`` in pixels of the images the camera will be used on: it supplies a
+    missing width/height, and a camera stored at another size with the same aspect ratio is
+    rescaled to it. DataError naming ``source`` on a malformed description or an aspect
+    ratio mismatch; InputError on a malformed ``image_size``.
+    """
+    size = None if image_size is None else _image_size(image_size)
+    if not isinstance(data, dict):
+        raise DataError(f"{source}: expected {_EXPECTED}; got JSON {type(data).__name__}")
+    width, height = _file_size(data, source, size)
+    distortion = _distortion(data, source)
+    forms = [name for name, keys in _FORMS.items() if any(k in data for k in keys)]
+    if len(forms) != 1:
+        found = "none of them" if not forms else f"{len(forms)} of them ({'; '.join(forms)})"
+        raise DataError(f"{source}: expected {_EXPECTED}; found {found}")
+    keys = _FORMS[forms[0]]
+    missing = [k for k in keys if k not in data]
+    if missing:
+        raise DataError(f"{source}: lacks {missing}; with {forms[0]} all of them are needed ({_EXPECTED})")
+    try:
+        if keys[0] == "hfov_deg":
+            camera = Camera.from_fov(width, height, _number(data, "hfov_deg", source),
+                                     None if data.get("vfov_deg") is None else _number(data, "vfov_deg", source),
+                                     distortion)
+        else:
+            fx, fy, cx, cy = (_number(data, k, source) for k in keys)
+            camera = Camera(width, height, fx, fy, cx, cy, distortion)
+    except InputError as exc:  # a value Camera refuses (e.g. fx_px <= 0): the file is at fault
+        raise DataError(f"{source}: {exc}") from exc
+    if size is None or size == (camera.width, camera.height):
+        return camera
+    return _rescaled(camera, size, source)
+
+
+def save_camera(path: str | os.PathLike, camera: Camera, **extra: Any) -> None:
+    """Write ``camera`` (and ``extra`` JSON-able fields) to the JSON file ``path``."""
+    data = camera_to_dict(camera, **extra)
+    try:
+        text = json.dumps(data, indent=2, allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"camera file {path}: extra fields must be finite JSON values: {exc}") from exc
+    Path(path).write_text(text + "\n")
+
+
+def load_camera(path: str | os.PathLike, *, image_size: tuple[int, int] | None = None) -> Camera:
+    """Read the camera JSON file ``path`` (format in the module docstring).
+
+    ``image_size`` ``(width, height)`` pixels: see :func:`camera_from_dict`. InputError
+    when the file does not exist, DataError when it is not a camera description.
+    """
+    p = Path(path)
+    return camera_from_dict(read_json(p, "camera file", missing=InputError), f"camera file {p}",
+                            image_size=image_size)
+
+
+def _image_size(image_size: Any) -> tuple[int, int]:
+    try:
+        w, h = image_size
+        if all(_is_int(v) and v > 0 for v in (w, h)):
+            return int(w), int(h)
+    except (TypeError, ValueError):
+        pass
+    raise InputError(f"image_size must be (width, height) in pixels, positive integers; got {image_size!r}")
+
+
+def _is_int(value: Any) -> bool:
+    """An integer, or a float with an integer value (JSON writers may add ``.0``); not a bool."""
+    if isinstance(value, bool):
+        return False
+    if isinstance(value, numbers.Integral):
+        return True
+    try:
+        return isinstance(value, float) and math.isfinite(value) and value == int(value)
+    except (TypeError, ValueError, OverflowError):
+        return False
+
+
+def _file_size(data: dict, source: str, size: tuple[int, int] | None) -> tuple[int, int]:
+    given = [k for k in ("width", "height") if k in data]
+    if not given:
+        if size is None:
+            raise DataError(f"{source}: lacks width and height and no image size was given; expected {_EXPECTED}")
+        return size
+    if len(given) == 1:
+        raise DataError(f"{source}: gives {given[0]} but not {'height' if given[0] == 'width' else 'width'}; "
+                        "give both or neither")
+    out = []
+    for k in ("width", "height"):
+        v = data[k]
+        if not _is_int(v) or v <= 0:
+            raise DataError(f"{source}: {k} must be a positive integer number of pixels, got {v!r}")
+        out.append(int(v))
+    return out[0], out[1]
+
+
+def _number(data: dict, key: str, source: str) -> float:
+    v = data[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise DataError(f"{source}: {key} must be a finite number, got {v!r}")
+    return float(v)
+
+
+def _distortion(data: dict, source: str):
+    model = data.get("model", "pinhole")
+    if model not in ("pinhole", *LENS_MODELS):
+        raise DataError(f"{source}: unknown lens model {model!r}; expected one of {['pinhole', *LENS_MODELS]}")
+    coefficients = data.get("coefficients") or {}
+    if not isinstance(coefficients, dict):
+        raise DataError(f"{source}: coefficients must be an object of named numbers, got {coefficients!r}")
+    if model == "pinhole":
+        if any(v != 0 for v in coefficients.values()):
+            raise DataError(f"{source}: coefficients {coefficients} given for a pinhole camera; "
+                            f"name the lens model (\"model\": one of {list(LENS_MODELS)})")
+        return None
+    cls = LENS_MODELS[model]
+    names = [f.name for f in fields(cls)]
+    unknown = sorted(set(coefficients) - set(names))
+    if unknown:
+        raise DataError(f"{source}: model {model} has coefficients {names}, not {unknown}")
+    for k in coefficients:
+        if not (k == "d" and coefficients[k] is None):  # barrel d None: 1 - a - b - c
+            _number(coefficients, k, f"{source} coefficients")
+    try:
+        return cls(**coefficients)
+    except TypeError:  # a coefficient without default is missing (barrel a, b, c)
+        required = [f.name for f in fields(cls) if f.default is MISSING]
+        raise DataError(f"{source}: model {model} needs coefficients {required}, got {sorted(coefficients)}") from None
+
+
+def _rescaled(camera: Camera, size: tuple[int, int], source: str) -> Camera:
+    """``camera`` for images of ``size``: one scale factor, the image height must follow it."""
+    width, height = size
+    factor = width / camera.width
+    if round(camera.height * factor) != height:
+        raise DataError(f"{source}: camera is {camera.width}x{camera.height} px but the image is "
+                        f"{width}x{height} px; a different aspect ratio cannot be rescaled "
+                        "(calibrate this image size or give a camera for it)")
+    return camera.scaled(factor)
