@@ -425,8 +425,9 @@ def _estimates_continue(scen: FusionScenario, tracks: dict[str, Track], t_bad: f
 
 def memory_run(engine_cls, memory_s: float, seed: int, lag_s: float | None
                ) -> tuple[list[tuple[float, float]], np.ndarray]:
-    """Feed a ``memory_s`` survey (same faults); RSS (MB) six times along it, and CPU ms per tick."""
-    scen = survey_scenario(memory_s, seed=seed + 1)
+    """Feed a ``memory_s`` survey (same faults when it is long enough); RSS (MB) six times along it, and CPU ms per tick."""
+    faults = {} if memory_s >= 460.0 else {"outage": None, "spoof": None}  # default faults if they fit
+    scen = survey_scenario(memory_s, seed=seed + 1, **faults)
     engine = engine_cls(origin=scen.origin) if lag_s is None else engine_cls(origin=scen.origin, lag_s=lag_s)
     ticks = np.round(np.arange(1, int(round(memory_s / TICK_S)) + 1) * TICK_S, 6)
     every = ticks.size // 6
