@@ -69,7 +69,8 @@ class FusionEngine:
 
     ``origin`` (lat_deg, lon_deg, alt_m ellipsoidal) fixes the frame; ``lag_s`` the
     window kept for late measurements and smoothing (longer: more latency and CPU);
-    ``log_path`` records every input to a replayable measurement log.
+    ``log_path`` records every input to a replayable measurement log. Not thread-safe:
+    call it from one thread (or behind one lock).
     """
 
     def __init__(self, origin: tuple[float, float, float], lag_s: float = 2.0, config: FusionConfig | None = None,
@@ -311,6 +312,10 @@ class FusionEngine:
                                     "relative observation by a localised drone)")
         t_s = drone.last_time_s if t is None else validate.finite_scalar("t", t)
         window = self._window
+        oldest_s = window.time_of(drone.first_k) - window.dt_s / 2
+        if t_s < oldest_s:
+            raise InputError(f"t={t_s} is before drone {drone_id!r}'s window (oldest {oldest_s:.3f} s, lag_s "
+                             f"{self.lag_s:g}); record estimates as they come or replay the log")
         k = min(max(window.step_of(t_s), drone.first_k), self._settled_step(drone))
         p_k = window.value(drone.index, 0, k)
         cov_k = window.covariance(drone.index, 0, k)

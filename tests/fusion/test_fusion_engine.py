@@ -203,6 +203,7 @@ def test_inputs_older_than_the_lag_are_refused_and_the_engine_goes_on():
     (lambda e: e.add_relative("A"), "RelativeObservation"),
     (lambda e: e.add_gnss("", 10.2, 47.0, 8.0, 400.0), "drone id"),
     (lambda e: e.estimate("Z"), "unknown drone id"),
+    (lambda e: e.estimate("A", t=1.0), "before drone 'A'"),
 ])
 def test_bad_input_raises_and_the_engine_keeps_running(call, match):
     rng = np.random.default_rng(11)
