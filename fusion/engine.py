@@ -168,6 +168,8 @@ class FusionEngine:
         drone = self._drone(drone_id)
         self._advance(t, drone)
         self._monitor(drone, "velocity", self.config.velocity_timeout_s, t).judge(t, True)
+        if drone.anchored and drone.rotation_at_enu is None:
+            self._refresh_from_estimate(drone)
         vel_frame = drone.r_frame_from_local @ vel
         if drone.velocity is None or t >= drone.velocity[0]:
             drone.velocity = (t, vel_frame, float(sigma.max()) ** 2 + self._vel_sigma_floor**2)
@@ -189,9 +191,11 @@ class FusionEngine:
         drone = self._drone(drone_id)
         self._advance(t, drone)
         monitor = self._monitor(drone, "altitude", self.config.altitude_timeout_s, t)
-        if not drone.anchored or drone.up_minus_alt_m is None:
+        if not drone.anchored:
             monitor.judge(t, True)
             return
+        if drone.up_minus_alt_m is None:  # placed by helpers only: take the local vertical from the estimate
+            self._refresh_from_estimate(drone)
         up = alt + drone.up_minus_alt_m
         k = self._step_checked(t, "altitude")
         predicted = self._predict(drone, t)
@@ -413,6 +417,12 @@ class FusionEngine:
         drone.r_frame_from_local = self.frame.enu_rotation_at(lat, lon)
         drone.rotation_at_enu = here
         drone.up_minus_alt_m = float(self.frame.to_enu(lat, lon, alt)[2]) - alt
+
+    def _refresh_from_estimate(self, drone: _Drone) -> None:
+        """Local axes and height offset at the drone's current estimate (drones without GNSS)."""
+        p = self._window.value(drone.index, 0, drone.last_k)
+        lat, lon, alt = (float(c) for c in self.frame.to_geodetic(*p))
+        self._refresh_rotation(drone, lat, lon, alt)
 
     def _absolute(self, drone: _Drone, monitor: SourceMonitor, t: float, enu: np.ndarray, cov: np.ndarray,
                   quality: str | None, robust: bool = True) -> None:

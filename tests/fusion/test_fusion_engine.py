@@ -242,3 +242,20 @@ def test_constructor_checks():
     with pytest.raises(InputError, match="max_speed_mps"):
         FusionConfig(max_speed_mps=-1.0)
     assert math.isinf(FusionEngine(ORIGIN).now_s)
+
+
+def test_altitude_is_used_for_a_drone_placed_only_by_helpers():
+    rng = np.random.default_rng(13)
+    lines = {"B": Line((-30.0, -40.0, 90.0), (8.0, 0.0, 0.0)), "A": EAST}
+    engine = FusionEngine(ORIGIN)
+
+    def baro(t):
+        alt = float(FRAME.to_geodetic(*EAST.at(t))[2])
+        engine.add_altitude("A", t, alt + rng.normal(0.0, 0.3), 0.3)
+
+    fly(engine, rng, lines, 30.0, gnss_off={"A": lambda t: True}, observers=("B",), target="A", on_tick=baro)
+    est = engine.estimate("A")
+    assert "altitude" in est.sources
+    # one helper at 50 m: the barometer, not the 1.5 m range noise, sets the height (0.3 m per sample)
+    assert math.sqrt(est.cov_enu_m2[2, 2]) < 0.15
+    assert abs(est.enu_m[2] - EAST.at(est.time_s)[2]) < 0.45
