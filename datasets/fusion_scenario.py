@@ -14,7 +14,8 @@ sensor is simulated at the message level, with the same arguments the engine's
   slow random-walk drift.
 * Relative observations, 5 Hz from each helper of A: the offset A - helper in the ENU
   axes at the observer, range noise 3 % and bearing noise 0.2 deg (1-sigma per axis),
-  with the covariance a monocular ranger would report. The observer's own position is
+  with the covariance a monocular ranger would report (the shared model of
+  :mod:`skyfix.datasets.observations`). The observer's own position is
   left NaN: the observer does not know it; the engine uses its own estimate.
 
 Faults: a GNSS outage on one drone ("silent": no messages; "no_fix": messages with
@@ -39,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from skyfix import validate
+from skyfix.datasets.observations import noisy_relative
 from skyfix.errors import InputError
 from skyfix.geo import LocalFrame
 from skyfix.types import RelativeObservation
@@ -437,8 +439,8 @@ def survey_scenario(duration_s: float = 600.0, seed: int = 0, *,
         biases[d] = bias
         vel_meas = np.einsum("nij,nj->ni", r_loc, v) + bias + rng.normal(0, nm.velocity_sigma_mps, v.shape)
         tabs["velocity"].append(MessageTable(tv, tv + lat_["velocity"], np.full(tv.size, i),
-                                       {"vel_enu_mps": vel_meas,
-                                        "sigma_mps": np.full(tv.size, nm.velocity_sigma_mps)}))
+                                             {"vel_enu_mps": vel_meas,
+                                              "sigma_mps": np.full(tv.size, nm.velocity_sigma_mps)}))
         # --- barometric altitude (ellipsoidal)
         ta = _times(dur, nm.altitude_rate_hz, ph + 0.005)
         pa, _ = _truth(sp, forms, d, ta)
@@ -449,8 +451,8 @@ def survey_scenario(duration_s: float = 600.0, seed: int = 0, *,
                                  nm.altitude_drift_m_per_sqrt_s)[:, 0]
         alt_meas = alt_true + drift + rng.normal(0, nm.altitude_sigma_m, ta.size)
         tabs["altitude"].append(MessageTable(ta, ta + lat_["altitude"], np.full(ta.size, i),
-                                       {"alt_m": alt_meas,
-                                        "sigma_m": np.full(ta.size, nm.altitude_sigma_m)}))
+                                             {"alt_m": alt_meas,
+                                              "sigma_m": np.full(ta.size, nm.altitude_sigma_m)}))
         # --- GNSS
         tabs["gnss"].append(_gnss(frame, sp, forms, d, i, dur, nm, ph + 0.05, rng, out_w, spoof_w,
                                   lat_["gnss"]))
@@ -485,8 +487,8 @@ def _check_window(name: str, start_s: float, end_s: float, duration_s: float) ->
 
 def _concat(parts: list[MessageTable]) -> MessageTable:
     return MessageTable(np.concatenate([p.time_s for p in parts]), np.concatenate([p.arrival_s for p in parts]),
-                  np.concatenate([p.drone for p in parts]),
-                  {k: np.concatenate([p.cols[k] for p in parts]) for k in parts[0].cols})
+                        np.concatenate([p.drone for p in parts]),
+                        {k: np.concatenate([p.cols[k] for p in parts]) for k in parts[0].cols})
 
 
 def _gnss(frame: LocalFrame, sp: SurveyPath, forms: dict[str, Formation], d: str, i: int,
@@ -523,7 +525,7 @@ def _gnss(frame: LocalFrame, sp: SurveyPath, forms: dict[str, Formation], d: str
             "satellites": sats, "hdop": hdop, "h_sigma_m": np.full(t.size, nm.gnss_h_sigma_m),
             "v_sigma_m": np.full(t.size, nm.gnss_v_sigma_m)}
     return MessageTable(t[keep], (t + latency_s + late)[keep], np.full(int(keep.sum()), i),
-                  {k: v[keep] for k, v in cols.items()})
+                        {k: v[keep] for k, v in cols.items()})
 
 
 def _relative(frame: LocalFrame, sp: SurveyPath, forms: dict[str, Formation], d: str, i: int,
@@ -533,28 +535,15 @@ def _relative(frame: LocalFrame, sp: SurveyPath, forms: dict[str, Formation], d:
     t = _times(dur, nm.relative_rate_hz, phase_s)
     p_obs, _ = _truth(sp, forms, d, t)
     p_tgt, _ = _truth(sp, forms, "A", t)
-    r_loc = _rotations_to_local(frame, p_obs, t)
-    off = np.einsum("nij,nj->ni", r_loc, p_tgt - p_obs)
-    rng_true = np.linalg.norm(off, axis=1)
+    rng_true = np.linalg.norm(p_tgt - p_obs, axis=1)
     keep = (rng_true >= nm.relative_min_range_m) & (rng_true <= nm.relative_max_range_m)
-    t, off, rng_true = t[keep], off[keep], rng_true[keep]
-    b_true = off / rng_true[:, None]
-    # Two unit axes perpendicular to the bearing: horizontal and "elevation".
-    e1 = np.cross(b_true, [0.0, 0.0, 1.0])
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(e1, b_true)
-    sig_th = np.radians(nm.relative_bearing_sigma_deg)
-    a1 = rng.normal(0.0, sig_th, t.size)
-    a2 = rng.normal(0.0, sig_th, t.size)
-    b = b_true + a1[:, None] * e1 + a2[:, None] * e2
-    b /= np.linalg.norm(b, axis=1, keepdims=True)
-    r = rng_true * (1.0 + nm.relative_range_frac * rng.normal(0.0, 1.0, t.size))
-    # The covariance the ranger reports, from its measured range and bearing.
-    bbt = b[:, :, None] * b[:, None, :]
-    cov = ((nm.relative_range_frac * r) ** 2)[:, None, None] * bbt \
-        + ((r * sig_th) ** 2)[:, None, None] * (np.eye(3) - bbt)
-    cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
+    t, p_obs, p_tgt, rng_true = t[keep], p_obs[keep], p_tgt[keep], rng_true[keep]
+    # The shared ranger model: noise and the covariance the ranger reports, ENU at the observer.
+    b, r, cov = noisy_relative(frame, p_obs, p_tgt, rng, range_frac=nm.relative_range_frac,
+                               bearing_sigma_deg=nm.relative_bearing_sigma_deg)
+    r_loc = _rotations_to_local(frame, p_obs, t)
+    b_true = np.einsum("nij,nj->ni", r_loc, p_tgt - p_obs) / rng_true[:, None]
     late = _late(rng, t.size, nm.late_relative_frac, nm.late_min_s, nm.late_max_s)
     return MessageTable(t, t + latency_s + late, np.full(t.size, i),
-                  {"bearing_enu": b, "range_m": r, "cov_enu_m2": cov, "target": np.zeros(t.size, int),
-                   "range_true_m": rng_true, "bearing_true_enu": b_true})
+                        {"bearing_enu": b, "range_m": r, "cov_enu_m2": cov, "target": np.zeros(t.size, int),
+                         "range_true_m": rng_true, "bearing_true_enu": b_true})
