@@ -3,7 +3,7 @@ written to disk in the layout ``skyfix thermal locate`` reads.
 
 Layout of a flight directory: ``frames/NNNNN.png`` (16-bit radiometric counts, or 8-bit
 display frames), ``poses.csv`` (one row per frame, columns of
-:data:`skyfix.thermal.io.POSE_COLUMNS`), ``camera.json`` and ``truth.json`` (fires in
+:data:`skyfix.thermal.io.POSE_COLUMNS`), ``camera.json`` (:mod:`skyfix.camera_io` format) and ``truth.json`` (fires in
 WGS84, with the scene's ground height).
 """
 
@@ -19,10 +19,11 @@ import numpy as np
 
 from skyfix import validate
 from skyfix.camera import Camera, CameraPose
+from skyfix.camera_io import save_camera
 from skyfix.datasets.thermal_scene import ThermalScene, ThermalSensor, to_display
 from skyfix.errors import GeometryError
 from skyfix.geo import LocalFrame
-from skyfix.thermal.io import POSE_COLUMNS, camera_to_json
+from skyfix.thermal.io import POSE_COLUMNS
 
 
 def pose_seeing(frame: LocalFrame, camera: Camera, target_enu_m: np.ndarray, uv_px: np.ndarray,
@@ -102,7 +103,7 @@ def write_flight(out_dir: str | Path, scene: ThermalScene, camera: Camera, fligh
         writer = csv.writer(fh)
         writer.writerow(POSE_COLUMNS)
         writer.writerows(rows)  # floats at full precision (shortest round-trip repr)
-    (out / "camera.json").write_text(json.dumps(camera_to_json(camera), indent=2))
+    save_camera(out / "camera.json", camera)
     truth = {"ground_alt_m": scene.ground_alt_m, "kelvin_per_count": sensor.kelvin_per_count,
              "output": output, "palette": palette, "fires": []}
     for i, f in enumerate(scene.fires):

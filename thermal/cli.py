@@ -72,7 +72,8 @@ def _add_ground_args(p: argparse.ArgumentParser) -> None:
 def _add_frame_args(p: argparse.ArgumentParser) -> None:
     d = p.add_argument_group("frames")
     d.add_argument("--camera", type=Path, required=True,
-                   help="camera JSON: width, height and fx, fy, cx, cy, or hfov_deg")
+                   help="camera JSON (skyfix.camera_io format): width, height and fx_px, fy_px, cx_px, "
+                        "cy_px [model, coefficients], or hfov_deg; older fx, fy, cx, cy files are read too")
     d.add_argument("--threshold", type=float, default=None,
                    help="hot threshold: deg C for radiometric frames (default 100), 8-bit level for "
                         "8-bit frames (default automatic)")
@@ -206,13 +207,14 @@ def run_detect(args: argparse.Namespace) -> int:
     """``skyfix thermal detect``."""
     import warnings
 
+    from skyfix.camera_io import load_camera
     from skyfix.errors import DataError, SkyfixError
     from skyfix.progress import progress
     from skyfix.thermal.detect import RelativeTemperatureWarning, detect_hotspots
     from skyfix.thermal.geolocate import geolocate_many
-    from skyfix.thermal.io import camera_from_json, read_frame
+    from skyfix.thermal.io import read_frame
 
-    camera = camera_from_json(args.camera)
+    camera = load_camera(args.camera)
     ground = _ground(args)
     unc = _uncertainty(args)
     by_name = {Path(name).name: (t, pose) for name, t, pose in _load_rows(args.pose, args.geoid_undulation)}
@@ -259,13 +261,14 @@ def run_locate(args: argparse.Namespace) -> int:
     """``skyfix thermal locate``."""
     import warnings
 
+    from skyfix.camera_io import load_camera
     from skyfix.errors import DataError
     from skyfix.progress import progress
     from skyfix.thermal.detect import RelativeTemperatureWarning
-    from skyfix.thermal.io import camera_from_json, fires_geojson, frame_path, read_frame
+    from skyfix.thermal.io import fires_geojson, frame_path, read_frame
     from skyfix.thermal.tracker import FireTracker, TrackerSettings
 
-    camera = camera_from_json(args.camera)
+    camera = load_camera(args.camera)
     ground = _ground(args)
     rows = _load_rows(args.poses, args.geoid_undulation)
     settings = TrackerSettings(min_observations=args.min_observations, threshold=args.threshold,

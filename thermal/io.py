@@ -1,4 +1,6 @@
-"""Files of a thermal flight: camera JSON, pose CSV, frames, GeoJSON output.
+"""Files of a thermal flight: pose CSV, frames, GeoJSON output.
+
+The camera file is skyfix's one camera JSON format (:mod:`skyfix.camera_io`).
 
 Pose CSV: a header row, one row per frame. Required columns: ``frame`` (the frame's
 file name; any directory part is ignored and the file is looked up in the frames
@@ -18,33 +20,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from skyfix.camera import Camera, CameraPose
+from skyfix.camera import CameraPose
 from skyfix.errors import DataError
-from skyfix.jsonfile import read_json
 from skyfix.thermal.pose import camera_pose
 
 POSE_COLUMNS = ("frame", "time_s", "lat_deg", "lon_deg", "alt_ellipsoid_m", "roll_deg", "pitch_deg",
                 "yaw_deg", "gimbal_pitch_deg", "gimbal_roll_deg", "gimbal_yaw_body_deg", "stabilized")
 _AMBIGUOUS = ("alt", "alt_m", "altitude", "gimbal_yaw", "gimbal_yaw_deg", "heading")
-
-
-def camera_to_json(camera: Camera) -> dict:
-    """Intrinsics of an undistorted camera as a JSON-able dict."""
-    return {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy,
-            "cx": camera.cx, "cy": camera.cy}
-
-
-def camera_from_json(path: str | Path) -> Camera:
-    """Read ``{"width", "height", "fx", "fy", "cx", "cy"}`` or ``{"width", "height",
-    "hfov_deg"}`` (principal point at the centre, square pixels)."""
-    d = read_json(path, "camera file")
-    try:
-        if "hfov_deg" in d:
-            return Camera.from_fov(int(d["width"]), int(d["height"]), float(d["hfov_deg"]), d.get("vfov_deg"))
-        return Camera(int(d["width"]), int(d["height"]), d["fx"], d["fy"], d["cx"], d["cy"])
-    except KeyError as exc:
-        raise DataError(f"camera file {path} lacks {exc}; needs width, height and fx, fy, cx, cy "
-                        "or hfov_deg") from None
 
 
 def read_poses(path: str | Path, *, geoid_undulation_m: float | None = None

@@ -50,6 +50,23 @@ def test_detect_command(flight, tmp_path):
     assert out.with_suffix(".png").exists()
 
 
+def test_simulated_camera_file_is_the_one_format_and_old_files_still_read(flight, tmp_path):
+    raw = json.loads((flight / "camera.json").read_text())
+    assert {"fx_px", "fy_px", "cx_px", "cy_px"} <= set(raw) and raw["model"] == "pinhole"
+    assert (raw["width"], raw["height"]) == (320, 256)
+    # A camera file in the form thermal wrote before skyfix.camera_io (fx, fy, cx, cy) locates
+    # the same fires, to the last digit.
+    legacy = {"width": raw["width"], "height": raw["height"], "fx": raw["fx_px"], "fy": raw["fy_px"],
+              "cx": raw["cx_px"], "cy": raw["cy_px"]}
+    (tmp_path / "legacy.json").write_text(json.dumps(legacy))
+    outs = []
+    for cam in (flight / "camera.json", tmp_path / "legacy.json"):
+        outs.append(tmp_path / f"{cam.stem}.geojson")
+        assert main(["-q", "thermal", "locate", str(flight / "frames"), "--poses", str(flight / "poses.csv"),
+                     "--camera", str(cam), "--ground-alt", "30", "-o", str(outs[-1])]) == 0
+    assert outs[0].read_text() == outs[1].read_text()
+
+
 def test_ground_must_be_unambiguous(flight, tmp_path):
     base = ["-q", "thermal", "locate", str(flight / "frames"), "--poses", str(flight / "poses.csv"),
             "--camera", str(flight / "camera.json"), "-o", str(tmp_path / "x.geojson")]
