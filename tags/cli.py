@@ -64,7 +64,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     loc.add_argument("--field", required=True, type=Path, help="tile field or marker board JSON")
     cam = loc.add_mutually_exclusive_group(required=True)
     cam.add_argument("--hfov-deg", type=float, help="pinhole camera with this horizontal FOV, degrees")
-    cam.add_argument("--camera", type=Path, help="camera JSON with fx, fy, cx, cy (pixels)")
+    cam.add_argument("--camera", type=Path,
+                     help="camera JSON (skyfix.camera_io format: fx_px, fy_px, cx_px, cy_px [width, height, model, "
+                          "coefficients]; older fx, fy, cx, cy files too); rescaled to each image's size")
     loc.add_argument("--roll-deg", type=float, help="IMU roll, degrees (prior; with --pitch-deg)")
     loc.add_argument("--pitch-deg", type=float, help="IMU pitch, degrees (prior; with --roll-deg)")
     loc.add_argument("--attitude-sigma-deg", type=float, default=1.0, help="IMU 1-sigma, degrees (default 1)")
@@ -125,18 +127,14 @@ def _load_any(path: Path):
 
 
 def _camera(args: argparse.Namespace, width: int, height: int):
-    import json
-
+    """Camera for a ``width`` x ``height`` image: ``--hfov-deg`` pinhole or the ``--camera`` file
+    (rescaled to the image when it was calibrated at another size with the same aspect ratio)."""
     from skyfix.camera import Camera
-    from skyfix.errors import DataError
+    from skyfix.camera_io import load_camera
 
     if args.hfov_deg is not None:
         return Camera.from_fov(width, height, args.hfov_deg)
-    try:
-        d = json.loads(args.camera.read_text())
-        return Camera(int(d.get("width", width)), int(d.get("height", height)), d["fx"], d["fy"], d["cx"], d["cy"])
-    except (OSError, KeyError, TypeError, json.JSONDecodeError) as exc:
-        raise DataError(f"camera file {args.camera} must be JSON with fx, fy, cx, cy: {exc}") from exc
+    return load_camera(args.camera, image_size=(width, height))
 
 
 def _locate(args: argparse.Namespace) -> int:
