@@ -15,7 +15,9 @@ shapely through this package):
   (``mission``), file writers in ``export``;
 - photo-to-model pipeline: :func:`run_pipeline`, :class:`PipelineConfig`, :class:`Report`
   (``pipeline``, ``report``; stages in ``photos``, ``sfm``, ``georef``, ``dsm``, ``ortho``,
-  ``grid``, ``geotiff``).
+  ``grid``, ``geotiff``);
+- camera files: :func:`load_camera`, :func:`save_camera` (the foundation's
+  :mod:`skyfix.camera_io`, re-exported here).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ _EXPORTS = {
     "SurveyPlan": "survey", "SurveyPart": "survey", "plan_survey": "survey", "plan_three_corners": "survey",
     "plan_polygon": "survey", "extend_survey": "survey", "split_survey": "survey", "handoff": "survey",
     "verify_coverage": "coverage", "MissionItemInt": "mission", "mission_items": "mission",
-    "load_camera": "camera_io", "save_camera": "camera_io",
+    "load_camera": "skyfix.camera_io", "save_camera": "skyfix.camera_io",
     "PipelineConfig": "pipeline", "run_pipeline": "pipeline", "Report": "report", "load_photos": "photos",
 }
 
@@ -39,7 +41,8 @@ __all__ = sorted(_EXPORTS)
 
 def __getattr__(name: str):
     if name in _EXPORTS:
-        return getattr(importlib.import_module(f"skyfix.mapping.{_EXPORTS[name]}"), name)
+        module = _EXPORTS[name]
+        return getattr(importlib.import_module(module if "." in module else f"skyfix.mapping.{module}"), name)
     raise AttributeError(f"module 'skyfix.mapping' has no attribute {name!r}")
 
 

@@ -73,8 +73,8 @@ def _drones_dict(pairs) -> dict:
 
 
 def _lens_correct(args: argparse.Namespace) -> int:
+    from skyfix.camera_io import load_camera
     from skyfix.mapping.batch import CorrectionSpec, correct_photos, list_photos
-    from skyfix.mapping.camera_io import load_camera
     from skyfix.mapping.lens import parse_barrel
 
     if (args.barrel is None) == (args.calibration is None):
@@ -129,10 +129,10 @@ def _write_preview(raw_path: Path, corrected_path: Path, png_path: Path) -> None
 def _lens_calibrate(args: argparse.Namespace) -> int:
     import cv2
 
+    from skyfix.camera_io import save_camera
     from skyfix.errors import DataError
     from skyfix.mapping.board import BoardSpec
     from skyfix.mapping.calibrate import calibrate
-    from skyfix.mapping.camera_io import save_camera
 
     paths = []
     for item in args.images:
@@ -182,7 +182,7 @@ def _write_residual_png(cal, png_path: Path) -> None:
 
 
 def _lens_convert(args: argparse.Namespace) -> int:
-    from skyfix.mapping.camera_io import load_camera, save_camera
+    from skyfix.camera_io import load_camera, save_camera
     from skyfix.mapping.lens import barrel_to_opencv, opencv_to_barrel, parse_barrel
 
     if args.barrel:
@@ -244,7 +244,7 @@ def _plan_corners(args: argparse.Namespace) -> int:
 
 def _camera_from_args(args: argparse.Namespace):
     from skyfix.camera import Camera
-    from skyfix.mapping.camera_io import load_camera
+    from skyfix.camera_io import load_camera
 
     if args.camera:
         return load_camera(args.camera)

@@ -12,7 +12,7 @@ def _map(args: argparse.Namespace) -> int:
     import os
 
     os.environ.setdefault("GLOG_minloglevel", "1")  # pycolmap: warnings and errors only
-    from skyfix.mapping.camera_io import load_camera
+    from skyfix.camera_io import load_camera
     from skyfix.mapping.lens import parse_barrel
     from skyfix.mapping.pipeline import PipelineConfig, run_pipeline
 

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
+from skyfix.camera_io import camera_from_dict, camera_to_dict
 from skyfix.errors import DataError, InputError
 from skyfix.geo import LocalFrame
 from skyfix.jsonfile import read_json
-from skyfix.mapping.camera_io import camera_from_dict, camera_to_dict
 from skyfix.mapping.survey import SurveyPlan
 
 __all__ = ["load_plan", "plan_from_dict", "plan_to_dict", "save_plan"]

@@ -10,9 +10,9 @@ import numpy as np
 import piexif
 import pytest
 
+from skyfix.camera_io import load_camera, save_camera
 from skyfix.errors import DataError, InputError
 from skyfix.mapping.batch import CorrectionSpec, correct_photos, list_photos
-from skyfix.mapping.camera_io import load_camera, save_camera
 from skyfix.mapping.correct import Undistortion
 from skyfix.mapping.exif import read_metadata
 from skyfix.mapping.lens import barrel_camera, parse_barrel

@@ -85,10 +85,10 @@ def test_lens_calibrate_from_rendered_board_photos(tmp_path, capsys):
     import cv2
 
     from skyfix.camera import Camera
+    from skyfix.camera_io import load_camera
     from skyfix.datasets.calibration_scene import render_calibration_views
     from skyfix.distortion import BrownConrady
     from skyfix.mapping.board import BoardSpec
-    from skyfix.mapping.camera_io import load_camera
 
     truth = Camera(480, 360, 380.0, 380.0, 240.5, 178.5, BrownConrady(-0.2, 0.05))
     shots = tmp_path / "board"
