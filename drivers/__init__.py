@@ -9,8 +9,9 @@ Names are imported lazily so that ``skyfix --help`` does not load pymavlink.
 
 from __future__ import annotations
 
-import importlib
 import os
+
+from skyfix.lazy import lazy_exports
 
 os.environ.setdefault("MAVLINK20", "1")  # before any pymavlink import: ODOMETRY needs MAVLink 2
 
@@ -32,10 +33,4 @@ _EXPORTS = {
     "Home": "skyfix.drivers.state",
 }
 
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(_EXPORTS[name]), name)
-    raise AttributeError(f"module 'skyfix.drivers' has no attribute {name!r}")
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

@@ -10,8 +10,7 @@ again. Names load on first use so ``skyfix --help`` does not import gtsam.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from skyfix.lazy import lazy_exports
 
 _EXPORTS = {
     "FusionConfig": "config",
@@ -22,16 +21,4 @@ _EXPORTS = {
     "ReplayResult": "replay", "replay": "replay",
 }
 
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str) -> Any:
-    if name in _EXPORTS:
-        value = getattr(importlib.import_module(f"skyfix.fusion.{_EXPORTS[name]}"), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'skyfix.fusion' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return __all__
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

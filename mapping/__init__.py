@@ -22,7 +22,7 @@ shapely through this package):
 
 from __future__ import annotations
 
-import importlib
+from skyfix.lazy import lazy_exports
 
 _EXPORTS = {
     "BarrelModel": "lens", "BrownConrady": "lens", "Fisheye": "lens", "barrel_camera": "lens",
@@ -36,15 +36,4 @@ _EXPORTS = {
     "PipelineConfig": "pipeline", "run_pipeline": "pipeline", "Report": "report", "load_photos": "photos",
 }
 
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        module = _EXPORTS[name]
-        return getattr(importlib.import_module(module if "." in module else f"skyfix.mapping.{module}"), name)
-    raise AttributeError(f"module 'skyfix.mapping' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return __all__
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

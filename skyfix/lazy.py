@@ -1,0 +1,36 @@
+"""Lazy package exports: public names are imported on first use.
+
+Packages whose modules pull heavy libraries (OpenCV, gtsam, pymavlink, pycolmap) export
+their API through :func:`lazy_exports`, so ``import skyfix.<package>`` and ``skyfix --help``
+stay fast::
+
+    __getattr__, __dir__, __all__ = lazy_exports(__name__, {"FusionEngine": "engine", ...})
+
+A module name without a dot is a submodule of the package; a dotted one is absolute.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from collections.abc import Callable
+from typing import Any
+
+
+def lazy_exports(package: str, exports: dict[str, str]
+                 ) -> tuple[Callable[[str], Any], Callable[[], list[str]], list[str]]:
+    """(``__getattr__``, ``__dir__``, ``__all__``) for ``package`` exporting ``exports`` (name -> module)."""
+    names = sorted(exports)
+
+    def __getattr__(name: str) -> Any:
+        module = exports.get(name)
+        if module is None:
+            raise AttributeError(f"module {package!r} has no attribute {name!r}")
+        value = getattr(importlib.import_module(module if "." in module else f"{package}.{module}"), name)
+        setattr(sys.modules[package], name, value)  # later look-ups skip this function
+        return value
+
+    def __dir__() -> list[str]:
+        return names
+
+    return __getattr__, __dir__, names
