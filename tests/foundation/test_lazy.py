@@ -1,0 +1,26 @@
+"""Lazy package exports load on first use and fail clearly for unknown names."""
+
+import subprocess
+import sys
+
+import pytest
+
+import skyfix.fusion
+
+
+def test_lazy_exports_resolve_and_cache():
+    engine_cls = skyfix.fusion.FusionEngine
+    from skyfix.fusion.engine import FusionEngine
+
+    assert engine_cls is FusionEngine
+    assert "FusionEngine" in vars(skyfix.fusion)  # cached on the module after the first look-up
+    assert "FusionEngine" in dir(skyfix.fusion) and "FusionEngine" in skyfix.fusion.__all__
+    with pytest.raises(AttributeError, match="skyfix.fusion' has no attribute 'Nope'"):
+        skyfix.fusion.Nope  # noqa: B018
+
+
+def test_importing_the_packages_loads_no_heavy_library():
+    code = ("import sys, skyfix.fusion, skyfix.drivers, skyfix.mapping, skyfix.crps; "
+            "print(sorted(m for m in ('gtsam', 'cv2', 'pymavlink', 'pycolmap') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
