@@ -20,6 +20,7 @@ class Position:
     alt_amsl_m: float
     alt_rel_m: float
     time_s: float
+    autopilot_time_s: float = math.nan  # the message's own time stamp (time_boot_ms), autopilot clock
 
 
 @dataclass(frozen=True)
@@ -30,6 +31,7 @@ class Velocity:
     east_mps: float
     down_mps: float
     time_s: float
+    autopilot_time_s: float = math.nan  # the message's own time stamp (time_boot_ms), autopilot clock
 
     @property
     def speed_mps(self) -> float:
@@ -62,6 +64,7 @@ class GpsStatus:
     lon_deg: float
     alt_amsl_m: float
     time_s: float
+    autopilot_time_s: float = math.nan  # the message's own time stamp (time_usec), autopilot clock
 
 
 @dataclass(frozen=True)
@@ -82,6 +85,7 @@ class Home:
     lon_deg: float
     alt_amsl_m: float
     time_s: float
+    autopilot_time_s: float = math.nan  # the message's own time stamp (time_usec), autopilot clock
 
 
 @dataclass(frozen=True)

@@ -236,8 +236,9 @@ class Vehicle:
             self._update(link_ok=False)
 
     def _rx_global_position_int(self, msg, now: float, t_mono: float) -> None:
-        pos = Position(msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0, msg.relative_alt / 1000.0, now)
-        vel = Velocity(msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0, now)
+        stamp_s = msg.time_boot_ms / 1000.0
+        pos = Position(msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0, msg.relative_alt / 1000.0, now, stamp_s)
+        vel = Velocity(msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0, now, stamp_s)
         self._update(position=pos, velocity=vel)
         if self.safety is not None:
             self._check_safety(pos, vel, t_mono)
@@ -250,7 +251,7 @@ class Vehicle:
         eph = msg.eph / 100.0 if msg.eph != 65535 else math.inf
         epv = msg.epv / 100.0 if msg.epv != 65535 else math.inf
         self._update(gps=GpsStatus(msg.fix_type, msg.satellites_visible, eph, epv, msg.lat / 1e7,
-                                   msg.lon / 1e7, msg.alt / 1000.0, now))
+                                   msg.lon / 1e7, msg.alt / 1000.0, now, msg.time_usec / 1e6))
 
     def _rx_sys_status(self, msg, now: float, t_mono: float) -> None:
         self._update(battery=Battery(

@@ -163,22 +163,25 @@ class FusedPositionSource:
             except SkyfixError as exc:  # a bad message is logged and dropped; the loop goes on
                 log.warning("fusion: %s", exc)
 
-    def _sim_time_of(self, t_sim: float, received_wall_s: float) -> float:
-        """Simulated time of a message received at wall time ``received_wall_s`` (the driver
-        stamps telemetry with time.time(); the simulator runs ``speed`` times faster)."""
-        return t_sim - max(0.0, time.time() - received_wall_s) * self.sim.config.speed
+    def _sim_time_of(self, t_sim: float, message) -> float:
+        """Measurement time of a telemetry message: its own autopilot time stamp (the simulator's
+        autopilot clock is simulated time since start), else its reception time mapped to
+        simulated time (the driver stamps with time.time(); the simulator runs ``speed`` x faster)."""
+        if math.isfinite(message.autopilot_time_s):
+            return message.autopilot_time_s
+        return t_sim - max(0.0, time.time() - message.time_s) * self.sim.config.speed
 
     def _feed_telemetry(self, drone_id: str, i: int, t: float) -> None:
         st = self.vehicles[i].state
         if st.velocity is not None:
             vel = st.velocity
-            self.engine.add_velocity(drone_id, self._sim_time_of(t, vel.time_s),
+            self.engine.add_velocity(drone_id, self._sim_time_of(t, vel),
                                      [vel.east_mps, vel.north_mps, -vel.down_mps], 0.2)
         gps = st.gps
         if gps is not None and gps.time_s != self._gps_seen[i] and not self.injecting[i]:
             self._gps_seen[i] = gps.time_s
             accurate = math.isfinite(gps.eph_m) and gps.eph_m > 0
-            self.engine.add_gnss(drone_id, self._sim_time_of(t, gps.time_s), gps.lat_deg, gps.lon_deg,
+            self.engine.add_gnss(drone_id, self._sim_time_of(t, gps), gps.lat_deg, gps.lon_deg,
                                  gps.alt_amsl_m, fix_type=gps.fix_type,
                                  satellites=gps.satellites, h_sigma_m=gps.eph_m if accurate else None,
                                  v_sigma_m=gps.epv_m if accurate and gps.epv_m > 0 else None)
