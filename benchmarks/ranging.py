@@ -498,8 +498,10 @@ def main() -> int:
     for name, ok in goals.items():
         print(f"   [{'met' if ok else 'NOT MET'}] {name}")
     met = sum(goals.values())
-    print(f"ranging: {met}/{len(goals)} goals met; range median {pct(allr, 50) * 100:.2f}% (source "
-          f"{pct(alls, 50) * 100:.2f}%), two-helper median {np.median(errors):.2f} m, "
+    worst_p95 = max(pct(e, 95) for e in extra["tracked_fit"].values())
+    print(f"ranging: {met}/{len(goals)} goals met; TRACKED range median {pct(tracked_all, 50) * 100:.2f}% "
+          f"(worst distance p95 {worst_p95 * 100:.2f}%; single-frame fit median {pct(allf, 50) * 100:.2f}%, "
+          f"source {pct(alls, 50) * 100:.2f}%), two-helper median {np.median(errors):.2f} m, "
           f"{roi_fps:.0f}/{full_fps:.0f} fps ROI/full, false detections sky {fp_sky}/{n_fp}, terrain "
           f"{fp_terrain}/{n_terrain} (sequence path; single-frame {free['single']}/{free['frames']})")
     return 0 if met == len(goals) else 1
