@@ -402,6 +402,10 @@ class Vehicle:
             params = [M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom]
         if name not in ("OFFBOARD", "GUIDED"):
             self._stop_setpoints()
+        if name == "OFFBOARD" and self._setpoint is not None:
+            # a fresh setpoint right before the switch: the stream thread may have been delayed
+            # (PX4 refuses OFFBOARD unless a setpoint arrived within COM_OF_LOSS_T)
+            self.send(self._setpoint)
         self.command(M.MAV_CMD_DO_SET_MODE, *params)
         self.wait_until(lambda s: s.mode == name, timeout_s, what=f"mode {name}")
 
