@@ -15,8 +15,7 @@ Names are imported on first use so that ``skyfix --help`` does not load OpenCV.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from skyfix.lazy import lazy_exports
 
 _EXPORTS = {
     "BoxDetector": "detection", "Detection": "detection", "Detector": "detection", "to_gray": "detection",
@@ -31,16 +30,4 @@ _EXPORTS = {
     "Tracker": "track", "TrackerConfig": "track",
 }
 
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str) -> Any:
-    if name in _EXPORTS:
-        value = getattr(importlib.import_module(f"skyfix.crps.{_EXPORTS[name]}"), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'skyfix.crps' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return __all__
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)
