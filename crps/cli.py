@@ -63,22 +63,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _camera(spec: str, width: int, height: int):
+    """--camera: a horizontal field of view in degrees, or any skyfix camera file (skyfix.camera_io),
+    rescaled to the image size."""
     from skyfix.camera import Camera
-    from skyfix.errors import DataError, InputError
+    from skyfix.camera_io import load_camera
+    from skyfix.errors import InputError
 
-    path = Path(spec)
-    if path.suffix.lower() == ".json":
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise DataError(f"--camera {spec}: cannot read camera JSON ({exc})") from None
-        try:
-            cam = Camera(int(data["width"]), int(data["height"]), data["fx"], data["fy"], data["cx"], data["cy"])
-        except KeyError as exc:
-            raise DataError(f"--camera {spec}: missing key {exc}; expected width, height, fx, fy, cx, cy") from None
-        if (cam.width, cam.height) != (width, height):
-            cam = cam.scaled(width / cam.width)
-        return cam
+    if Path(spec).suffix.lower() == ".json":
+        return load_camera(spec, image_size=(width, height))
     try:
         hfov = float(spec)
     except ValueError:

@@ -111,6 +111,16 @@ def test_cli_range_writes_png_and_json(tmp_path):
     np.testing.assert_allclose(rec["bearing_enu"], view.truth.bearing_enu, atol=1e-3)
     png = cv2.imread(str(out.with_suffix(".png")))
     assert png.shape == (720, 1280, 3)
+    # the same camera as a skyfix camera file made for a 1920x1080 sensor: rescaled, same answer
+    from skyfix.camera import Camera
+    from skyfix.camera_io import save_camera
+
+    save_camera(tmp_path / "cam.json", Camera.from_fov(1920, 1080, 80.0))
+    out2 = tmp_path / "out" / "r2"
+    assert main(["-q", "crps", "range", str(img), "--camera", str(tmp_path / "cam.json"), "--size-m", "0.5",
+                 "--pose", "47,8,400,0,0,0,10", "-o", str(out2)]) == 0
+    rec2 = json.loads(out2.with_suffix(".json").read_text())["detections"][0]
+    assert rec2["range_m"] == pytest.approx(rec["range_m"], rel=1e-9)
 
 
 def test_cli_bad_camera_is_a_clear_error(tmp_path, caplog):
