@@ -125,6 +125,9 @@ class FusionEngine:
         self._advance(t, drone)
         cfg = self.config
         monitor = self._monitor(drone, "gnss", cfg.gnss_timeout_s, t)
+        if monitor.repeat(t):
+            log.debug("duplicate message at time_s=%s dropped", t)
+            return
         if fix_type < 2:
             monitor.no_fix(t, f"receiver reports no fix (fix type {fix_type})")
             return
@@ -191,6 +194,9 @@ class FusionEngine:
         drone = self._drone(drone_id)
         self._advance(t, drone)
         monitor = self._monitor(drone, "altitude", self.config.altitude_timeout_s, t)
+        if monitor.repeat(t):
+            log.debug("duplicate message at time_s=%s dropped", t)
+            return
         if not drone.anchored:
             monitor.judge(t, True)
             return
@@ -220,6 +226,9 @@ class FusionEngine:
         drone = self._drone(drone_id)
         self._advance(t, drone)
         monitor = self._monitor(drone, f"fix:{fix.source_id or 'fix'}", self.config.fix_timeout_s, t)
+        if monitor.repeat(t):
+            log.debug("duplicate message at time_s=%s dropped", t)
+            return
         self._refresh_rotation(drone, fix.lat_deg, fix.lon_deg, fix.alt_m)
         enu = np.array([float(c) for c in self.frame.to_enu(fix.lat_deg, fix.lon_deg, fix.alt_m)])
         r = drone.r_frame_from_local
@@ -246,6 +255,9 @@ class FusionEngine:
         observer, target = self._drone(observer_id), self._drone(target_id)
         self._advance(t, target)
         monitor = self._monitor(target, f"relative:{observer_id}", self.config.relative_timeout_s, t)
+        if monitor.repeat(t):
+            log.debug("duplicate message at time_s=%s dropped", t)
+            return
         r = observer.r_frame_from_local
         offset = r @ obs.offset_enu_m
         cov = r @ obs.cov_enu_m2 @ r.T

@@ -17,6 +17,7 @@ innovation gate against the fused prediction; it answers whether to fuse it.
 from __future__ import annotations
 
 import enum
+from collections import deque
 from dataclasses import dataclass
 
 
@@ -58,7 +59,16 @@ class SourceMonitor:
         self._probation = False
         self._consistent_since_s: float | None = None
         self._recent_s: list[float] = []   # last message times, for the rate
+        self._stamps: deque[float] = deque(maxlen=64)  # recent time stamps, for duplicates
         self._usual_rate_hz = 0.0
+
+    def repeat(self, t_s: float) -> bool:
+        """True if a message with this exact time stamp was already seen (a duplicate delivered twice,
+        e.g. over two links); records ``t_s`` otherwise."""
+        if t_s in self._stamps:
+            return True
+        self._stamps.append(t_s)
+        return False
 
     def rate_issue(self, t_s: float) -> str | None:
         """Record a message time; describe the problem if the rate fell below half the usual one.

@@ -259,3 +259,22 @@ def test_altitude_is_used_for_a_drone_placed_only_by_helpers():
     # one helper at 50 m: the barometer, not the 1.5 m range noise, sets the height (0.3 m per sample)
     assert math.sqrt(est.cov_enu_m2[2, 2]) < 0.15
     assert abs(est.enu_m[2] - EAST.at(est.time_s)[2]) < 0.45
+
+
+def test_a_message_delivered_twice_is_fused_once():
+    """The same GNSS fix arriving over two links must not count double (it would halve the variance)."""
+    results = []
+    for copies in (1, 2):
+        rng = np.random.default_rng(14)
+        engine = FusionEngine(ORIGIN)
+        for i in range(101):
+            t = i / 10.0
+            engine.add_velocity("A", t, **velocity_args(rng, EAST))
+            if i % 2 == 0:
+                args = gnss_args(rng, EAST, t)
+                for _ in range(copies):
+                    engine.add_gnss("A", t, **args)
+            engine.update()
+        results.append(engine.estimate("A"))
+    assert np.array_equal(results[0].enu_m, results[1].enu_m)
+    assert np.array_equal(results[0].cov_enu_m2, results[1].cov_enu_m2)
