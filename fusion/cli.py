@@ -54,7 +54,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run_replay(args: argparse.Namespace) -> int:
     from skyfix.errors import InputError
     from skyfix.fusion.plot import plot_replay
-    from skyfix.fusion.replay import replay
+    from skyfix.fusion.replay import horizontal_errors_m, replay
 
     if args.every < 1:
         raise InputError(f"--every must be >= 1, got {args.every}")
@@ -93,19 +93,9 @@ def run_replay(args: argparse.Namespace) -> int:
         line = f"  {drone}: {len(track.time_s)} estimates, {track.time_s[0]:.1f}-{track.time_s[-1]:.1f} s"
         truth = result.truth_enu_m.get(drone)
         if truth:
-            err = _horizontal_errors(track, truth)
-            line += f", horizontal error vs truth: RMSE {math.sqrt(sum(e * e for e in err) / len(err)):.2f} m, " \
-                    f"max {max(err):.2f} m"
+            err = horizontal_errors_m(track, truth)
+            line += f", horizontal error vs truth: RMSE {math.sqrt(float((err**2).mean())):.2f} m, max {err.max():.2f} m"
         print(line)
     print(f"wrote {csv_path}, {geojson_path}, {png_path}")
     return 0
 
-
-def _horizontal_errors(track, truth) -> list[float]:
-    import numpy as np
-
-    t, enu, _ = track.arrays()
-    tt = np.array([s for s, _ in truth])
-    tp = np.array([p for _, p in truth])
-    at = np.stack([np.interp(t, tt, tp[:, a]) for a in range(2)], axis=1)
-    return np.linalg.norm(enu[:, :2] - at, axis=1).tolist()

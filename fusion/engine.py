@@ -40,7 +40,7 @@ from skyfix.types import GeoFix, RelativeObservation
 
 log = logging.getLogger(__name__)
 
-_ROTATION_REFRESH_M = 100.0  # ENU axes turn ~0.0009 deg per 100 m: refresh a drone's rotation after this
+_ROTATION_REFRESH_M = 100.0  # ENU axes turn ~0.0009 deg per 100 m: refresh a drone's axes after this
 _EYE3 = np.eye(3)
 _MAX_TIME_JUMP_S = 30.0      # an input this far ahead of the engine's clock is refused (units mix-up, bad clock)
 
@@ -54,8 +54,8 @@ class _Drone:
     velocity: tuple[float, np.ndarray, float] | None = None  # (t, v in frame axes, per-axis variance incl. model)
     monitors: dict[str, SourceMonitor] = field(default_factory=dict)
     r_frame_from_local: np.ndarray = field(default_factory=lambda: np.eye(3))
-    rotation_at_enu: np.ndarray | None = None
-    up_minus_alt_m: float | None = None  # local: up_m = alt_m + this (refreshed with the rotation)
+    axes_at_enu_m: np.ndarray | None = None  # where r_frame_from_local and up_minus_alt_m were taken
+    up_minus_alt_m: float | None = None      # near there: up_m = alt_m + this
     cov_cache: tuple[int, np.ndarray] | None = None
     intervals: IntervalVelocity | None = None
 
@@ -148,8 +148,8 @@ class FusionEngine:
         if issues:
             h_sigma *= cfg.degraded_sigma_factor
             v_sigma *= cfg.degraded_sigma_factor
-        self._refresh_rotation(drone, lat, lon, alt)
         enu = np.array([float(c) for c in self.frame.to_enu(lat, lon, alt)])
+        self._refresh_axes(drone, enu)
         r = drone.r_frame_from_local
         cov = r @ np.diag([h_sigma**2, h_sigma**2, v_sigma**2]) @ r.T
         self._absolute(drone, monitor, t, enu, cov, ", ".join(issues) or None)
@@ -171,14 +171,12 @@ class FusionEngine:
         drone = self._drone(drone_id)
         self._advance(t, drone)
         self._monitor(drone, "velocity", self.config.velocity_timeout_s, t).judge(t, True)
-        if drone.anchored and drone.rotation_at_enu is None:
+        if drone.anchored and drone.axes_at_enu_m is None:
             self._refresh_from_estimate(drone)
         vel_frame = drone.r_frame_from_local @ vel
         if drone.velocity is None or t >= drone.velocity[0]:
             drone.velocity = (t, vel_frame, float(sigma.max()) ** 2 + self._vel_sigma_floor**2)
-        if drone.intervals is None:
-            drone.intervals = IntervalVelocity(self._window.epoch_s, self._window.dt_s, self.config.velocity_timeout_s)
-        for j, mean, sig in drone.intervals.add(t, vel_frame, sigma):
+        for j, mean, sig in self._intervals(drone).add(t, vel_frame, sigma):
             if not drone.anchored or j < self._window.oldest_alive_step() or j < drone.first_k:
                 continue
             self._ensure(drone, j + 1)
@@ -229,8 +227,8 @@ class FusionEngine:
         if monitor.repeat(t):
             log.debug("duplicate message at time_s=%s dropped", t)
             return
-        self._refresh_rotation(drone, fix.lat_deg, fix.lon_deg, fix.alt_m)
         enu = np.array([float(c) for c in self.frame.to_enu(fix.lat_deg, fix.lon_deg, fix.alt_m)])
+        self._refresh_axes(drone, enu)
         r = drone.r_frame_from_local
         self._absolute(drone, monitor, t, enu, r @ fix.cov_enu_m2 @ r.T, None, robust=False)
 
@@ -420,21 +418,18 @@ class FusionEngine:
             raise InputError(f"{what} at time_s={t} is older than the fusion lag ({self.lag_s:g} s)")
         return k
 
-    def _refresh_rotation(self, drone: _Drone, lat: float, lon: float, alt: float) -> None:
-        here = np.array([lat, lon])
-        if drone.rotation_at_enu is not None:
-            moved_deg = np.abs(here - drone.rotation_at_enu)
-            if moved_deg[0] * 111e3 < _ROTATION_REFRESH_M and moved_deg[1] * 111e3 < _ROTATION_REFRESH_M:
-                return
+    def _refresh_axes(self, drone: _Drone, enu: np.ndarray) -> None:
+        """The drone's local ENU axes and height offset, taken again after it moved 100 m (frame ENU, m)."""
+        if drone.axes_at_enu_m is not None and np.linalg.norm(enu - drone.axes_at_enu_m) < _ROTATION_REFRESH_M:
+            return
+        lat, lon, alt = (float(c) for c in self.frame.to_geodetic(*enu))
         drone.r_frame_from_local = self.frame.enu_rotation_at(lat, lon)
-        drone.rotation_at_enu = here
-        drone.up_minus_alt_m = float(self.frame.to_enu(lat, lon, alt)[2]) - alt
+        drone.axes_at_enu_m = enu.copy()
+        drone.up_minus_alt_m = float(enu[2]) - alt
 
     def _refresh_from_estimate(self, drone: _Drone) -> None:
-        """Local axes and height offset at the drone's current estimate (drones without GNSS)."""
-        p = self._window.value(drone.index, 0, drone.last_k)
-        lat, lon, alt = (float(c) for c in self.frame.to_geodetic(*p))
-        self._refresh_rotation(drone, lat, lon, alt)
+        """Local axes at the drone's current estimate (drones placed only by helpers)."""
+        self._refresh_axes(drone, self._window.value(drone.index, 0, drone.last_k))
 
     def _absolute(self, drone: _Drone, monitor: SourceMonitor, t: float, enu: np.ndarray, cov: np.ndarray,
                   quality: str | None, robust: bool = True) -> None:
@@ -456,9 +451,12 @@ class FusionEngine:
         self._window.new_state(drone.index, k, p0, np.zeros(3))
         self._window.prior_bias(drone.index, k, self.config.bias_initial_sigma_mps)
         drone.first_k = drone.last_k = k
+        self._intervals(drone).start_at(k)
+
+    def _intervals(self, drone: _Drone) -> IntervalVelocity:
         if drone.intervals is None:
             drone.intervals = IntervalVelocity(self._window.epoch_s, self._window.dt_s, self.config.velocity_timeout_s)
-        drone.intervals.start_at(k)
+        return drone.intervals
 
     def _ensure(self, drone: _Drone, k: int) -> None:
         """Create the drone's states up to step k (forwards or backwards), each tied to its neighbour."""

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from skyfix.fusion.replay import ReplayResult
+from skyfix.fusion.replay import ReplayResult, horizontal_errors_m
 
 _CHI2_2DOF_95 = 5.991464547107979  # scipy.stats.chi2.ppf(0.95, 2)
 
@@ -69,11 +69,8 @@ def plot_replay(result: ReplayResult, path: str | Path, *, drones: list[str] | N
         rows = [d for d in ids if result.truth_enu_m.get(d)]
         for j, drone in enumerate(rows):
             axe = fig.add_subplot(len(rows), 2, 2 * j + 2)
-            t, enu, cov = result.fused[drone].arrays()
-            tt = np.array([s for s, _ in result.truth_enu_m[drone]])
-            tp = np.array([p for _, p in result.truth_enu_m[drone]])
-            truth_at = np.stack([np.interp(t, tt, tp[:, a]) for a in range(2)], axis=1)
-            err = np.linalg.norm(enu[:, :2] - truth_at, axis=1)
+            t, _, cov = result.fused[drone].arrays()
+            err = horizontal_errors_m(result.fused[drone], result.truth_enu_m[drone])
             bound = scale * np.sqrt(np.linalg.eigvalsh(cov[:, :2, :2])[:, -1])
             axe.plot(t, err, color=colours(ids.index(drone) % 10), lw=0.9, label="horizontal error")
             axe.plot(t, bound, color="grey", lw=0.9, ls="--", label="95 % bound (major axis)")

@@ -100,6 +100,15 @@ def replay(log_path: str | Path, *, every_update: int = 1,
     return ReplayResult(origin, fused, gnss, truth, estimates, n_records, n_rejected)
 
 
+def horizontal_errors_m(track: Track, truth: list[tuple[float, np.ndarray]]) -> np.ndarray:
+    """Horizontal distance (N,) m of each fused estimate from the truth interpolated to its time."""
+    t, enu, _ = track.arrays()
+    truth_t = np.array([s for s, _ in truth])
+    truth_p = np.array([p for _, p in truth])
+    at = np.stack([np.interp(t, truth_t, truth_p[:, a]) for a in range(2)], axis=1)
+    return np.linalg.norm(enu[:, :2] - at, axis=1)
+
+
 def _enu(engine: FusionEngine, lat: float, lon: float, alt: float) -> np.ndarray:
     return np.array([float(c) for c in engine.frame.to_enu(lat, lon, alt)])
 

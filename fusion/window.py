@@ -38,7 +38,6 @@ from skyfix.errors import EstimationError
 
 log = logging.getLogger(__name__)
 
-_ZERO = np.zeros(3)
 _EYE = np.eye(3)
 _UP_ROW = np.array([[0.0, 0.0, 1.0]])
 
@@ -82,10 +81,6 @@ class GraphWindow:
 
     def time_of(self, k: int) -> float:
         return self.epoch_s + k * self.dt_s
-
-    @property
-    def newest_s(self) -> float:
-        return self.time_of(self._newest_step) if self._newest_step >= 0 else -float("inf")
 
     def oldest_alive_step(self) -> int:
         """Steps at or after this one are in the window; older ones are (or will be at the next update) marginalised."""
