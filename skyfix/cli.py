@@ -23,7 +23,7 @@ log = logging.getLogger("skyfix")
 
 #: Modules that may add subcommands; a module that does not exist yet is skipped.
 SUBCOMMAND_MODULES: tuple[str, ...] = (
-    "skyfix.demo",
+    "skyfix.crps.demo",
     "skyfix.thermal.cli",
     "skyfix.crps.cli",
     "skyfix.tags.cli",
@@ -31,7 +31,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "skyfix.fusion.cli",
     "skyfix.drivers.cli",
     "skyfix.datasets.cli",
-    "skyfix.service",
+    "skyfix.crps.service",
 )
 
 

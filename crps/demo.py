@@ -7,8 +7,9 @@ plot (PNG) and the flight log (CSV).
 
 The injected position of the vehicle without GPS comes from :mod:`skyfix.fusion`:
 its velocity and the two other vehicles' camera observations of it (measurement-level,
-see :class:`FusedPositionSource`), fused with everyone's GNSS; the measurement log is
-written next to the plot for ``skyfix fusion replay``.
+see :class:`FusedPositionSource`), fused with everyone's GNSS by the same
+:class:`skyfix.crps.node.Node` that ``skyfix serve`` runs on each drone; the measurement
+log is written next to the plot for ``skyfix fusion replay``.
 """
 
 from __future__ import annotations
@@ -72,24 +73,25 @@ class DemoResult:
 
 
 class FusedPositionSource:
-    """skyfix.fusion running next to the simulated fleet; supplies the GPS-less vehicle's position.
+    """The fleet's :class:`skyfix.crps.node.Node` next to the simulator; supplies the GPS-less vehicle's position.
 
-    At 10 Hz of simulated time it feeds a :class:`skyfix.fusion.FusionEngine` with what a
-    companion computer would have: each vehicle's raw GNSS (GPS_RAW_INT over MAVLink,
-    skipped for a vehicle while skyfix injects its position, which the receiver report
-    would only echo) and velocity (GLOBAL_POSITION_INT), plus the helpers' camera
-    observations of the GPS-less vehicle. The demo renders no images, so the
-    observations are measurement-level (:mod:`skyfix.datasets.observations`: true offset,
-    3 % range and 0.2 deg bearing noise, the covariance skyfix.crps reports).
-    Heights: the simulator's AMSL is its ellipsoid (no geoid), as for the injection.
-    Every input goes to the measurement log ``log_path`` (with truth) for
-    ``skyfix fusion replay``. Call it (``source()``) for the newest fused GeoFix, moved to
-    the present with the fused velocity.
+    At 10 Hz of simulated time it feeds the node with what a companion computer would
+    have: each vehicle's telemetry (raw GNSS from GPS_RAW_INT, skipped for a vehicle while
+    skyfix injects its position, which the receiver report would only echo; velocity from
+    GLOBAL_POSITION_INT), plus the helpers' camera observations of the GPS-less vehicle.
+    The demo renders no images, so the observations are measurement-level
+    (:mod:`skyfix.datasets.observations`: true offset, 3 % range and 0.2 deg bearing
+    noise, the covariance skyfix.crps reports). Heights: the simulator's AMSL is its
+    ellipsoid (no geoid), as for the injection. Every input goes to the measurement log
+    ``log_path`` (with truth) for ``skyfix fusion replay``. Call it (``source()``) for the
+    newest fused GeoFix, moved to the present with the fused velocity.
     """
 
     def __init__(self, sim, vehicles, target_index: int, injecting: list[bool], log_path: Path,
                  seed: int = 0) -> None:
-        from skyfix.fusion import FusionConfig, FusionEngine
+        from skyfix.crps.node import Node
+        from skyfix.fusion import FusionConfig
+        from skyfix.fusion.log import MeasurementLog
 
         frame = sim.world
         self.sim, self.vehicles, self.target_index, self.injecting = sim, vehicles, target_index, injecting
@@ -98,13 +100,13 @@ class FusedPositionSource:
         k = max(1.0, sim.config.speed / 4.0)
         cfg = FusionConfig(gnss_timeout_s=0.7 * k, velocity_timeout_s=1.0 * k, altitude_timeout_s=1.0 * k,
                            relative_timeout_s=2.0 * k)
-        self.engine = FusionEngine((frame.lat0_deg, frame.lon0_deg, frame.alt0_m), lag_s=2.0 * k, config=cfg,
-                                   log_path=log_path)
+        self.target_id = str(vehicles[target_index].system_id)
+        self.node = Node(self.target_id, (frame.lat0_deg, frame.lon0_deg, frame.alt0_m), lag_s=2.0 * k,
+                         config=cfg, make_sink=lambda header: MeasurementLog(
+                             log_path, header, fsync_s=cfg.log_fsync_s))
         self.errors_m: list[float] = []      # fused horizontal error of the target while injecting
         self.nees: list[float] = []
         self._rng = np.random.default_rng(seed)
-        self._latest = None
-        self._gps_seen = [math.nan] * len(vehicles)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True, name="skyfix-demo-fusion")
 
@@ -115,27 +117,17 @@ class FusedPositionSource:
     def stop(self) -> None:
         self._stop.set()
         self._thread.join(timeout=2.0)
-        self.engine.close()
+        self.node.close()
 
     def __call__(self):
         """The newest fused fix, moved to the present simulated time with the fused velocity."""
-        from skyfix.types import GeoFix
-
-        latest = self._latest
-        if latest is None:
-            return None
-        dt = max(0.0, self.sim.time_s - latest.time_s)
-        enu = latest.enu_m + latest.vel_enu_mps * dt
-        lat, lon, alt = (float(c) for c in self.sim.world.to_geodetic(*enu))
-        cov = latest.cov_enu_m2 + latest.vel_cov_enu_m2ps2 * dt * dt
-        return GeoFix(lat, lon, alt, cov, time.time(), "skyfix.fusion")
+        return self.node.fix(self.target_id, self.sim.time_s, time_stamp_s=time.time())
 
     def _run(self) -> None:
         from skyfix.datasets.observations import relative_observation
         from skyfix.errors import SkyfixError
 
         next_t = self.sim.time_s
-        target_id = str(self.vehicles[self.target_index].system_id)
         while not self._stop.is_set():
             t = self.sim.time_s
             if t < next_t:
@@ -145,7 +137,8 @@ class FusedPositionSource:
             truth = [self.sim.truth(i) for i in range(len(self.vehicles))]
             try:
                 for i, v in enumerate(self.vehicles):
-                    self._feed_telemetry(str(v.system_id), i, t)
+                    self.node.add_telemetry(str(v.system_id), v.state, lambda m, t=t: self._sim_time_of(t, m),
+                                            use_gnss=not self.injecting[i])
                 target = truth[self.target_index]
                 t_obs = target["time_s"]  # the simulator may step between truth reads: align helpers to it
                 p_tgt = _enu(target)
@@ -153,13 +146,13 @@ class FusedPositionSource:
                     for i, v in enumerate(self.vehicles):
                         if i != self.target_index and truth[i]["alt_rel_m"] > 2.0:
                             p_obs = _enu(truth[i]) + _vel(truth[i]) * (t_obs - truth[i]["time_s"])
-                            self.engine.add_relative(relative_observation(
-                                self.sim.world, str(v.system_id), target_id, t_obs, p_obs, p_tgt, self._rng))
-                self.engine.update()
+                            self.node.add_relative(relative_observation(
+                                self.sim.world, str(v.system_id), self.target_id, t_obs, p_obs, p_tgt, self._rng))
+                estimates = self.node.update()
                 for i, v in enumerate(self.vehicles):
-                    self.engine.record_truth(str(v.system_id), t, truth[i]["lat_deg"], truth[i]["lon_deg"],
-                                             truth[i]["alt_m"])
-                self._publish(target_id, target)
+                    self.node.record_truth(str(v.system_id), t, truth[i]["lat_deg"], truth[i]["lon_deg"],
+                                           truth[i]["alt_m"])
+                self._score(estimates, target)
             except SkyfixError as exc:  # a bad message is logged and dropped; the loop goes on
                 log.warning("fusion: %s", exc)
 
@@ -171,34 +164,15 @@ class FusedPositionSource:
             return message.autopilot_time_s
         return t_sim - max(0.0, time.time() - message.time_s) * self.sim.config.speed
 
-    def _feed_telemetry(self, drone_id: str, i: int, t: float) -> None:
-        st = self.vehicles[i].state
-        if st.velocity is not None:
-            vel = st.velocity
-            self.engine.add_velocity(drone_id, self._sim_time_of(t, vel),
-                                     [vel.east_mps, vel.north_mps, -vel.down_mps], 0.2)
-        gps = st.gps
-        if gps is not None and gps.time_s != self._gps_seen[i] and not self.injecting[i]:
-            self._gps_seen[i] = gps.time_s
-            accurate = math.isfinite(gps.eph_m) and gps.eph_m > 0
-            self.engine.add_gnss(drone_id, self._sim_time_of(t, gps), gps.lat_deg, gps.lon_deg,
-                                 gps.alt_amsl_m, fix_type=gps.fix_type,
-                                 satellites=gps.satellites, h_sigma_m=gps.eph_m if accurate else None,
-                                 v_sigma_m=gps.epv_m if accurate and gps.epv_m > 0 else None)
-
-    def _publish(self, target_id: str, target_truth: dict) -> None:
-        from skyfix.errors import NotAvailableError
-
-        try:
-            est = self.engine.estimate(target_id)
-        except NotAvailableError:
+    def _score(self, estimates, target_truth: dict) -> None:
+        """Error and NEES of the target's estimate against the truth while it flies on injection."""
+        est = next((e for e in estimates if e.drone_id == self.target_id), None)
+        if est is None or not self.injecting[self.target_index]:
             return
-        self._latest = est
-        if self.injecting[self.target_index]:
-            truth_then = _enu(target_truth) + _vel(target_truth) * (est.time_s - target_truth["time_s"])
-            err = est.enu_m - truth_then
-            self.errors_m.append(float(np.hypot(err[0], err[1])))
-            self.nees.append(float(err @ np.linalg.solve(est.cov_enu_m2, err)))
+        truth_then = _enu(target_truth) + _vel(target_truth) * (est.time_s - target_truth["time_s"])
+        err = est.enu_m - truth_then
+        self.errors_m.append(float(np.hypot(err[0], err[1])))
+        self.nees.append(float(err @ np.linalg.solve(est.cov_enu_m2, err)))
 
 
 def _enu(truth: dict) -> np.ndarray:

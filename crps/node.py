@@ -1,0 +1,157 @@
+"""The onboard node: one road from measurements to estimates and actions.
+
+A :class:`Node` owns a drone's :class:`skyfix.fusion.FusionEngine`. Measurements come in
+from the autopilot (:class:`skyfix.drivers.state.VehicleState` snapshots: GNSS from
+GPS_RAW_INT, velocity from GLOBAL_POSITION_INT), from peers (their fused fixes and their
+camera observations of this drone) and from this drone's own cameras; :meth:`Node.update`
+runs the smoother and returns the estimates; :meth:`Node.fix` is the newest estimate
+moved to the present, the position handed to the autopilot (GPS_INPUT) through the
+drivers' injector and safety gate.
+
+Both ``skyfix demo`` (one node fed with the whole simulated fleet) and ``skyfix serve``
+(one node per drone, peers over the swarm network) go through this class. Every call
+given to the engine is recorded, in call order, to a measurement log sink (the JSON-lines
+:class:`skyfix.fusion.log.MeasurementLog` or the MCAP :class:`skyfix.fusion.log_mcap.McapLog`),
+so ``skyfix fusion replay`` reproduces the estimates. Thread-safe: one lock around the engine.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Callable
+from typing import Protocol
+
+from skyfix.errors import NotAvailableError, SkyfixError
+from skyfix.fusion.config import FusionConfig
+from skyfix.fusion.engine import FusionEngine
+from skyfix.fusion.estimate import Estimate
+from skyfix.types import GeoFix, RelativeObservation
+
+log = logging.getLogger(__name__)
+
+#: Velocity 1-sigma of GLOBAL_POSITION_INT's velocity, m/s (an EKF's output, not raw Doppler).
+TELEMETRY_VELOCITY_SIGMA_MPS = 0.2
+
+
+class LogSink(Protocol):
+    """Where a node records the engine's inputs (the measurement-log writers satisfy it)."""
+
+    def record(self, op: str, args: dict | None = None) -> None: ...
+
+    def truth(self, drone_id: str, time_s: float, lat_deg: float, lon_deg: float, alt_m: float) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def log_header(engine: FusionEngine) -> dict:
+    """The measurement-log header that lets replay rebuild ``engine`` (origin, lag, configuration)."""
+    return {"origin": list(engine.origin), "lag_s": engine.lag_s, "config": engine.config.to_dict()}
+
+
+class Node:
+    """Fusion of one drone (and whatever else it hears of) in the ENU frame about ``origin``.
+
+    ``origin`` (lat_deg, lon_deg, ellipsoidal alt_m); ``lag_s`` and ``config`` as for
+    :class:`FusionEngine`; ``sink`` opened by ``make_sink(header)`` receives every engine
+    input. Times are seconds on one clock shared by every input (UNIX time in the
+    service, simulated time in the demo).
+    """
+
+    def __init__(self, drone_id: str, origin: tuple[float, float, float], *, lag_s: float = 2.0,
+                 config: FusionConfig | None = None,
+                 make_sink: Callable[[dict], LogSink] | None = None) -> None:
+        self.drone_id = str(drone_id)
+        self.engine = FusionEngine(origin, lag_s=lag_s, config=config)
+        self.frame = self.engine.frame
+        self._sink = make_sink(log_header(self.engine)) if make_sink is not None else None
+        self._lock = threading.Lock()
+        self._gps_seen: dict[str, float] = {}
+        self.latest: dict[str, Estimate] = {}
+        self.n_refused = 0
+
+    # -- inputs ---------------------------------------------------------------------------
+    def add_telemetry(self, drone_id: str, state, time_of: Callable[[object], float], *,
+                      use_gnss: bool = True) -> None:
+        """Velocity and (new) GNSS of ``drone_id`` from a drivers ``VehicleState`` snapshot.
+
+        ``time_of(message)`` maps a telemetry record to the node's clock. ``use_gnss`` False
+        while skyfix injects this drone's position: the receiver report would only echo it.
+        Heights: GPS_RAW_INT's AMSL altitude is used as ellipsoidal (the caller converts
+        with a geoid where the two differ).
+        """
+        vel = state.velocity
+        if vel is not None:
+            self._call("velocity", drone_id=drone_id, time_s=time_of(vel),
+                       vel_enu_mps=[vel.east_mps, vel.north_mps, -vel.down_mps],
+                       sigma_mps=TELEMETRY_VELOCITY_SIGMA_MPS)
+        gps = state.gps
+        if gps is None or not use_gnss or gps.time_s == self._gps_seen.get(drone_id):
+            return
+        self._gps_seen[drone_id] = gps.time_s
+        accurate = math.isfinite(gps.eph_m) and gps.eph_m > 0
+        self._call("gnss", drone_id=drone_id, time_s=time_of(gps), lat_deg=gps.lat_deg, lon_deg=gps.lon_deg,
+                   alt_m=gps.alt_amsl_m, fix_type=gps.fix_type, satellites=gps.satellites,
+                   h_sigma_m=gps.eph_m if accurate else None,
+                   v_sigma_m=gps.epv_m if accurate and gps.epv_m > 0 else None)
+
+    def add_relative(self, obs: RelativeObservation) -> None:
+        """A camera observation of one drone by another (this drone's or a peer's)."""
+        self._call("relative", obs=obs)
+
+    def add_fix(self, drone_id: str, fix: GeoFix) -> None:
+        """An absolute position of ``drone_id`` (a peer's fused estimate, a tag fix)."""
+        self._call("fix", drone_id=drone_id, fix=fix)
+
+    def record_truth(self, drone_id: str, time_s: float, lat_deg: float, lon_deg: float, alt_m: float) -> None:
+        """Ground truth into the log (simulations only; never given to the engine)."""
+        if self._sink is not None:
+            self._sink.truth(str(drone_id), time_s, lat_deg, lon_deg, alt_m)
+
+    # -- answers --------------------------------------------------------------------------
+    def update(self) -> list[Estimate]:
+        """Run the smoother; the estimate of every localised drone (also kept in ``latest``)."""
+        with self._lock:
+            if self._sink is not None:
+                self._sink.record("update")
+            self.engine.update()
+            out = []
+            for drone_id in self.engine.drone_ids:
+                try:
+                    est = self.engine.estimate(drone_id)
+                except NotAvailableError:
+                    continue
+                out.append(est)
+                self.latest[drone_id] = est
+            return out
+
+    def fix(self, drone_id: str, now_s: float, time_stamp_s: float | None = None) -> GeoFix | None:
+        """Newest estimate of ``drone_id`` moved to ``now_s`` with its fused velocity (None before the
+        first); ``time_stamp_s`` stamps the GeoFix (default ``now_s``)."""
+        est = self.latest.get(str(drone_id))
+        if est is None:
+            return None
+        dt = max(0.0, now_s - est.time_s)
+        enu = est.enu_m + est.vel_enu_mps * dt
+        lat, lon, alt = (float(c) for c in self.frame.to_geodetic(*enu))
+        cov = est.cov_enu_m2 + est.vel_cov_enu_m2ps2 * dt * dt
+        return GeoFix(lat, lon, alt, cov, now_s if time_stamp_s is None else time_stamp_s, "skyfix.fusion")
+
+    def close(self) -> None:
+        """Flush and close the log."""
+        if self._sink is not None:
+            self._sink.close()
+
+    # -- internals ---------------------------------------------------------------------------
+    def _call(self, op: str, **args) -> None:
+        """Record and apply one engine input; a refused input is counted and logged, never raised."""
+        with self._lock:
+            if self._sink is not None:
+                self._sink.record(op, args)
+            try:
+                getattr(self.engine, f"add_{op}")(**args)
+            except SkyfixError as exc:
+                self.n_refused += 1
+                log.warning("node %s: %s input refused: %s", self.drone_id, op, exc)
+
