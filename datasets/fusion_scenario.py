@@ -55,8 +55,14 @@ class NoiseModel:
     """Sensor noise and delivery parameters (1-sigma values unless stated)."""
 
     gnss_rate_hz: float = 5.0
-    gnss_h_sigma_m: float = 1.5  # per horizontal axis (E and N), white: consumer receiver, open sky
-    gnss_v_sigma_m: float = 2.5  # vertical, white
+    gnss_h_sigma_m: float = 1.5  # per horizontal axis (E and N), white part
+    gnss_v_sigma_m: float = 2.5  # vertical, white part
+    # Slowly wandering part of the GNSS error (multipath, atmosphere, orbits): a first-order
+    # Gauss-Markov process per axis with this stationary sigma and correlation time; 0 = off.
+    gnss_gm_h_sigma_m: float = 0.0
+    gnss_gm_v_sigma_m: float = 0.0
+    gnss_gm_tau_s: float = 60.0
+    gnss_outlier_frac: float = 0.0  # multipath outliers: this fraction of fixes jumps 5-20 m horizontally
     velocity_rate_hz: float = 10.0
     velocity_sigma_mps: float = 0.1  # white, per axis
     # Bias of the autopilot's velocity when it is not GNSS-aided. Optical flow scaled by a
@@ -100,13 +106,20 @@ class Outage:
 
 @dataclass(frozen=True)
 class Spoof:
-    """Spoofed GNSS of ``drone_id``: fixes displaced by ``offset_enu_m`` (3,) over
-    [start_s, start_s + duration_s)."""
+    """Spoofed GNSS of ``drone_id``: fixes displaced by ``offset_enu_m + rate_enu_mps * (t -
+    start_s)`` (3,) over [start_s, start_s + duration_s) (a jump, a slow drift, or both)."""
 
     drone_id: str
     start_s: float
     duration_s: float
     offset_enu_m: np.ndarray
+    rate_enu_mps: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def displacement(self, t_s: np.ndarray) -> np.ndarray:
+        """Offset (N, 3) m added to fixes at ``t_s`` (zero outside the window)."""
+        t = np.asarray(t_s, float)
+        inside = ((t >= self.start_s) & (t < self.end_s))[:, None]
+        return np.where(inside, self.offset_enu_m + self.rate_enu_mps * (t - self.start_s)[:, None], 0.0)
 
     @property
     def end_s(self) -> float:
@@ -259,6 +272,12 @@ class FusionScenario:
     _order: np.ndarray = field(repr=False)  # (n_events, 2): kind index, row, in arrival order
 
     drone_ids: tuple[str, ...] = DRONE_IDS
+    faults: tuple[Spoof, ...] = ()  # further spoofs (drifts, offsets after an outage), besides ``spoof``
+
+    @property
+    def spoofs(self) -> tuple[Spoof, ...]:
+        """Every spoof window: ``spoof`` first, then ``faults``."""
+        return ((self.spoof,) if self.spoof is not None else ()) + self.faults
 
     @property
     def origin(self) -> tuple[float, float, float]:
@@ -291,7 +310,7 @@ class FusionScenario:
         """True where a GNSS message of ``drone_id`` at ``t_s`` is honest (no outage/spoof)."""
         t = np.atleast_1d(np.asarray(t_s, float))
         ok = np.ones(t.shape, bool)
-        for w in (self.outage, self.spoof):
+        for w in (self.outage, *self.spoofs):
             if w is not None and w.drone_id == drone_id:
                 ok &= ~((t >= w.start_s) & (t < w.end_s))
         return ok
@@ -362,6 +381,20 @@ def _late(rng: np.random.Generator, n: int, frac: float, lo: float, hi: float) -
     return np.where(late, rng.uniform(lo, hi, n), 0.0)
 
 
+def gauss_markov(rng: np.random.Generator, t_s: np.ndarray, sigma: np.ndarray, tau_s: float) -> np.ndarray:
+    """First-order Gauss-Markov samples (N, len(sigma)) at increasing times ``t_s`` (N,):
+    stationary 1-sigma ``sigma`` per axis, correlation time ``tau_s`` (exact discretisation)."""
+    sigma = np.asarray(sigma, float)
+    out = np.empty((t_s.size, sigma.size))
+    x = rng.normal(0.0, 1.0, sigma.size) * sigma
+    phi = np.exp(-np.diff(t_s, prepend=t_s[:1]) / tau_s)
+    w = rng.normal(0.0, 1.0, out.shape)
+    for n in range(t_s.size):
+        x = phi[n] * x + np.sqrt(1.0 - phi[n] ** 2) * sigma * w[n]
+        out[n] = x
+    return out
+
+
 def _random_walk(rng: np.random.Generator, n: int, dt_s: float, sigma0: np.ndarray,
                  walk_per_sqrt_s: float) -> np.ndarray:
     """(n, len(sigma0)) random walk started from N(0, sigma0^2)."""
@@ -377,13 +410,15 @@ def survey_scenario(duration_s: float = 600.0, seed: int = 0, *,
                     spoof: tuple[str, float, float, float] | None = ("B", 420.0, 30.0, 50.0),
                     noise: NoiseModel | None = None,
                     path: SurveyPath | None = None,
-                    formations: dict[str, Formation] | None = None) -> FusionScenario:
+                    formations: dict[str, Formation] | None = None,
+                    faults: tuple[Spoof, ...] = ()) -> FusionScenario:
     """Simulate the three-drone survey for ``duration_s`` seconds, deterministically from ``seed``.
 
     ``origin`` (lat_deg, lon_deg, alt_m ellipsoidal) is the ground at the survey centre.
     ``outage`` = (drone_id, start_s, duration_s) with ``outage_mode`` "silent" | "no_fix";
     ``spoof`` = (drone_id, start_s, duration_s, jump_m): the horizontal jump direction is
-    drawn from ``seed``. Either may be None. Windows must lie inside the run.
+    drawn from ``seed``. Either may be None. ``faults``: further :class:`Spoof` windows
+    (drifts, offsets). Windows must lie inside the run.
     """
     dur = validate.positive_scalar("duration_s", duration_s)
     nm = noise or NoiseModel()
@@ -398,7 +433,7 @@ def survey_scenario(duration_s: float = 600.0, seed: int = 0, *,
     if outage_mode not in OUTAGE_MODES:
         raise InputError(f"outage_mode must be one of {OUTAGE_MODES}, got {outage_mode!r}")
     rng_root = np.random.SeedSequence(int(seed))
-    rngs = [np.random.default_rng(s) for s in rng_root.spawn(8)]
+    rngs = [np.random.default_rng(s) for s in rng_root.spawn(11)]  # 8-10: correlated GNSS errors
 
     out_w = None
     if outage is not None:
@@ -415,6 +450,10 @@ def survey_scenario(duration_s: float = 600.0, seed: int = 0, *,
                         validate.positive_scalar("spoof duration_s", ln),
                         np.array([jump_m * np.sin(az), jump_m * np.cos(az), 0.0]))
         _check_window("spoof", spoof_w.start_s, spoof_w.end_s, dur)
+    for f in faults:
+        _check_id("fault drone", f.drone_id)
+        _check_window("fault", f.start_s, f.end_s, dur)
+    spoofs = ((spoof_w,) if spoof_w is not None else ()) + tuple(faults)
 
     truth_t = np.arange(0.0, dur + 1e-9, 0.1)
     truth_pos, truth_vel = {}, {}
@@ -454,7 +493,7 @@ def survey_scenario(duration_s: float = 600.0, seed: int = 0, *,
                                              {"alt_m": alt_meas,
                                               "sigma_m": np.full(ta.size, nm.altitude_sigma_m)}))
         # --- GNSS
-        tabs["gnss"].append(_gnss(frame, sp, forms, d, i, dur, nm, ph + 0.05, rng, out_w, spoof_w,
+        tabs["gnss"].append(_gnss(frame, sp, forms, d, i, dur, nm, ph + 0.05, (rng, rngs[8 + i]), out_w, spoofs,
                                   lat_["gnss"]))
     for i, d in enumerate(DRONE_IDS[1:], start=1):
         tabs["relative"].append(_relative(frame, sp, forms, d, i, dur, nm, phases[d] + 0.031,
@@ -470,7 +509,7 @@ def survey_scenario(duration_s: float = 600.0, seed: int = 0, *,
     return FusionScenario(frame=frame, duration_s=dur, seed=int(seed), noise=nm, outage=out_w,
                           spoof=spoof_w, path=sp, formations=forms, truth_t_s=truth_t,
                           truth_enu_m=truth_pos, truth_vel_enu_mps=truth_vel,
-                          velocity_bias_mps=biases, _tables=tables,
+                          velocity_bias_mps=biases, _tables=tables, faults=tuple(faults),
                           _order=np.stack([kind_idx[order], rows[order]], axis=1))
 
 
@@ -492,18 +531,28 @@ def _concat(parts: list[MessageTable]) -> MessageTable:
 
 
 def _gnss(frame: LocalFrame, sp: SurveyPath, forms: dict[str, Formation], d: str, i: int,
-          dur: float, nm: NoiseModel, phase_s: float, rng: np.random.Generator,
-          out_w: Outage | None, spoof_w: Spoof | None, latency_s: float) -> MessageTable:
+          dur: float, nm: NoiseModel, phase_s: float, rngs: tuple[np.random.Generator, np.random.Generator],
+          out_w: Outage | None, spoofs: tuple[Spoof, ...], latency_s: float) -> MessageTable:
+    rng, rng_gm = rngs  # the correlated part has its own stream: white-only runs stay as they were
     t = _times(dur, nm.gnss_rate_hz, phase_s)
     p, _ = _truth(sp, forms, d, t)
     sig = np.array([nm.gnss_h_sigma_m, nm.gnss_h_sigma_m, nm.gnss_v_sigma_m])
     noise_local = rng.normal(0.0, 1.0, p.shape) * sig
+    gm_sig = np.array([nm.gnss_gm_h_sigma_m, nm.gnss_gm_h_sigma_m, nm.gnss_gm_v_sigma_m])
+    if gm_sig.any():
+        noise_local += gauss_markov(rng_gm, t, gm_sig, nm.gnss_gm_tau_s)
+    outlier = rng_gm.random(t.size) < nm.gnss_outlier_frac
+    if outlier.any():
+        az = rng_gm.uniform(0.0, 2 * np.pi, int(outlier.sum()))
+        size = rng_gm.uniform(5.0, 20.0, az.size)
+        noise_local[outlier, 0] += size * np.sin(az)
+        noise_local[outlier, 1] += size * np.cos(az)
     # Noise is drawn in the ENU axes at the drone; rotate into the frame's axes.
     r_loc = _rotations_to_local(frame, p, t)
     meas = p + np.einsum("nji,nj->ni", r_loc, noise_local)
-    if spoof_w is not None and spoof_w.drone_id == d:
-        sp_mask = (t >= spoof_w.start_s) & (t < spoof_w.end_s)
-        meas[sp_mask] += spoof_w.offset_enu_m
+    for w in spoofs:
+        if w.drone_id == d:
+            meas += w.displacement(t)
     lla = frame.to_geodetic_points(meas)
     # Satellites change every ~20 s; hdop follows them (10 sats -> 1.2, 14 -> 0.8).
     n_blocks = int(np.ceil(dur / 20.0)) + 1
@@ -521,9 +570,10 @@ def _gnss(frame: LocalFrame, sp: SurveyPath, forms: dict[str, Formation], d: str
             lla[o_mask] = 0.0
             sats[o_mask] = rng.integers(0, 4, int(o_mask.sum()))
     late = _late(rng, t.size, nm.late_gnss_frac, nm.late_min_s, nm.late_max_s)
+    # The receiver reports its total 1-sigma accuracy (white and wandering parts together).
     cols = {"lat_deg": lla[:, 0], "lon_deg": lla[:, 1], "alt_m": lla[:, 2], "fix_type": fix,
-            "satellites": sats, "hdop": hdop, "h_sigma_m": np.full(t.size, nm.gnss_h_sigma_m),
-            "v_sigma_m": np.full(t.size, nm.gnss_v_sigma_m)}
+            "satellites": sats, "hdop": hdop, "h_sigma_m": np.full(t.size, np.hypot(sig[0], gm_sig[0])),
+            "v_sigma_m": np.full(t.size, np.hypot(sig[2], gm_sig[2])), "outlier": outlier}
     return MessageTable(t[keep], (t + latency_s + late)[keep], np.full(int(keep.sum()), i),
                         {k: v[keep] for k, v in cols.items()})
 
@@ -547,3 +597,34 @@ def _relative(frame: LocalFrame, sp: SurveyPath, forms: dict[str, Formation], d:
     return MessageTable(t, t + latency_s + late, np.full(t.size, i),
                         {"bearing_enu": b, "range_m": r, "cov_enu_m2": cov, "target": np.zeros(t.size, int),
                          "range_true_m": rng_true, "bearing_true_enu": b_true})
+
+
+# Consumer receivers as they are (issue 15): a wandering error of 1.5 m per horizontal axis
+# with a one-minute correlation time plus 0.3 m white; helpers 20-140 m from A on their own
+# wandering legs, observing at 2 Hz with 2 % range and 0.5 deg bearing noise; 2 % multipath outliers.
+CORRELATED_NOISE = NoiseModel(gnss_h_sigma_m=0.3, gnss_v_sigma_m=0.5, gnss_gm_h_sigma_m=1.5,
+                              gnss_gm_v_sigma_m=2.5, gnss_gm_tau_s=60.0, gnss_outlier_frac=0.02,
+                              relative_rate_hz=2.0, relative_range_frac=0.02, relative_bearing_sigma_deg=0.5,
+                              relative_min_range_m=20.0, relative_max_range_m=140.0)
+CORRELATED_FORMATIONS: dict[str, Formation] = {
+    "B": Formation(range_m=80.0, azimuth_deg=240.0, dup_m=12.0, range_wander_m=60.0, azimuth_wander_deg=25.0,
+                   periods_s=(157.0, 233.0, 131.0), phases_rad=(0.0, 0.7, 0.3)),
+    "C": Formation(range_m=80.0, azimuth_deg=120.0, dup_m=-15.0, range_wander_m=60.0, azimuth_wander_deg=25.0,
+                   periods_s=(197.0, 171.0, 113.0), phases_rad=(2.1, 4.0, 1.9)),
+}
+
+
+def correlated_scenario(duration_s: float = 600.0, seed: int = 0, faults: bool = True) -> FusionScenario:
+    """The survey with Gauss-Markov GNSS on every drone (:data:`CORRELATED_NOISE`) and, with
+    ``faults`` (needs ``duration_s`` >= 450): A silent 150-240 s, then A's GNSS 30 m off for
+    30 s; B spoofed by a 50 m jump 300-330 s; C's GNSS drifting at 0.5 m/s 380-440 s, honest after.
+    Jump and drift directions are drawn from ``seed``."""
+    if not faults:
+        return survey_scenario(duration_s, seed, outage=None, spoof=None, noise=CORRELATED_NOISE,
+                               formations=CORRELATED_FORMATIONS)
+    az = np.random.default_rng(np.random.SeedSequence([int(seed), 15])).uniform(0.0, 2 * np.pi, 2)
+    horiz = np.stack([np.sin(az), np.cos(az), np.zeros(2)], axis=1)
+    extra = (Spoof("A", 240.0, 30.0, 30.0 * horiz[0]),
+             Spoof("C", 380.0, 60.0, np.zeros(3), 0.5 * horiz[1]))
+    return survey_scenario(duration_s, seed, outage=("A", 150.0, 90.0), spoof=("B", 300.0, 30.0, 50.0),
+                           noise=CORRELATED_NOISE, formations=CORRELATED_FORMATIONS, faults=extra)

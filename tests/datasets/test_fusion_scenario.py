@@ -285,3 +285,33 @@ def test_the_engine_accepts_every_event_of_a_faulty_run():
         err_m = np.linalg.norm((est.enu_m - s.truth_enu(d, est.time_s)[0])[:2])
         assert err_m < 3.0, (d, err_m)  # 2 sigma of a single 1.5 m fix; fusion does far better
     engine.close()
+
+
+def test_correlated_gnss_wanders_with_a_one_minute_correlation_time():
+    """Gauss-Markov GNSS (1.5 m, tau 60 s) + 0.3 m white; faults follow their windows."""
+    from skyfix.datasets.fusion_scenario import CORRELATED_NOISE, correlated_scenario, gauss_markov
+
+    # the process itself, over many independent runs: stationary sigma and exp(-dt/tau) correlation
+    rng = np.random.default_rng(0)
+    t = np.arange(0.0, 60.0 + 1e-9, 0.2)
+    x = gauss_markov(rng, t, np.full(3000, 1.5), 60.0)[[0, -1]].T  # 3000 independent axes
+    assert abs(x[:, 1].std() / 1.5 - 1.0) < 5.0 / np.sqrt(2 * 3000)
+    corr = np.corrcoef(x[:, 0], x[:, 1])[0, 1]
+    assert abs(corr - np.exp(-1.0)) < 5.0 / np.sqrt(3000)  # standard error of r ~ (1 - r^2)/sqrt(N) < 1/sqrt(N)
+    s = correlated_scenario(600.0, seed=1)
+    tab = s.table("gnss")
+    i = DRONE_IDS.index("B")
+    m = (tab.drone == i) & s.gnss_valid_mask("B", tab.time_s) & ~tab.cols["outlier"]
+    meas = s.frame.to_enu_points(np.stack([tab.cols[k][m] for k in ("lat_deg", "lon_deg", "alt_m")], 1))
+    err = meas - s.truth_enu("B", tab.time_s[m])
+    # consecutive fixes (0.2 s apart) are nearly the same error: only the 0.3 m white part differs
+    d = np.diff(err[:, 0])
+    assert _std_ok(d[np.diff(tab.time_s[m]) < 0.21], np.sqrt(2 * 0.3**2 + 2 * 1.5**2 * (1 - np.exp(-0.2 / 60))))
+    assert np.allclose(tab.cols["h_sigma_m"][m], np.hypot(0.3, 1.5))
+    frac = tab.cols["outlier"].mean()
+    assert abs(frac - CORRELATED_NOISE.gnss_outlier_frac) < 5 * np.sqrt(0.02 * 0.98 / tab.cols["outlier"].size)
+    drift = next(w for w in s.spoofs if w.drone_id == "C")
+    np.testing.assert_allclose(np.linalg.norm(drift.displacement(np.array([drift.start_s + 40.0]))), 20.0)
+    assert not drift.displacement(np.array([drift.end_s])).any()
+    r = s.table("relative").cols["range_true_m"]
+    assert r.min() >= 20.0 and r.max() <= 140.0
