@@ -142,8 +142,8 @@ def _connect(args: argparse.Namespace):
 def run_status(args: argparse.Namespace) -> int:
     with _connect(args) as vehicle:
         try:
-            st = vehicle.wait_until(lambda s: s.position is not None, min(args.timeout, 5.0),
-                                    what="a position report")
+            st = vehicle.wait_until(lambda s: None not in (s.position, s.gps, s.home),
+                                    min(args.timeout, 5.0), what="position, GPS and home reports")
         except TimeoutError:
             st = vehicle.state
         if args.json:

@@ -4,7 +4,8 @@ Autopilots silently ignore injected positions unless configured for them, so
 :func:`check_settings` reads the relevant parameters first and raises a
 :class:`~skyfix.errors.ConfigurationError` naming the setting to change:
 
-- ArduPilot GPS_INPUT: ``GPS_TYPE`` (or ``GPS2_TYPE``) = 14 (MAV), EKF source ``EK3_SRC1_POSXY`` = 3 (GPS).
+- ArduPilot GPS_INPUT: ``GPS1_TYPE`` (or ``GPS2_TYPE``) = 14 (MAV), EKF source ``EK3_SRC1_POSXY``
+  = 3 (GPS). Firmware before 4.6 calls the first one ``GPS_TYPE``: both names are read.
 - ArduPilot vision: ``VISO_TYPE`` > 0 and ``EK3_SRC1_POSXY`` = 6 (ExternalNav).
 - PX4 GPS_INPUT: ``EKF2_GPS_CTRL`` bit 0 (lon/lat fusion).
 - PX4 vision: ``EKF2_EV_CTRL`` bit 0 (horizontal position fusion).
@@ -24,6 +25,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from skyfix import validate
+from skyfix.drivers import units
 from skyfix.drivers.mav import mavlink
 from skyfix.errors import ConfigurationError, InputError, SkyfixError, SkyfixTimeout
 from skyfix.rotation import r_ned_from_frd
@@ -65,12 +67,16 @@ def check_settings(vehicle: Vehicle, kind: str) -> None:
     if vehicle.autopilot == "ardupilot":
         src = _param(vehicle, "EK3_SRC1_POSXY")
         if kind == "gps":
-            types = {n: _param(vehicle, n) for n in ("GPS_TYPE", "GPS2_TYPE")}
+            first = "GPS1_TYPE"
+            gps1 = _param(vehicle, first)
+            if gps1 is None:  # firmware before 4.6
+                first, gps1 = "GPS_TYPE", _param(vehicle, "GPS_TYPE")
+            types = {first: gps1, "GPS2_TYPE": _param(vehicle, "GPS2_TYPE")}
             types = {n: (int(v) if v is not None else "unreadable") for n, v in types.items()}
             if 14 not in types.values():
                 raise ConfigurationError(
-                    f"vehicle {sysid} (ArduPilot) ignores GPS_INPUT: GPS_TYPE={types['GPS_TYPE']}, "
-                    f"GPS2_TYPE={types['GPS2_TYPE']}; set GPS_TYPE=14 (MAV), or GPS2_TYPE=14 with "
+                    f"vehicle {sysid} (ArduPilot) ignores GPS_INPUT: {first}={types[first]}, "
+                    f"GPS2_TYPE={types['GPS2_TYPE']}; set {first}=14 (MAV), or GPS2_TYPE=14 with "
                     "GPS_AUTO_SWITCH=1 to keep the real receiver as primary, then reboot the autopilot")
             if src is not None and int(src) != 3:
                 raise ConfigurationError(
@@ -195,18 +201,20 @@ def set_origin(vehicle: Vehicle, lat_deg: float, lon_deg: float, alt_amsl_m: flo
 class PositionInjector:
     """Sends GPS_INPUT from ``source()`` (a :class:`GeoFix` or None) at a steady rate.
 
-    GeoFix heights are ellipsoidal; GPS_INPUT wants AMSL, so ``geoid_height_m`` (the
-    local geoid undulation N, alt_amsl = h - N) is subtracted. The fix's ``time_s``
+    GeoFix heights are ellipsoidal; GPS_INPUT wants AMSL: alt_amsl = h - N with N the EGM96
+    undulation at the fix (:mod:`skyfix.drivers.units`), or ``geoid_height_m`` when given
+    (an autopilot whose AMSL uses another geoid model). The fix's ``time_s``
     (UNIX) becomes the message time stamp; its covariance becomes the accuracies.
     A failing source is logged and skipped; the loop keeps its schedule.
     """
 
     def __init__(self, vehicle: Vehicle, source: Callable[[], GeoFix | None], *, rate_hz: float = 5.0,
-                 geoid_height_m: float = 0.0) -> None:
+                 geoid_height_m: float | None = None) -> None:
         self.vehicle = vehicle
         self.source = source
         self.period_s = 1.0 / validate.positive_scalar("rate_hz", rate_hz)
-        self.geoid_height_m = validate.finite_scalar("geoid_height_m", geoid_height_m)
+        self.geoid_height_m = None if geoid_height_m is None else \
+            validate.finite_scalar("geoid_height_m", geoid_height_m)
         self.sent = 0
         self.skipped = 0
         self._stop = threading.Event()
@@ -231,8 +239,10 @@ class PositionInjector:
                     self.skipped += 1
                 else:
                     h_acc = max(fix.sigma_horizontal_m, 0.05)
+                    n_m = self.geoid_height_m if self.geoid_height_m is not None else \
+                        units.geoid_height_m(fix.lat_deg, fix.lon_deg)
                     self.vehicle.send(gps_input_message(
-                        fix.lat_deg, fix.lon_deg, fix.alt_m - self.geoid_height_m, h_acc_m=h_acc,
+                        fix.lat_deg, fix.lon_deg, fix.alt_m - n_m, h_acc_m=h_acc,
                         v_acc_m=max(fix.sigma_up_m, 0.05), time_s=fix.time_s or None))
                     self.sent += 1
             except SkyfixError as exc:

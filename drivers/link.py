@@ -81,6 +81,8 @@ class MavlinkLink:
         self._vehicles_lock = threading.Condition()
         self.vehicles: dict[int, Vehicle] = {}
         self.vehicle_factory: Callable[[MavlinkLink, int, int, int], Vehicle] | None = None
+        #: callables ``tap(msg, t_mono)`` seeing every valid incoming message (logging, recording)
+        self.taps: list[Callable] = []
         self.bad_packets = 0
         self.packets_in = 0
         self.reconnects = 0
@@ -169,6 +171,8 @@ class MavlinkLink:
             self.bad_packets += 1
             return
         self.packets_in += 1
+        for tap in list(self.taps):
+            tap(msg, t_mono)
         sysid = msg.get_srcSystem()
         vehicle = self.vehicles.get(sysid)
         if vehicle is None:

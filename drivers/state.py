@@ -2,7 +2,9 @@
 
 Every record carries ``time_s``: UNIX time at which skyfix received the message.
 Altitudes: ``alt_amsl_m`` above mean sea level as the autopilot reports it,
-``alt_rel_m`` above home. Velocities in local NED, m/s. Angles in degrees.
+``alt_ellipsoid_m`` above the WGS84 ellipsoid (what skyfix's geodesy and fusion use),
+``alt_rel_m`` above home. Velocities in local NED, m/s. Angles in degrees. The
+conversions from MAVLink's wire units are all in :mod:`skyfix.drivers.units`.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from dataclasses import dataclass, field
 
 @dataclass(frozen=True)
 class Position:
-    """Fused position (GLOBAL_POSITION_INT)."""
+    """Fused position (GLOBAL_POSITION_INT); ``alt_ellipsoid_m`` = AMSL + EGM96 geoid."""
 
     lat_deg: float
     lon_deg: float
@@ -21,6 +23,7 @@ class Position:
     alt_rel_m: float
     time_s: float
     autopilot_time_s: float = math.nan  # the message's own time stamp (time_boot_ms), autopilot clock
+    alt_ellipsoid_m: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -54,15 +57,26 @@ class Attitude:
 
 @dataclass(frozen=True)
 class GpsStatus:
-    """Raw GNSS receiver report (GPS_RAW_INT): GPS_FIX_TYPE, satellites, accuracies in metres."""
+    """Raw GNSS receiver report (GPS_RAW_INT): GPS_FIX_TYPE, satellites, accuracies.
+
+    ``h_acc_m``/``v_acc_m``: the receiver's 1-sigma accuracies in metres (NaN when the
+    autopilot does not report them). ``hdop``/``vdop``: dilutions of precision, unitless
+    (NaN when unknown); never a metre sigma. ``alt_ellipsoid_m``: height above WGS84, from
+    the message's ``alt_ellipsoid`` (``alt_ellipsoid_source == "autopilot"``) or AMSL plus
+    the EGM96 geoid when the autopilot leaves it 0 (``"egm96"``); ``"none"`` without a fix.
+    """
 
     fix_type: int
     satellites: int
-    eph_m: float
-    epv_m: float
+    h_acc_m: float
+    v_acc_m: float
+    hdop: float
+    vdop: float
     lat_deg: float
     lon_deg: float
     alt_amsl_m: float
+    alt_ellipsoid_m: float
+    alt_ellipsoid_source: str
     time_s: float
     autopilot_time_s: float = math.nan  # the message's own time stamp (time_usec), autopilot clock
 
@@ -86,6 +100,7 @@ class Home:
     alt_amsl_m: float
     time_s: float
     autopilot_time_s: float = math.nan  # the message's own time stamp (time_usec), autopilot clock
+    alt_ellipsoid_m: float = math.nan  # AMSL + EGM96 geoid
 
 
 @dataclass(frozen=True)

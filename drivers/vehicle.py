@@ -23,21 +23,12 @@ from dataclasses import replace
 from typing import Any
 
 from skyfix import validate
-from skyfix.drivers import injection, mission
+from skyfix.drivers import injection, mission, units
 from skyfix.drivers.link import MavlinkLink
 from skyfix.drivers.mav import command_name, mavlink, result_name
 from skyfix.drivers.modes import PX4_MODES, custom_mode_of, flavour_of, mode_name, role_mode
 from skyfix.drivers.safety import SafetyGate
-from skyfix.drivers.state import (
-    Attitude,
-    Battery,
-    GpsStatus,
-    Home,
-    Position,
-    VehicleEvent,
-    VehicleState,
-    Velocity,
-)
+from skyfix.drivers.state import Attitude, Position, VehicleEvent, VehicleState, Velocity
 from skyfix.errors import CommandRejected, InputError, LinkError, SafetyViolation, SkyfixTimeout
 
 log = logging.getLogger(__name__)
@@ -236,9 +227,7 @@ class Vehicle:
             self._update(link_ok=False)
 
     def _rx_global_position_int(self, msg, now: float, t_mono: float) -> None:
-        stamp_s = msg.time_boot_ms / 1000.0
-        pos = Position(msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0, msg.relative_alt / 1000.0, now, stamp_s)
-        vel = Velocity(msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0, now, stamp_s)
+        pos, vel = units.position_velocity(msg, now)
         self._update(position=pos, velocity=vel)
         if self.safety is not None:
             self._check_safety(pos, vel, t_mono)
@@ -248,19 +237,13 @@ class Vehicle:
                                        math.degrees(msg.yaw) % 360.0, now))
 
     def _rx_gps_raw_int(self, msg, now: float, t_mono: float) -> None:
-        eph = msg.eph / 100.0 if msg.eph != 65535 else math.inf
-        epv = msg.epv / 100.0 if msg.epv != 65535 else math.inf
-        self._update(gps=GpsStatus(msg.fix_type, msg.satellites_visible, eph, epv, msg.lat / 1e7,
-                                   msg.lon / 1e7, msg.alt / 1000.0, now, msg.time_usec / 1e6))
+        self._update(gps=units.gps_status(msg, now))
 
     def _rx_sys_status(self, msg, now: float, t_mono: float) -> None:
-        self._update(battery=Battery(
-            msg.voltage_battery / 1000.0 if msg.voltage_battery != 65535 else math.nan,
-            msg.current_battery / 100.0 if msg.current_battery >= 0 else math.nan,
-            float(msg.battery_remaining) if msg.battery_remaining >= 0 else math.nan, now))
+        self._update(battery=units.battery(msg, now))
 
     def _rx_home_position(self, msg, now: float, t_mono: float) -> None:
-        self._update(home=Home(msg.latitude / 1e7, msg.longitude / 1e7, msg.altitude / 1000.0, now))
+        self._update(home=units.home(msg, now))
 
     def _rx_extended_sys_state(self, msg, now: float, t_mono: float) -> None:
         self._update(landed_state=_LANDED.get(msg.landed_state, "UNDEFINED"))
@@ -665,8 +648,10 @@ class Vehicle:
         self.send(msg)
 
     def start_gps_injection(self, source: Callable[[], injection.GeoFix | None], *,
-                            rate_hz: float = 5.0, geoid_height_m: float = 0.0) -> injection.PositionInjector:
-        """Inject ``source()`` fixes as GPS_INPUT at a steady ``rate_hz`` on a thread."""
+                            rate_hz: float = 5.0,
+                            geoid_height_m: float | None = None) -> injection.PositionInjector:
+        """Inject ``source()`` fixes (ellipsoidal heights) as GPS_INPUT at a steady ``rate_hz``
+        on a thread; AMSL through EGM96 unless ``geoid_height_m`` is given."""
         self.check_injection("gps")
         if self.injector is not None:
             self.injector.stop()

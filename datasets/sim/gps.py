@@ -47,7 +47,8 @@ class GpsFault:
 
 @dataclass(frozen=True)
 class GpsReading:
-    """One receiver output: position in world ENU metres, accuracies, fix type (GPS_FIX_TYPE)."""
+    """One receiver output: position in world ENU metres, 1-sigma accuracies in metres,
+    dilutions of precision (unitless), fix type (GPS_FIX_TYPE)."""
 
     pos_enu_m: np.ndarray
     vel_enu_mps: np.ndarray
@@ -55,6 +56,8 @@ class GpsReading:
     satellites: int
     eph_m: float
     epv_m: float
+    hdop: float = math.nan
+    vdop: float = math.nan
 
 
 class GpsReceiver:
@@ -74,14 +77,16 @@ class GpsReceiver:
     def read(self, t_s: float, true_pos_enu_m: np.ndarray, true_vel_enu_mps: np.ndarray) -> GpsReading:
         """The fix at simulation time ``t_s`` for the vehicle's true state."""
         pos = true_pos_enu_m + self._bias + 0.15 * self._rng.standard_normal(3) + self.glitch_enu_m
-        eph, epv, sats, fix = 0.8, 1.2, 14, 3
+        # a healthy receiver: HDOP 1.2 / VDOP 1.9 with 14 satellites (as SITL's u-blox reports),
+        # accuracies in metres that are not the DOPs (a client mixing them up is visibly wrong)
+        eph, epv, sats, fix, hdop, vdop = 0.8, 1.2, 14, 3, 1.2, 1.9
         for fault in self.faults:
             if not fault.active(t_s):
                 continue
             if fault.kind == "loss":
                 return GpsReading(pos * np.nan, true_vel_enu_mps * np.nan, 1, 0, math.inf, math.inf)
             if fault.kind == "degraded":
-                eph, epv, sats = fault.eph_m, 1.5 * fault.eph_m, 5
+                eph, epv, sats, hdop, vdop = fault.eph_m, 1.5 * fault.eph_m, 5, 4.5, 7.0
                 pos = pos + fault.eph_m * self._rng.standard_normal(3) * np.array([1, 1, 1.5])
             elif fault.kind == "jump":
                 pos = pos + np.asarray(fault.offset_enu_m)
@@ -93,4 +98,4 @@ class GpsReceiver:
         if self.disabled:
             return GpsReading(pos * np.nan, true_vel_enu_mps * np.nan, 1, 0, math.inf, math.inf)
         vel = true_vel_enu_mps + 0.05 * self._rng.standard_normal(3)
-        return GpsReading(pos, vel, fix, sats, eph, epv)
+        return GpsReading(pos, vel, fix, sats, eph, epv, hdop, vdop)

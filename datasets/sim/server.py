@@ -188,7 +188,7 @@ class VehicleServer:
         elif kind == "mode":
             self.send(self._msg_heartbeat())
         elif kind == "camera":
-            lat, lon, alt = v.geodetic(v.pos_enu_m)
+            lat, lon, alt = v.geodetic_amsl(v.pos_enu_m)
             if v.flavour == "ardupilot":
                 self.send(M.MAVLink_camera_feedback_message(
                     int(v.t_s * 1e6), 0, 0, ev[1], int(lat * 1e7), int(lon * 1e7), alt,
@@ -226,7 +226,7 @@ class VehicleServer:
     def _msg_global_position_int(self):
         v = self.vehicle
         est = v.est_pos_enu_m
-        lat, lon, alt = v.geodetic(est)
+        lat, lon, alt = v.geodetic_amsl(est)
         rel = v.altitude_rel_m()
         vel = v.vel_enu_mps
         self.log.append((time.monotonic(), "position", (lat, lon, rel)))
@@ -253,14 +253,16 @@ class VehicleServer:
         if r is None or r.fix_type < 2 or not np.all(np.isfinite(r.pos_enu_m)):
             return M.MAVLink_gps_raw_int_message(int(v.t_s * 1e6), 1 if r else 0, 0, 0, 0, 65535,
                                                  65535, 65535, 65535, 0, 0, 0, 0, 0, 0, 0)
-        lat, lon, alt = v.geodetic(r.pos_enu_m)
+        lat, lon, alt_ell = v.geodetic(r.pos_enu_m)
         speed = float(np.hypot(*r.vel_enu_mps[:2]))
         cog = (math.degrees(math.atan2(r.vel_enu_mps[0], r.vel_enu_mps[1])) + 360.0) % 360.0
+        # as autopilots encode it: alt AMSL, eph/epv = DOP x 100 (unitless), h_acc/v_acc in mm,
+        # alt_ellipsoid above WGS84 (mm)
         return M.MAVLink_gps_raw_int_message(
             int(v.t_s * 1e6), r.fix_type, int(round(lat * 1e7)), int(round(lon * 1e7)),
-            int(round(alt * 1000)), min(int(r.eph_m * 100), 65534), min(int(r.epv_m * 100), 65534),
-            int(speed * 100), int(cog * 100), r.satellites, int(round(alt * 1000)),
-            int(r.eph_m * 1000), int(r.epv_m * 1000), 100, 0, 0)
+            int(round((alt_ell - v.geoid_m) * 1000)), min(int(round(r.hdop * 100)), 65534),
+            min(int(round(r.vdop * 100)), 65534), int(speed * 100), int(cog * 100), r.satellites,
+            int(round(alt_ell * 1000)), int(round(r.eph_m * 1000)), int(round(r.epv_m * 1000)), 100, 0, 0)
 
     def _msg_sys_status(self):
         v = self.vehicle
@@ -282,7 +284,7 @@ class VehicleServer:
     def _msg_vfr_hud(self):
         v = self.vehicle
         speed = float(np.hypot(*v.vel_enu_mps[:2]))
-        lat, lon, alt = v.geodetic(v.est_pos_enu_m)
+        lat, lon, alt = v.geodetic_amsl(v.est_pos_enu_m)
         return M.MAVLink_vfr_hud_message(speed, speed, int(v.yaw_deg) % 360,
                                          50 if v.armed and not v.landed else 0, alt, v.vel_enu_mps[2])
 
@@ -309,7 +311,7 @@ class VehicleServer:
         v = self.vehicle
         if not v.home_set:
             return None
-        lat, lon, alt = v.geodetic(v.home_enu_m)
+        lat, lon, alt = v.geodetic_amsl(v.home_enu_m)
         ned = v.enu_to_local_ned(v.home_enu_m)
         return M.MAVLink_home_position_message(int(round(lat * 1e7)), int(round(lon * 1e7)),
                                                int(round(alt * 1000)), *ned, [1.0, 0.0, 0.0, 0.0],
@@ -330,7 +332,8 @@ class VehicleServer:
         if o is None:
             return None
         return M.MAVLink_gps_global_origin_message(int(round(o[0] * 1e7)), int(round(o[1] * 1e7)),
-                                                   int(round(o[2] * 1000)), int(self.vehicle.t_s * 1e6))
+                                                   int(round((o[2] - self.vehicle.geoid_m) * 1000)),
+                                                   int(self.vehicle.t_s * 1e6))
 
     # ------------------------------------------------------------- commands
     def _ack(self, msg, command: int, result: int, addr) -> None:
@@ -371,9 +374,9 @@ class VehicleServer:
             return ACCEPTED
         if cmd == M.MAV_CMD_NAV_TAKEOFF:
             if v.flavour == "px4":
-                alt_amsl = p[6] if math.isfinite(p[6]) else \
+                alt_ell = p[6] + v.geoid_m if math.isfinite(p[6]) else \
                     v.home_enu_m[2] + v.world.alt0_m + v.param("MIS_TAKEOFF_ALT")
-                up = alt_amsl - v.world.alt0_m
+                up = alt_ell - v.world.alt0_m
             else:
                 if not math.isfinite(p[6]) or p[6] <= 0:
                     raise Refusal(M.MAV_RESULT_DENIED, "Takeoff: altitude must be > 0")
@@ -426,7 +429,7 @@ class VehicleServer:
             if p[0] >= 0.5:
                 v.home_enu_m = v.est_pos_enu_m.copy()
             else:
-                v.home_enu_m = v.enu(p[4], p[5], p[6])
+                v.home_enu_m = v.enu_amsl(p[4], p[5], p[6])
             v.home_set = True
             v.events.append(("home",))
             return ACCEPTED
@@ -617,7 +620,7 @@ class VehicleServer:
         it = v.mission[msg.seq]
         x, y, z, frame = it.x, it.y, it.z, it.frame
         if v.flavour == "ardupilot" and msg.seq == 0:  # item 0 is the current home
-            lat, lon, alt = v.geodetic(v.home_enu_m)
+            lat, lon, alt = v.geodetic_amsl(v.home_enu_m)
             x, y, z, frame = int(round(lat * 1e7)), int(round(lon * 1e7)), alt, M.MAV_FRAME_GLOBAL_INT
         self.send(M.MAVLink_mission_item_int_message(
             msg.get_srcSystem(), msg.get_srcComponent(), it.seq, frame, it.command,

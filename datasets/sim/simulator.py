@@ -44,12 +44,14 @@ class SimulatorConfig:
     share_gcs_port: bool = False  # all vehicles send to base_port (one link, several system ids)
     bind_ports: Sequence[int] | None = None  # own UDP ports; None: ephemeral
     home: tuple[float, float, float] | None = None  # lat_deg, lon_deg, alt_amsl_m of vehicle 0
+    geoid_m: float | None = None  # geoid undulation N (AMSL = ellipsoidal - N); None: EGM96 at home
     spacing_m: float = 5.0  # vehicles start this far apart along east
     speed: float = 1.0  # simulated seconds per wall second
     dt_s: float = 0.02  # physics step, simulated seconds
     loss_rate: float = 0.0  # fraction of datagrams dropped in each direction
     wind: WindField = field(default_factory=WindField)
     params: dict[str, float] = field(default_factory=dict)  # overrides for every vehicle
+    legacy_params: bool = False  # ArduPilot parameter names before 4.6 (GPS_TYPE, SIM_GPS_DISABLE)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -78,7 +80,12 @@ class Simulator:
         home = cfg.home or DEFAULT_HOME[cfg.flavour]
         lat0 = float(validate.latitude("home[0]", home[0]))
         lon0 = float(validate.longitude("home[1]", home[1]))
-        self.world = LocalFrame(lat0, lon0, validate.finite_scalar("home[2]", home[2]))
+        if cfg.geoid_m is None:
+            from skyfix.geoid import geoid_undulation_m
+            self.geoid_m = float(geoid_undulation_m(lat0, lon0))
+        else:
+            self.geoid_m = validate.finite_scalar("geoid_m", cfg.geoid_m)
+        self.world = LocalFrame(lat0, lon0, validate.finite_scalar("home[2]", home[2]) + self.geoid_m)
         self.lock = threading.RLock()
         self.servers: list[VehicleServer] = []
         rng = np.random.default_rng(cfg.seed)
@@ -89,7 +96,8 @@ class Simulator:
             sock.setblocking(False)
             vcfg = SimVehicleConfig(flavour=cfg.flavour, system_id=i + 1,
                                     start_enu_m=(i * cfg.spacing_m, 0.0, 0.0), seed=cfg.seed * 100 + i,
-                                    params=dict(cfg.params))
+                                    params=dict(cfg.params), geoid_m=self.geoid_m,
+                                    legacy_params=cfg.legacy_params)
             gcs = (LOOPBACK, int(cfg.base_port) + (0 if cfg.share_gcs_port else i)) if cfg.base_port is not None else None
             self.servers.append(VehicleServer(SimVehicle(vcfg, self.world, cfg.wind), sock,
                                               gcs_address=gcs, loss_rate=cfg.loss_rate,
@@ -126,14 +134,15 @@ class Simulator:
             self.vehicle(index).gps.faults.clear()
 
     def truth(self, index: int = 0) -> dict[str, float]:
-        """Ground truth of vehicle ``index``: lat/lon/alt (AMSL = ellipsoidal here), world ENU
+        """Ground truth of vehicle ``index``: lat/lon, ``alt_m`` above the WGS84 ellipsoid and
+        ``alt_amsl_m`` (= alt_m - geoid_m, what the autopilot reports), world ENU
         position and velocity, attitude (degrees), and the autopilot's horizontal estimate error."""
         with self.lock:
             v = self.vehicle(index)
             lat, lon, alt = v.geodetic(v.pos_enu_m)
             e, n, u = (float(x) for x in v.pos_enu_m)
             est = v.est_pos_enu_m
-            return {"lat_deg": lat, "lon_deg": lon, "alt_m": alt, "east_m": e, "north_m": n, "up_m": u,
+            return {"lat_deg": lat, "lon_deg": lon, "alt_m": alt, "alt_amsl_m": alt - self.geoid_m, "east_m": e, "north_m": n, "up_m": u,
                     "alt_rel_m": u - float(v.home_enu_m[2]), "time_s": v.t_s,
                     "est_error_m": float(np.hypot(*(est[:2] - v.pos_enu_m[:2]))),
                     "speed_mps": float(np.linalg.norm(v.vel_enu_mps)),

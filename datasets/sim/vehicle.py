@@ -1,7 +1,9 @@
 """One simulated multirotor: point-mass physics, a toy EKF, flight modes and missions.
 
-Positions are world ENU metres about the simulator's ``LocalFrame``; the simulated
-world puts the geoid on the ellipsoid, so its altitudes are both AMSL and ellipsoidal.
+Positions are world ENU metres about the simulator's ``LocalFrame`` (origin height above
+the WGS84 ellipsoid). Like a real autopilot, the MAVLink face reports altitudes above
+mean sea level: AMSL = ellipsoidal height - ``geoid_m`` (the geoid undulation N, one
+value for the whole small simulated world), so a client that mixes the two is off by N.
 The autopilot flies on its *estimate* (``est_pos_enu_m``), never on the truth, so GPS
 faults and injected positions move the real aircraft the way they would move a real one.
 No MAVLink here: :mod:`skyfix.datasets.sim.server` maps messages onto this API.
@@ -40,13 +42,19 @@ _BEHAVIOUR = {
 _NEEDS_POSITION = {"guided", "mission", "rtl", "hold", "takeoff"}
 
 ARDUPILOT_PARAMS: dict[str, float] = {
-    "SYSID_THISMAV": 1, "GPS_TYPE": 1, "GPS2_TYPE": 0, "GPS_AUTO_SWITCH": 1,
+    "SYSID_THISMAV": 1, "GPS1_TYPE": 1, "GPS2_TYPE": 0, "GPS_AUTO_SWITCH": 1,
     "EK3_SRC1_POSXY": 3, "EK3_SRC1_VELXY": 3, "EK3_SRC1_POSZ": 1, "VISO_TYPE": 0,
     "WPNAV_SPEED": 500, "WPNAV_SPEED_UP": 250, "WPNAV_SPEED_DN": 150, "WPNAV_RADIUS": 200,
     "RTL_ALT": 1500, "LAND_SPEED": 50, "DISARM_DELAY": 10, "FS_EKF_ACTION": 1,
     "BATT_CAPACITY": 5200, "BATT_LOW_MAH": 0, "ARMING_CHECK": 1,
-    "SIM_GPS_DISABLE": 0, "SIM_GPS_GLITCH_X": 0, "SIM_GPS_GLITCH_Y": 0, "SIM_GPS_GLITCH_Z": 0,
+    "SIM_GPS1_ENABLE": 1, "SIM_GPS1_GLTCH_X": 0, "SIM_GPS1_GLTCH_Y": 0, "SIM_GPS1_GLTCH_Z": 0,
     "SIM_WIND_SPD": 0, "SIM_WIND_DIR": 180,
+}
+#: ArduPilot 4.6+ parameter names -> the names of earlier firmware (``legacy_params``).
+#: SIM_GPS_DISABLE is the inverse of SIM_GPS1_ENABLE.
+ARDUPILOT_LEGACY_NAMES: dict[str, str] = {
+    "GPS1_TYPE": "GPS_TYPE", "SIM_GPS1_ENABLE": "SIM_GPS_DISABLE", "SIM_GPS1_GLTCH_X": "SIM_GPS_GLITCH_X",
+    "SIM_GPS1_GLTCH_Y": "SIM_GPS_GLITCH_Y", "SIM_GPS1_GLTCH_Z": "SIM_GPS_GLITCH_Z",
 }
 PX4_PARAMS: dict[str, float] = {
     "MAV_SYS_ID": 1, "EKF2_GPS_CTRL": 7, "EKF2_EV_CTRL": 0, "EKF2_HGT_REF": 0,
@@ -116,6 +124,8 @@ class SimVehicleConfig:
     hover_current_a: float = 18.0
     seed: int = 0
     params: dict[str, float] = field(default_factory=dict)
+    legacy_params: bool = False  # ArduPilot: answer with the parameter names of firmware < 4.6
+    geoid_m: float = 0.0  # geoid undulation N, m: AMSL = ellipsoidal height - N
 
 
 class SimVehicle:
@@ -127,6 +137,9 @@ class SimVehicle:
         self.world = world
         self.wind = wind
         self.params: dict[str, float] = dict(PX4_PARAMS if self.flavour == "px4" else ARDUPILOT_PARAMS)
+        if self.flavour == "ardupilot" and config.legacy_params:
+            self.params = {ARDUPILOT_LEGACY_NAMES.get(k, k): v for k, v in self.params.items()}
+            self.params["SIM_GPS_DISABLE"] = 0
         self.params["MAV_SYS_ID" if self.flavour == "px4" else "SYSID_THISMAV"] = config.system_id
         self.params.update(config.params)
         self.t_s = 0.0
@@ -207,10 +220,23 @@ class SimVehicle:
     def enu(self, lat_deg: float, lon_deg: float, alt_m: float) -> np.ndarray:
         return np.array([float(v) for v in self.world.to_enu(lat_deg, lon_deg, alt_m)])
 
+    @property
+    def geoid_m(self) -> float:
+        return float(self.config.geoid_m)
+
+    def geodetic_amsl(self, enu_m: np.ndarray) -> tuple[float, float, float]:
+        """(lat_deg, lon_deg, alt_amsl_m) of a world ENU point: what MAVLink reports."""
+        lat, lon, h = self.geodetic(enu_m)
+        return lat, lon, h - self.geoid_m
+
+    def enu_amsl(self, lat_deg: float, lon_deg: float, alt_amsl_m: float) -> np.ndarray:
+        """World ENU of a MAVLink (lat, lon, AMSL altitude)."""
+        return self.enu(lat_deg, lon_deg, alt_amsl_m + self.geoid_m)
+
     def global_target_enu(self, frame: int, lat_deg: float, lon_deg: float, z_m: float) -> np.ndarray:
         """World ENU of a global (lat, lon, z) in a MAV_FRAME (AMSL or relative to home)."""
         if frame in (FRAME_GLOBAL, FRAME_GLOBAL_INT):
-            alt = z_m
+            alt = z_m + self.geoid_m
         else:
             alt = self.home_enu_m[2] + self.world.alt0_m + z_m
         return self.enu(lat_deg, lon_deg, alt)
@@ -253,7 +279,7 @@ class SimVehicle:
         if self.flavour == "px4":
             return ["real", "mav"] if int(self.param("EKF2_GPS_CTRL")) & 1 else []
         out = []
-        for name in ("GPS_TYPE", "GPS2_TYPE"):
+        for name in ("GPS1_TYPE" if "GPS1_TYPE" in self.params else "GPS_TYPE", "GPS2_TYPE"):
             kind = int(self.param(name))
             if kind == 14:
                 out.append("mav")
@@ -321,12 +347,18 @@ class SimVehicle:
         return False
 
     def _update_estimator(self, dt_s: float) -> None:
-        self.gps.disabled = bool(self.param("SIM_GPS_BLOCK" if self.flavour == "px4" else "SIM_GPS_DISABLE"))
+        if self.flavour == "px4":
+            self.gps.disabled = bool(self.param("SIM_GPS_BLOCK"))
+        elif "SIM_GPS1_ENABLE" in self.params:
+            self.gps.disabled = not self.param("SIM_GPS1_ENABLE")
+        else:
+            self.gps.disabled = bool(self.param("SIM_GPS_DISABLE"))
         lat0 = math.radians(self.world.lat0_deg)
+        glitch = "SIM_GPS1_GLTCH_" if "SIM_GPS1_GLTCH_X" in self.params else "SIM_GPS_GLITCH_"
         self.gps.glitch_enu_m = np.array([
-            self.param("SIM_GPS_GLITCH_Y") * math.pi / 180 * 6378137.0 * math.cos(lat0),
-            self.param("SIM_GPS_GLITCH_X") * math.pi / 180 * 6378137.0,
-            self.param("SIM_GPS_GLITCH_Z")])
+            self.param(glitch + "Y") * math.pi / 180 * 6378137.0 * math.cos(lat0),
+            self.param(glitch + "X") * math.pi / 180 * 6378137.0,
+            self.param(glitch + "Z")])
         self.gps.step(dt_s)
         self._gps_fresh = False
         if self.t_s >= self._gps_next_s:  # receivers report at 5 Hz
@@ -376,7 +408,7 @@ class SimVehicle:
         """A GPS_INPUT sample; returns False when the autopilot's settings ignore it."""
         if "mav" not in self._gps_instances():
             return False
-        pos = self.enu(lat_deg, lon_deg, alt_amsl_m)
+        pos = self.enu_amsl(lat_deg, lon_deg, alt_amsl_m)
         self.mav_gps = _ExternalFix(pos - self.pos_enu_m, self.t_s, fix_type, satellites,
                                     max(eph_m, 0.01), max(epv_m, 0.01), lat_deg, lon_deg, alt_amsl_m)
         return True
@@ -393,7 +425,7 @@ class SimVehicle:
         return True
 
     def set_origin(self, lat_deg: float, lon_deg: float, alt_amsl_m: float) -> None:
-        self.ekf_origin = (lat_deg, lon_deg, alt_amsl_m)
+        self.ekf_origin = (lat_deg, lon_deg, alt_amsl_m + self.geoid_m)  # kept ellipsoidal
         self.events.append(("origin",))
 
     def local_ned_to_enu(self, north_m: float, east_m: float, down_m: float) -> np.ndarray:
@@ -621,7 +653,7 @@ class SimVehicle:
                 self._rtl_phase = "climb"
         if item.command == NAV_TAKEOFF:
             goal = self.home_enu_m[2] + item.z if item.frame != FRAME_GLOBAL_INT else \
-                item.z - self.world.alt0_m
+                item.z + self.geoid_m - self.world.alt0_m
             if self.landed and not self.armed:
                 return np.zeros(3)
             if est[2] >= goal - 0.3:

@@ -72,7 +72,7 @@ def test_full_flight(sim, vehicle):
         return GeoFix(float(la), float(lo), float(al), np.diag([0.25, 0.25, 0.5]), time.time(), "test")
 
     injector = v.start_gps_injection(external_fix, rate_hz=5.0 * sim.config.speed)  # 5 Hz sim time
-    v.set_param("SIM_GPS_DISABLE", 1)  # cut the real receiver, as in SITL
+    v.set_param("SIM_GPS1_ENABLE", 0)  # cut the real receiver, as in SITL
     t_end = sim.time_s + 15.0
     worst = 0.0
     while sim.time_s < t_end:
@@ -85,7 +85,7 @@ def test_full_flight(sim, vehicle):
     assert worst < 3.0, f"drifted {worst:.1f} m while injecting"
     assert injector.sent >= 0.8 * 15.0 * 5.0
     injector.stop()
-    v.set_param("SIM_GPS_DISABLE", 0)
+    v.set_param("SIM_GPS1_ENABLE", 1)
     # --- geofence: out-of-fence goto refused; velocity breach -> RTL within one telemetry step
     v.set_safety(SafetyGate(Geofence.circle(home.lat_deg, home.lon_deg, 60.0, max_alt_rel_m=40.0),
                             max_speed_mps=12.0, action="rtl"))

@@ -69,22 +69,22 @@ def test_several_system_ids_on_one_link(udp_port):
 
 
 def test_refusals_carry_the_autopilot_reason(sim, vehicle):
-    sim.set_param(0, "SIM_GPS_DISABLE", 1)
+    sim.set_param(0, "SIM_GPS1_ENABLE", 0)
     vehicle.wait_until(lambda s: s.gps is not None and s.gps.fix_type <= 1, 5.0)
     with pytest.raises(CommandRejected, match="PreArm: Need Position Estimate") as err:
         vehicle.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
     assert err.value.result == mavlink.MAV_RESULT_FAILED and "MAV_CMD_COMPONENT_ARM_DISARM" in str(err.value)
-    sim.set_param(0, "SIM_GPS_DISABLE", 0)
+    sim.set_param(0, "SIM_GPS1_ENABLE", 1)
     with pytest.raises(CommandRejected, match="no mission"):
         vehicle.set_mode("AUTO")
 
 
 def test_injection_refused_when_autopilot_would_ignore_it(sim, vehicle):
-    with pytest.raises(ConfigurationError, match="GPS_TYPE=14"):
+    with pytest.raises(ConfigurationError, match="GPS1_TYPE=14"):
         vehicle.inject_gps(-35.0, 149.0, 600.0, h_acc_m=1.0)
     with pytest.raises(ConfigurationError, match="VISO_TYPE"):
         vehicle.inject_vision(1.0, 2.0, -3.0, sigma_m=0.1)
-    # GPS_INPUT while GPS_TYPE=1 would have been dropped silently by the autopilot
+    # GPS_INPUT while GPS1_TYPE=1 would have been dropped silently by the autopilot
     assert sim.servers[0].gps_input_ignored == 0
 
 
@@ -92,7 +92,7 @@ def test_gps_loss_without_injection_triggers_ekf_failsafe(sim, vehicle):
     vehicle.set_mode("GUIDED")
     vehicle.arm()
     vehicle.takeoff(8.0)
-    sim.set_param(0, "SIM_GPS_DISABLE", 1)
+    sim.set_param(0, "SIM_GPS1_ENABLE", 0)
     st = vehicle.wait_until(lambda s: s.mode == "LAND", 20.0, what="EKF failsafe")
     assert st.mode == "LAND"
     assert any("EKF Failsafe" in e.text for e in vehicle.events if e.kind == "statustext")
@@ -107,7 +107,7 @@ def test_vision_injection_and_origin(sim, vehicle):
     # a vision fix 3 m north of the truth: the estimate follows it within a second
     for _ in range(40):
         t = sim.truth(0)
-        e, n, u = sim.world.to_enu(home.lat_deg, home.lon_deg, home.alt_amsl_m)
+        e, n, u = sim.world.to_enu(home.lat_deg, home.lon_deg, home.alt_ellipsoid_m)
         vehicle.inject_vision(t["north_m"] - float(n) + 3.0, t["east_m"] - float(e), -(t["up_m"] - float(u)),
                               sigma_m=0.1)
         time.sleep(0.05)

@@ -115,7 +115,7 @@ def test_px4_vision_odometry_moves_the_estimate():
             v.set_param("EKF2_EV_CTRL", 15)
             v.set_param("EKF2_GPS_CTRL", 0)  # vision only, so the estimate must follow it
             v.set_origin(home.lat_deg, home.lon_deg, home.alt_amsl_m)
-            e0, n0, u0 = (float(x) for x in sim.world.to_enu(home.lat_deg, home.lon_deg, home.alt_amsl_m))
+            e0, n0, u0 = (float(x) for x in sim.world.to_enu(home.lat_deg, home.lon_deg, home.alt_ellipsoid_m))
             for _ in range(30):
                 t = sim.truth(0)
                 v.inject_vision(t["north_m"] - n0 - 2.0, t["east_m"] - e0, -(t["up_m"] - u0), sigma_m=0.1,

@@ -82,7 +82,7 @@ def test_plain_pymavlink_flies_the_simulator(flavour, udp_port):
             landed = _wait(master, "GLOBAL_POSITION_INT")
             assert landed.relative_alt < 200
             # parameters answer like an autopilot's
-            master.mav.param_request_read_send(1, 1, b"GPS_TYPE" if flavour == "ardupilot" else b"EKF2_GPS_CTRL", -1)
+            master.mav.param_request_read_send(1, 1, b"GPS1_TYPE" if flavour == "ardupilot" else b"EKF2_GPS_CTRL", -1)
             pv = _wait(master, "PARAM_VALUE")
             assert pv.param_value == (1.0 if flavour == "ardupilot" else 7.0)
         finally:

@@ -1,0 +1,284 @@
+"""Start and stop ArduPilot Copter SITL instances (the real autopilot firmware) for tests,
+benchmarks and the recovery work.
+
+The firmware and its launcher live in ``../shared/sitl`` next to the repository, or in
+the folder named by the environment variable ``SKYFIX_SITL_DIR``. Each instance gets its
+own instance number (all its TCP ports shift by 10 per instance), system id and working
+folder (parameters, logs); the MAVLink URL of instance N is ``tcp:127.0.0.1:5760+10N``.
+The firmware blocks at start until a client connects to that port.
+
+    with SitlFleet(count=3, speedup=5) as fleet:
+        for inst in fleet:
+            v = Vehicle.connect(inst.url, timeout_s=30)
+
+Instances are always stopped (SIGTERM, then SIGKILL) when the fleet closes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from skyfix import validate
+from skyfix.errors import ConfigurationError, InputError, LinkError
+
+log = logging.getLogger(__name__)
+
+ENV_DIR = "SKYFIX_SITL_DIR"
+BASE_PORT = 5760
+PORT_STEP = 10
+DEFAULT_HOME = (46.52, 6.63, 372.0, 0.0)  # lat_deg, lon_deg, alt_amsl_m, heading_deg
+_LAUNCHER = "run-sitl.sh"
+
+
+def sitl_dir() -> Path | None:
+    """The SITL folder (``$SKYFIX_SITL_DIR`` or ``../shared/sitl`` beside the repo), or None."""
+    env = os.environ.get(ENV_DIR)
+    candidates = [Path(env)] if env else []
+    repo = Path(__file__).resolve().parents[1]
+    candidates.append(repo.parent / "shared" / "sitl")
+    for c in candidates:
+        if (c / _LAUNCHER).is_file() and (c / "arducopter").is_file():
+            return c
+    return None
+
+
+def missing_reason() -> str:
+    """Why SITL cannot run here (empty when it can): for skip messages."""
+    if sitl_dir() is not None:
+        return ""
+    env = os.environ.get(ENV_DIR)
+    where = f"${ENV_DIR}={env}" if env else f"../shared/sitl (set ${ENV_DIR} to point elsewhere)"
+    return f"ArduPilot SITL not found: no {_LAUNCHER} + arducopter in {where}"
+
+
+def _port_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def _listening(port: int) -> bool:
+    """True when something listens on 127.0.0.1:``port`` (read from /proc, no connection made:
+    connecting would release the firmware's wait-for-client before skyfix is there)."""
+    hexport = f":{port:04X}"
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            fields = line.split()
+            if len(fields) > 3 and fields[1].endswith(hexport) and fields[3] == "0A":  # 0A: LISTEN
+                return True
+    return False
+
+
+def free_instances(count: int, *, start: int = 0, limit: int = 60) -> list[int]:
+    """``count`` instance numbers whose ports (5760..5763 + 10N, RC 5501 + 10N) are free now."""
+    found = []
+    for n in range(start, limit):
+        base = BASE_PORT + PORT_STEP * n
+        if all(_port_free(p) for p in (base, base + 2, base + 3)):
+            found.append(n)
+            if len(found) == count:
+                return found
+    raise ConfigurationError(f"no {count} free SITL instance numbers between {start} and {limit}")
+
+
+@dataclass
+class SitlInstance:
+    """One running firmware: ``url`` for skyfix, ``system_id``, ``workdir``, ``process``."""
+
+    instance: int
+    system_id: int
+    workdir: Path
+    process: subprocess.Popen
+    log_path: Path
+
+    @property
+    def port(self) -> int:
+        return BASE_PORT + PORT_STEP * self.instance
+
+    @property
+    def url(self) -> str:
+        """Primary MAVLink port (SERIAL0); the firmware waits for a client here at start."""
+        return f"tcp:127.0.0.1:{self.port}"
+
+    @property
+    def url_secondary(self) -> str:
+        """SERIAL1 (5762 + 10N): a second client (e.g. MAVSDK) next to skyfix."""
+        return f"tcp:127.0.0.1:{self.port + 2}"
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """SIGTERM, then SIGKILL after ``timeout_s``; waits for the process to end."""
+        if self.process.poll() is not None:
+            return
+        try:
+            os.killpg(self.process.pid, signal.SIGTERM)
+        except ProcessLookupError:
+            return
+        try:
+            self.process.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.process.pid, signal.SIGKILL)
+            self.process.wait(timeout_s)
+
+
+class SitlFleet:
+    """``count`` SITL instances started together; a context manager that always stops them.
+
+    ``speedup``: simulated seconds per wall second. ``wipe``: fresh default parameters.
+    ``homes``: one (lat_deg, lon_deg, alt_amsl_m, heading_deg) per instance (default: the
+    first 20 m apart east of ``DEFAULT_HOME``). ``workdir``: parent folder of the instance
+    folders (a temporary folder, removed on close, by default). ``first_system_id``: system
+    ids are consecutive from it.
+    """
+
+    def __init__(self, count: int = 1, *, speedup: float = 5.0, wipe: bool = True,
+                 homes: list[tuple[float, float, float, float]] | None = None,
+                 workdir: str | Path | None = None, first_system_id: int = 1,
+                 start_timeout_s: float = 20.0) -> None:
+        if not 1 <= int(count) <= 10:
+            raise InputError(f"count must be 1..10 SITL instances, got {count}")
+        self.count = int(count)
+        self.speedup = validate.positive_scalar("speedup", speedup)
+        self.wipe = bool(wipe)
+        if homes is not None and len(homes) != self.count:
+            raise InputError(f"homes must give one home per instance ({self.count}), got {len(homes)}")
+        self.homes = homes or [(DEFAULT_HOME[0], DEFAULT_HOME[1] + 2.6e-4 * i, DEFAULT_HOME[2],
+                                DEFAULT_HOME[3]) for i in range(self.count)]
+        if not 1 <= int(first_system_id) <= 255 - self.count:
+            raise InputError(f"first_system_id must leave room for {self.count} ids in 1..254")
+        self.first_system_id = int(first_system_id)
+        self.start_timeout_s = float(start_timeout_s)
+        self._own_tmp = workdir is None
+        self.workdir = Path(workdir) if workdir is not None else None
+        self.instances: list[SitlInstance] = []
+
+    def start(self) -> SitlFleet:
+        folder = sitl_dir()
+        if folder is None:
+            raise ConfigurationError(missing_reason())
+        if self.workdir is None:
+            self.workdir = Path(tempfile.mkdtemp(prefix="skyfix-sitl-"))
+        try:
+            for i, n in enumerate(free_instances(self.count)):
+                self.instances.append(self._start_one(folder, n, self.first_system_id + i, self.homes[i]))
+            deadline = time.monotonic() + self.start_timeout_s
+            for inst in self.instances:
+                while not _listening(inst.port):
+                    if not inst.alive():
+                        raise LinkError(f"SITL instance {inst.instance} exited at start "
+                                        f"(code {inst.process.returncode}); see {inst.log_path}")
+                    if time.monotonic() > deadline:
+                        raise LinkError(f"SITL instance {inst.instance} did not open {inst.url} "
+                                        f"within {self.start_timeout_s:.0f} s; see {inst.log_path}")
+                    time.sleep(0.05)
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def _start_one(self, folder: Path, n: int, sysid: int, home: tuple) -> SitlInstance:
+        wd = self.workdir / f"sitl{n}"
+        wd.mkdir(parents=True, exist_ok=True)
+        env = dict(os.environ, SITL_SPEEDUP=f"{self.speedup:g}", SITL_WIPE="1" if self.wipe else "0",
+                   SITL_SYSID=str(sysid))
+        home_s = ",".join(f"{x:.8g}" for x in home)
+        log_path = wd / "sitl.out"
+        with open(log_path, "wb") as out:
+            proc = subprocess.Popen([str(folder / _LAUNCHER), str(wd), str(n), home_s], env=env,
+                                    stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
+                                    start_new_session=True)  # own process group: stop() ends it all
+        log.info("SITL instance %d (sysid %d) pid %d in %s", n, sysid, proc.pid, wd)
+        return SitlInstance(n, sysid, wd, proc, log_path)
+
+    def stop(self) -> None:
+        """Stop every instance (and remove the temporary working folder)."""
+        for inst in self.instances:
+            inst.stop()
+        self.instances = []
+        if self._own_tmp and self.workdir is not None:
+            shutil.rmtree(self.workdir, ignore_errors=True)
+            self.workdir = None
+
+    def __enter__(self) -> SitlFleet:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def __iter__(self):
+        return iter(self.instances)
+
+    def __getitem__(self, i: int) -> SitlInstance:
+        return self.instances[i]
+
+    def __len__(self) -> int:
+        return len(self.instances)
+
+
+def record_tlog(url: str, path: str | Path, duration_s: float, *, fly_to_m: float = 0.0) -> int:
+    """Record what the autopilot at ``url`` sends for ``duration_s`` as a MAVLink telemetry
+    log (``.tlog``: 8-byte big-endian microsecond time stamp before each raw packet, the
+    format of Mission Planner/MAVProxy, readable with ``mavutil.mavlink_connection(path)``).
+    With ``fly_to_m`` > 0 the vehicle is armed in GUIDED and climbs to that height first,
+    so the log holds a flight. Returns the number of packets written."""
+    from skyfix.drivers.vehicle import Vehicle
+
+    duration_s = validate.positive_scalar("duration_s", duration_s)
+    with Vehicle.connect(url, timeout_s=30.0) as v:
+        packets = [0]
+        out = open(path, "wb")
+
+        def tap(msg, t_mono) -> None:
+            import struct
+            out.write(struct.pack(">Q", int(time.time() * 1e6)) + msg.get_msgbuf())
+            packets[0] += 1
+
+        v.link.taps.append(tap)
+        try:
+            if fly_to_m > 0:
+                v.wait_until(lambda s: s.gps is not None and s.gps.fix_type >= 3 and s.home is not None,
+                             60.0, what="GPS fix and home")
+                v.set_mode("GUIDED")
+                _arm_when_ready(v, 60.0)
+                v.takeoff(fly_to_m)
+            time.sleep(duration_s)
+        finally:
+            v.link.taps.remove(tap)
+            out.close()
+        return packets[0]
+
+
+def _arm_when_ready(vehicle, timeout_s: float) -> None:
+    """ArduPilot refuses to arm until its EKF has settled (pre-arm checks): retry until it arms."""
+    from skyfix.errors import CommandRejected
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            vehicle.arm()
+            return
+        except CommandRejected:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(1.0)

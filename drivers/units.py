@@ -1,0 +1,95 @@
+"""The one place where MAVLink wire units become measurement units.
+
+GPS_RAW_INT (common.xml): ``eph``/``epv`` are HDOP/VDOP x 100, unitless (65535: unknown),
+*not* metres; the metre accuracies are the MAVLink 2 extension fields ``h_acc``/``v_acc``
+in millimetres (0: unknown). ``alt`` is above mean sea level (mm); ``alt_ellipsoid`` is
+above the WGS84 ellipsoid (mm), 0 when the autopilot does not provide it. When it is 0
+the ellipsoidal height is AMSL plus the EGM96 geoid undulation (:mod:`skyfix.geoid`),
+and the record says so (``alt_ellipsoid_source = "egm96"``). GLOBAL_POSITION_INT and
+HOME_POSITION carry AMSL altitudes only; their ellipsoidal heights always come from the
+geoid model.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+from skyfix.drivers.state import Battery, GpsStatus, Home, Position, Velocity
+
+UINT16_UNKNOWN = 65535
+
+
+@lru_cache(maxsize=4096)
+def _geoid_cell_m(lat_cell: int, lon_cell: int) -> float:
+    from skyfix.geoid import geoid_undulation_m
+
+    return float(geoid_undulation_m(lat_cell / 1000.0, lon_cell / 1000.0))
+
+
+def geoid_height_m(lat_deg: float, lon_deg: float) -> float:
+    """EGM96 undulation N (m) near (lat, lon), cached on a 0.001 deg (~100 m) grid: the
+    geoid changes by millimetres over 100 m, and telemetry arrives at 10 Hz."""
+    return _geoid_cell_m(int(round(lat_deg * 1000.0)), int(round(lon_deg * 1000.0)))
+
+
+def ellipsoidal_from_amsl_m(lat_deg: float, lon_deg: float, alt_amsl_m: float) -> float:
+    """Height above the WGS84 ellipsoid (m) of an AMSL altitude, through EGM96."""
+    return alt_amsl_m + geoid_height_m(lat_deg, lon_deg)
+
+
+def amsl_from_ellipsoidal_m(lat_deg: float, lon_deg: float, alt_ellipsoid_m: float) -> float:
+    """AMSL altitude (m) of a height above the WGS84 ellipsoid, through EGM96."""
+    return alt_ellipsoid_m - geoid_height_m(lat_deg, lon_deg)
+
+
+def _dop(raw: int) -> float:
+    return raw / 100.0 if raw != UINT16_UNKNOWN else math.nan
+
+
+def _acc_m(raw_mm: int) -> float:
+    return raw_mm / 1000.0 if raw_mm > 0 else math.nan
+
+
+def gps_status(msg, now_s: float) -> GpsStatus:
+    """GPS_RAW_INT -> :class:`GpsStatus` (metres, degrees; DOPs unitless; NaN = unknown)."""
+    lat, lon = msg.lat / 1e7, msg.lon / 1e7
+    alt_amsl = msg.alt / 1000.0
+    alt_ell_mm = getattr(msg, "alt_ellipsoid", 0)
+    has_fix = msg.fix_type >= 2 and (msg.lat or msg.lon)
+    if alt_ell_mm:
+        alt_ell, source = alt_ell_mm / 1000.0, "autopilot"
+    elif has_fix:
+        alt_ell, source = ellipsoidal_from_amsl_m(lat, lon, alt_amsl), "egm96"
+    else:
+        alt_ell, source = math.nan, "none"
+    return GpsStatus(
+        fix_type=msg.fix_type, satellites=msg.satellites_visible,
+        h_acc_m=_acc_m(getattr(msg, "h_acc", 0)), v_acc_m=_acc_m(getattr(msg, "v_acc", 0)),
+        hdop=_dop(msg.eph), vdop=_dop(msg.epv), lat_deg=lat, lon_deg=lon, alt_amsl_m=alt_amsl,
+        alt_ellipsoid_m=alt_ell, alt_ellipsoid_source=source, time_s=now_s,
+        autopilot_time_s=msg.time_usec / 1e6)
+
+
+def position_velocity(msg, now_s: float) -> tuple[Position, Velocity]:
+    """GLOBAL_POSITION_INT -> (:class:`Position`, :class:`Velocity` NED m/s)."""
+    stamp_s = msg.time_boot_ms / 1000.0
+    lat, lon, alt_amsl = msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0
+    pos = Position(lat, lon, alt_amsl, msg.relative_alt / 1000.0, now_s, stamp_s,
+                   alt_ellipsoid_m=ellipsoidal_from_amsl_m(lat, lon, alt_amsl))
+    vel = Velocity(msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0, now_s, stamp_s)
+    return pos, vel
+
+
+def home(msg, now_s: float) -> Home:
+    """HOME_POSITION -> :class:`Home` (AMSL altitude and its ellipsoidal height)."""
+    lat, lon, alt_amsl = msg.latitude / 1e7, msg.longitude / 1e7, msg.altitude / 1000.0
+    return Home(lat, lon, alt_amsl, now_s, msg.time_usec / 1e6,
+                alt_ellipsoid_m=ellipsoidal_from_amsl_m(lat, lon, alt_amsl))
+
+
+def battery(msg, now_s: float) -> Battery:
+    """SYS_STATUS -> :class:`Battery` (V, A, %; NaN when the autopilot does not know)."""
+    return Battery(msg.voltage_battery / 1000.0 if msg.voltage_battery != UINT16_UNKNOWN else math.nan,
+                   msg.current_battery / 100.0 if msg.current_battery >= 0 else math.nan,
+                   float(msg.battery_remaining) if msg.battery_remaining >= 0 else math.nan, now_s)
