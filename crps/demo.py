@@ -34,7 +34,7 @@ skyfix demo:
   1. starts the built-in MAVLink simulator on loopback (3 ArduPilot quadcopters);
   2. connects to each with skyfix.drivers, sets GPS2_TYPE=14, installs a geofence,
      uploads a survey mission (camera trigger every 10 m), arms, takes off, flies it;
-  3. cuts GPS on vehicle 2 mid-mission (SIM_GPS_DISABLE, as in SITL); skyfix.fusion keeps
+  3. cuts GPS on vehicle 2 mid-mission (SIM_GPS1_ENABLE 0, as in SITL); skyfix.fusion keeps
      it positioned from its velocity and vehicles 1 and 3 observing it (camera range 3 %,
      bearing 0.2 deg, simulated at measurement level), injected as GPS_INPUT at 5 Hz;
   4. vehicle 3 flies east into the geofence: the safety gate switches it to RTL;
@@ -81,8 +81,8 @@ class FusedPositionSource:
     GLOBAL_POSITION_INT), plus the helpers' camera observations of the GPS-less vehicle.
     The demo renders no images, so the observations are measurement-level
     (:mod:`skyfix.datasets.observations`: true offset, 3 % range and 0.2 deg bearing
-    noise, the covariance skyfix.crps reports). Heights: the simulator's AMSL is its
-    ellipsoid (no geoid), as for the injection. Every input goes to the measurement log
+    noise, the covariance skyfix.crps reports). Heights: ellipsoidal from the drivers (the
+    simulator reports AMSL with the EGM96 geoid, as autopilots do; the injector converts back). Every input goes to the measurement log
     ``log_path`` (with truth) for ``skyfix fusion replay``. Call it (``source()``) for the
     newest fused GeoFix, moved to the present with the fused velocity.
     """
@@ -340,7 +340,7 @@ def run_demo(output: Path, *, speed: float = 6.0, progress: bool = True) -> Demo
         lost.wait_until(lambda s: s.mission_seq >= 3, 60.0, what="vehicle 2 on its second leg")
         injector = lost.start_gps_injection(fused, rate_hz=5.0 * speed)  # 5 Hz of simulated time
         injecting[GPS_LOST_VEHICLE] = True
-        lost.set_param("SIM_GPS_DISABLE", 1)
+        lost.set_param("SIM_GPS1_ENABLE", 0)
         t_cut = sim.time_s
         log.info("GPS cut on vehicle %d at t=%.1f s; injecting GPS_INPUT", lost.system_id, t_cut)
         for v in vehicles:

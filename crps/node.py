@@ -78,8 +78,8 @@ class Node:
 
         ``time_of(message)`` maps a telemetry record to the node's clock. ``use_gnss`` False
         while skyfix injects this drone's position: the receiver report would only echo it.
-        Heights: GPS_RAW_INT's AMSL altitude is used as ellipsoidal (the caller converts
-        with a geoid where the two differ).
+        Heights: the fix's ellipsoidal height (``GpsStatus.alt_ellipsoid_m``); sigmas: the
+        receiver's h_acc/v_acc in metres, else HDOP (unitless) for the engine's UERE model.
         """
         vel = state.velocity
         if vel is not None:
@@ -90,11 +90,12 @@ class Node:
         if gps is None or not use_gnss or gps.time_s == self._gps_seen.get(drone_id):
             return
         self._gps_seen[drone_id] = gps.time_s
-        accurate = math.isfinite(gps.eph_m) and gps.eph_m > 0
+        def known(x: float) -> float | None:
+            return x if math.isfinite(x) and x > 0 else None
+
         self._call("gnss", drone_id=drone_id, time_s=time_of(gps), lat_deg=gps.lat_deg, lon_deg=gps.lon_deg,
-                   alt_m=gps.alt_amsl_m, fix_type=gps.fix_type, satellites=gps.satellites,
-                   h_sigma_m=gps.eph_m if accurate else None,
-                   v_sigma_m=gps.epv_m if accurate and gps.epv_m > 0 else None)
+                   alt_m=gps.alt_ellipsoid_m, fix_type=gps.fix_type, satellites=gps.satellites,
+                   h_sigma_m=known(gps.h_acc_m), v_sigma_m=known(gps.v_acc_m), hdop=known(gps.hdop))
 
     def add_relative(self, obs: RelativeObservation) -> None:
         """A camera observation of one drone by another (this drone's or a peer's)."""
