@@ -1,0 +1,109 @@
+"""The mountain world of the terrain benchmark: pose log interpolation, Gauss-Markov pose
+errors, terrain ray casting, DEMs as users have them, rendered fires where they are."""
+
+import numpy as np
+import pytest
+
+from skyfix.camera import Camera, CameraPose
+from skyfix.datasets.mountain_flight import MountainScene, fly, lines_log, orbit_log
+from skyfix.datasets.pose_errors import PoseErrorModel, gauss_markov
+from skyfix.datasets.terrain import TOL_M, Terrain
+from skyfix.datasets.thermal_scene import FireSpec
+from skyfix.errors import GeometryError, InputError
+from skyfix.geo import LocalFrame
+from skyfix.thermal import DemGround, detect_hotspots
+from skyfix.thermal.poselog import PoseLog
+
+FRAME = LocalFrame(42.15, 9.05, 800.0)
+CAM = Camera.from_fov(640, 512, 50.0)
+
+
+@pytest.fixture(scope="module")
+def terrain():
+    return Terrain.mountain(FRAME, seed=1, size_m=1200.0)
+
+
+@pytest.mark.parametrize("stabilized", [True, False])
+def test_pose_log_matches_camera_pose(stabilized):
+    poses = [CameraPose(42.15 + 0.001 * i, 9.05, 900.0 + i, 3.0 * i, -2.0 + i, 175.0 + 10 * i, -50.0, 5.0, 1.0,
+                        stabilized) for i in range(3)]
+    log = PoseLog.from_poses([0.0, 1.0, 2.0], poses)
+    cam, rot = log.camera_in_frame(FRAME, [0.0, 1.0, 2.0])
+    for i, p in enumerate(poses):
+        c0, r0 = p.in_frame(FRAME)
+        np.testing.assert_allclose(cam[i], c0, atol=1e-6)
+        np.testing.assert_allclose(rot[i], r0, atol=1e-12)
+    # Yaw 175 -> 185 is interpolated through 180, not back through 0.
+    assert log.pose_at(0.5).yaw_deg == pytest.approx(180.0)
+    with pytest.raises(InputError, match="outside the pose log"):
+        log.camera_in_frame(FRAME, [2.5])
+
+
+def test_gauss_markov_variance_and_correlation():
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 20000.0, 2.0)
+    x = gauss_markov(rng, t, [1.5, 3.0], 60.0)
+    # 10000 samples with correlation time 30 samples: ~170 independent ones -> std within ~15 %.
+    np.testing.assert_allclose(x.std(axis=0), [1.5, 3.0], rtol=0.2)
+    lag = 30  # 60 s
+    rho = np.mean(x[:-lag, 0] * x[lag:, 0]) / np.mean(x[:, 0] ** 2)
+    assert rho == pytest.approx(np.exp(-1.0), abs=0.12)
+
+
+def test_terrain_cast_lands_on_the_first_surface(terrain):
+    origin = np.array([0.0, -300.0, terrain.max_up_m + 80.0])
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=(300, 3))
+    dirs[:, 2] = -np.abs(dirs[:, 2]) - 0.3
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    t = terrain.cast(origin, dirs)
+    ok = np.isfinite(t)
+    assert ok.mean() > 0.5
+    p = origin + t[ok, None] * dirs[ok]
+    assert np.max(np.abs(p[:, 2] - terrain.up_at(p[:, 0], p[:, 1]))) < 2 * TOL_M
+    # Brute force: the ray stays above the terrain before t (0.5 m steps).
+    for k in np.flatnonzero(ok)[:40]:
+        s = np.arange(0.0, t[k] - 0.5, 0.5)
+        q = origin + s[:, None] * dirs[k]
+        assert np.all(q[:, 2] > terrain.up_at(q[:, 0], q[:, 1]))
+    with pytest.raises(GeometryError):
+        terrain.cast(np.array([0.0, 0.0, -50.0]), dirs)
+
+
+def test_dem_geotiff_round_trip_in_utm_and_geographic(terrain, tmp_path):
+    e, n = np.meshgrid(np.linspace(-300, 300, 7), np.linspace(-300, 300, 7))
+    up = terrain.up_at(e, n)
+    lat, lon, h_true = FRAME.to_geodetic(e, n, up)
+    for crs in (None, "EPSG:4326"):
+        path = terrain.write_dem(tmp_path / "dem.tif", metres_per_px=10.0, crs=crs, holes=0)
+        dem = DemGround.from_geotiff(path, datum="ellipsoid")
+        # A 10 m DEM of 0.4 m roughness on 20-40 deg slopes: within ~1.5 m (curvature of
+        # the hills over a cell plus the roughness it averages).
+        err = dem.height_at(lat, lon) - h_true
+        assert np.sqrt(np.mean(err ** 2)) < 1.0 and np.max(np.abs(err)) < 2.5
+
+
+def test_rendered_fire_is_where_the_true_camera_sees_it(terrain):
+    fire = FireSpec(20.0, -10.0, 1.5, 600.0)
+    scene = MountainScene(terrain, [fire])
+    log = orbit_log(scene, (0.0, 0.0), radius_m=150.0, height_m=80.0, laps=0.1)
+    flight = fly(scene, CAM, log, PoseErrorModel(), frame_rate_hz=1.0, seed=2)
+    for k, (_, counts) in enumerate(flight.frames(0, 3)):
+        cam, r = flight.true_camera(k)
+        uv = CAM.project((scene.fire_enu() - cam) @ r)[0]
+        spots = detect_hotspots(counts)
+        assert len(spots) == 1
+        # Centroid of a 1.5 m disc on a slope seen obliquely: perspective and the hotter
+        # core shift it by a fraction of a pixel.
+        assert np.hypot(*(spots[0].uv - uv)) < 1.0
+
+
+def test_lines_and_orbit_logs_refuse_paths_into_the_ground(terrain):
+    scene = MountainScene(terrain, [])
+    with pytest.raises(GeometryError):
+        lines_log(scene, [(-300.0, 0.0), (300.0, 0.0)], up_m=float(terrain.up_at(0.0, 0.0)))
+    log = lines_log(scene, [(-300.0, -50.0), (300.0, -50.0), (300.0, 50.0), (-300.0, 50.0)],
+                    up_m=terrain.max_up_m + 60.0)
+    assert log.time_s[-1] > 2 * 600.0 / 8.0
+    with pytest.raises(GeometryError):
+        orbit_log(scene, (0.0, 0.0), radius_m=2000.0, height_m=80.0)
