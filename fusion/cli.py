@@ -38,7 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     r = sub.add_parser("replay", help="run a measurement log through the engine; write CSV, GeoJSON and a PNG",
                        description="Replay a skyfix.fusion.log measurement log (JSON lines) through a new "
                                    "FusionEngine with the recorded origin, lag and configuration.")
-    r.add_argument("log", type=Path, help="measurement log (JSON lines, format skyfix.fusion.log)")
+    r.add_argument("log", type=Path, help="measurement log: JSON lines (format skyfix.fusion.log) or the .mcap log of skyfix serve")
     r.add_argument("-o", "--out", type=Path, default=None,
                    help="output directory (default: LOG's name without extension + '_replay')")
     r.add_argument("--drone", action="append", default=None, metavar="ID",

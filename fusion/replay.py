@@ -14,6 +14,7 @@ from skyfix.fusion.config import FusionConfig
 from skyfix.fusion.engine import FusionEngine
 from skyfix.fusion.estimate import Estimate
 from skyfix.fusion.log import read_log
+from skyfix.fusion.log_mcap import read_mcap_log
 from skyfix.progress import progress
 
 log = logging.getLogger(__name__)
@@ -52,13 +53,14 @@ class ReplayResult:
 
 def replay(log_path: str | Path, *, every_update: int = 1,
            on_estimate: Callable[[Estimate], None] | None = None, show_progress: bool = True) -> ReplayResult:
-    """Feed every record of ``log_path`` to a new engine built from its header.
+    """Feed every record of ``log_path`` (JSON lines, or MCAP by the .mcap suffix) to a new engine
+    built from its header.
 
     After every ``every_update``-th smoother update recorded in the log, the estimate of
     each localised drone is taken (and passed to ``on_estimate``). Inputs the engine
     refuses are logged and skipped, as they were when recorded.
     """
-    header, records = read_log(log_path)
+    header, records = (read_mcap_log if Path(log_path).suffix == ".mcap" else read_log)(log_path)
     origin = tuple(float(x) for x in header["origin"])
     engine = FusionEngine(origin, lag_s=float(header["lag_s"]), config=FusionConfig.from_dict(header["config"]))
     fused: dict[str, Track] = {}
