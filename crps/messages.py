@@ -258,6 +258,6 @@ def relative_observation(msg: RelativeObs, sender: str) -> RelativeObservation:
 
 def to_builtins(env: Envelope) -> dict:
     """JSON-ready form of an envelope (for the log and the live view)."""
-    body = msgspec.structs.asdict(env.body)
+    body = {name: msgspec.to_builtins(getattr(env.body, name)) for name in env.body.__struct_fields__}
     return {"version": env.version, "sender": env.sender, "boot_id": env.boot_id, "seq": env.seq,
             "time_s": env.time_s, "type": type(env.body).__name__, "body": body}

@@ -5,7 +5,8 @@
 encoded with a JSON schema each; the log header (origin, lag, configuration) is the MCAP
 metadata record ``skyfix.fusion.log``. Other layers add their own topics through
 :meth:`McapLog.channel` (JSON with a schema, or any encoding with its schema, e.g.
-Foxglove's protobuf ``LocationFix``). Message ``log_time`` is the UNIX time of writing (ns),
+Foxglove's protobuf ``LocationFix``); a log may be opened before the header is known
+(:meth:`McapLog.set_header`). Message ``log_time`` is the UNIX time of writing (ns),
 ``publish_time`` the measurement's own time where it has one.
 
 Durability: chunks are closed and written to the file at least every ``flush_s`` (default
@@ -27,7 +28,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from mcap.exceptions import McapError
-from mcap.records import Channel, Message, Metadata, Schema
+from mcap.records import Channel, Message, Metadata
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 from zstandard import ZstdError
@@ -53,7 +54,7 @@ def _json(obj) -> bytes:
 class McapLog:
     """An MCAP measurement log (and other topics); thread-safe; use as a context manager or close()."""
 
-    def __init__(self, path: str | Path, header: dict, *, flush_s: float = 0.05, fsync_s: float = 1.0,
+    def __init__(self, path: str | Path, header: dict | None, *, flush_s: float = 0.05, fsync_s: float = 1.0,
                  compression: str = "zstd") -> None:
         self.path = Path(path)
         if self.path.exists() and self.path.stat().st_size > 0:
@@ -63,9 +64,10 @@ class McapLog:
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
         self._writer = Writer(self._file, compression=comp[compression], chunk_size=4 << 20)
         self._writer.start(profile="", library="skyfix")
-        self._writer.add_metadata(LOG_FORMAT, {"header": json.dumps(
-            {"format": LOG_FORMAT, "version": LOG_VERSION, **header})})
         self._lock = threading.Lock()
+        self.has_header = False
+        if header is not None:
+            self.set_header(header)
         self._channels: dict[str, int] = {}
         self._seq = 0
         self._dirty = False
@@ -76,6 +78,16 @@ class McapLog:
         self._writer.flush()
         self._flusher = threading.Thread(target=self._flush_loop, daemon=True, name="skyfix-mcap-flush")
         self._flusher.start()
+
+    def set_header(self, header: dict) -> None:
+        """Write the measurement-log header (origin, lag, configuration) before the first engine record;
+        a log opened before the origin was known gets it here."""
+        with self._lock:
+            if self.has_header:
+                raise InputError(f"log {self.path} already has its header")
+            self._writer.add_metadata(LOG_FORMAT, {"header": json.dumps(
+                {"format": LOG_FORMAT, "version": LOG_VERSION, **header})})
+            self.has_header = True
 
     # -- channels and writing ---------------------------------------------------------------
     def channel(self, topic: str, schema_name: str, schema: dict | bytes = _ANY_OBJECT, *,
@@ -203,8 +215,8 @@ def read_header(path: str | Path) -> dict:
                     raise DataError(f"{path}: log version {header.get('version')!r}; this skyfix reads "
                                     f"version {LOG_VERSION}")
                 return header
-            if isinstance(rec, (Schema, Channel, Message)):
-                break
+            if isinstance(rec, Channel) and rec.topic.startswith("/fusion/"):
+                break  # the header precedes every engine record
     except McapError as exc:
         raise DataError(f"{path}: not an MCAP file ({exc})") from None
     raise DataError(f"{path}: MCAP file without a {LOG_FORMAT} header; not a skyfix measurement log")

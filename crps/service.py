@@ -1,0 +1,405 @@
+"""``skyfix serve``: the process that runs on each drone's companion computer.
+
+One :class:`Service` per drone: MAVLink telemetry in (:mod:`skyfix.drivers`, reconnected
+with back-off when the link is lost), the drone's :class:`skyfix.crps.node.Node` (its
+fusion engine), signed peer messages in and out over the swarm transport, optionally
+camera frames in (:mod:`skyfix.crps.camera_feed`), and actions out (GPS_INPUT injection
+of the fused position while the drone's own GNSS is lost, ``--inject``). Everything goes
+to the MCAP log (``--log``) and the live Foxglove view (``--live``).
+
+Threads: the drivers' MAVLink reader; the MAVLink supervisor (connect, reconnect with
+back-off); the transport's receive callbacks, which only verify and queue; the main loop
+(10 Hz: peer messages, own telemetry, fusion, estimate and heartbeat out, peer
+book-keeping). Queues are bounded; peer messages wait rather than being dropped, camera
+frames are dropped when the detector is behind. SIGINT/SIGTERM stop it cleanly.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from skyfix.crps import messages as M
+from skyfix.crps.node import Node
+from skyfix.crps.outputs import Outputs
+from skyfix.crps.swarm import PeerTable
+from skyfix.crps.transport import Endpoints, Transport, ZenohTransport, check_name, split_key
+from skyfix.errors import InputError, LinkError, SkyfixError
+
+log = logging.getLogger("skyfix.crps.service")
+
+INBOX_SIZE = 4096           # peer datagrams waiting for the main loop (3 peers x 40 msg/s: ~30 s)
+PEER_FIX_PERIOD_S = 0.5     # a peer's fused estimate goes into this drone's engine at most at 2 Hz
+LINK_LOST_RECONNECT_S = 0.5  # link marked lost (no heartbeat for 2 s) this long before the link is reopened
+BACKOFF_S = (0.5, 5.0)      # first and longest wait between MAVLink connection attempts
+GNSS_OK_FIX_TYPE = 3
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    """Everything ``skyfix serve`` is told; see ``skyfix serve --help`` for each field."""
+
+    drone_id: str
+    mavlink_url: str
+    endpoints: Endpoints
+    key: bytes
+    swarm: str = "skyfix"
+    roster: tuple[str, ...] | None = None
+    origin: tuple[float, float, float] | None = None
+    log_path: Path | None = None
+    live: str | None = None
+    estimate_hz: float = 10.0
+    heartbeat_hz: float = 2.0
+    inject: bool = False
+
+
+class Service:
+    """One drone's service; :meth:`run` until ``stop`` is set. ``transport`` replaces zenoh (tests)."""
+
+    def __init__(self, config: ServiceConfig, transport: Transport | None = None) -> None:
+        self.cfg = config
+        self.codec = M.SwarmCodec(config.drone_id, config.key, config.roster)
+        self.peers = PeerTable()
+        self.outputs = Outputs(config.log_path, config.live, name=f"skyfix {config.drone_id}")
+        self.node: Node | None = None
+        self.vehicle = None
+        self.injector = None
+        self.camera = None
+        self.stop = threading.Event()
+        self.inbox: queue.Queue[tuple[float, M.Envelope]] = queue.Queue(INBOX_SIZE)
+        self.counters = {"mavlink_connects": 0, "mavlink_lost": 0, "inbox_overflow": 0, "sent": 0,
+                         "estimates": 0}
+        self._peer_fix_s: dict[str, float] = {}
+        self._dropped_logged: dict[str, int] = {}
+        try:
+            self.transport = transport or ZenohTransport(config.swarm, config.drone_id, config.endpoints)
+        except SkyfixError:
+            self.outputs.close()
+            raise
+        self.transport.subscribe(self._on_datagram)
+        self._mav_thread = threading.Thread(target=self._mavlink_loop, daemon=True, name="skyfix-serve-mavlink")
+
+    # -- life cycle ---------------------------------------------------------------------------
+    def run(self) -> None:
+        """The main loop; returns after :attr:`stop` is set, everything closed."""
+        self._mav_thread.start()
+        period = 1.0 / self.cfg.estimate_hz
+        next_hb = next_tick = time.monotonic()
+        try:
+            while not self.stop.is_set():
+                self._drain_inbox()
+                self._tick()
+                now = time.monotonic()
+                if now >= next_hb:
+                    next_hb = now + 1.0 / self.cfg.heartbeat_hz
+                    self._heartbeat()
+                next_tick += period
+                self.stop.wait(max(0.0, next_tick - time.monotonic()))
+                if time.monotonic() - next_tick > 1.0:  # far behind (machine stalled): do not burst
+                    next_tick = time.monotonic()
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        self.stop.set()
+        if self._mav_thread.is_alive():
+            self._mav_thread.join(timeout=3.0)
+        self.transport.close()
+        if self.camera is not None:
+            self.camera.stop()
+        if self.vehicle is not None:
+            self.vehicle.close()
+        self.outputs.json("/swarm/dropped", self._drop_report())
+        if self.node is not None:
+            self.node.close()
+        self.outputs.close()
+        log.info("service %s stopped: %s", self.cfg.drone_id, self._drop_report())
+
+    # -- peers ---------------------------------------------------------------------------------
+    def _on_datagram(self, key: str, data: bytes) -> None:
+        """Transport thread: verify and queue; a bad datagram is dropped and counted by the codec."""
+        parts = split_key(key)
+        env = self.codec.decode(data)
+        if env is None:
+            return
+        if parts is None or parts[1] != env.sender:  # signed by one drone, published under another's key
+            self.codec.dropped["wrong_key_expr"] += 1
+            return
+        try:
+            self.inbox.put((time.time(), env), timeout=0.5)  # heard now, even if the main loop is busy
+        except queue.Full:
+            self.counters["inbox_overflow"] += 1
+            log.error("peer inbox full for 0.5 s: main loop stalled; message from %s lost", env.sender)
+
+    def _drain_inbox(self) -> None:
+        while True:
+            try:
+                heard_s, env = self.inbox.get_nowait()
+            except queue.Empty:
+                return
+            self._handle(env, heard_s)
+
+    def _handle(self, env: M.Envelope, heard_s: float) -> None:
+        event = self.peers.heard(env, heard_s)
+        if event is not None:
+            self._peer_event(event)
+        body = env.body
+        self.outputs.json(f"/swarm/in/{type(body).__name__}", M.to_builtins(env), env.time_s)
+        if self.node is None:
+            return
+        try:
+            if isinstance(body, M.FusedEstimate):
+                self.outputs.location_fix(env.sender, body.time_s, body.lat_deg, body.lon_deg, body.alt_m,
+                                          body.cov_enu_m2)
+                if body.time_s - self._peer_fix_s.get(env.sender, -math.inf) >= PEER_FIX_PERIOD_S:
+                    self._peer_fix_s[env.sender] = body.time_s
+                    self.node.add_fix(env.sender, M.estimate_fix(body, env.sender))
+            elif isinstance(body, M.RelativeObs) and body.target_id == self.cfg.drone_id:
+                self.node.add_relative(M.relative_observation(body, env.sender))
+        except (SkyfixError, ValueError) as exc:  # signed but not physical (NaN, bad covariance...)
+            self.codec.dropped["invalid_content"] += 1
+            log.warning("message from %s dropped: %s", env.sender, exc)
+
+    def _peer_event(self, event) -> None:
+        log.info("peer %s %s", event.drone_id, event.kind)
+        self.outputs.json("/swarm/peers", {"event": event.kind, "drone": event.drone_id, "time_s": event.time_s},
+                          event.time_s)
+
+    def _publish(self, body) -> None:
+        data = self.codec.encode(body)
+        topic = M.TOPIC_OF[type(body)]
+        try:
+            self.transport.publish(topic, data)
+        except Exception as exc:  # noqa: BLE001 - zenoh raises its own errors; the loop must go on
+            log.warning("swarm publish on %s failed: %s", topic, exc)
+            return
+        self.counters["sent"] += 1
+        self.outputs.json(f"/swarm/out/{type(body).__name__}", {"type": type(body).__name__,
+                                                                "body": M.msgspec.to_builtins(body)})
+
+    def _heartbeat(self) -> None:
+        for event in self.peers.check():
+            self._peer_event(event)
+        est = self.node.latest.get(self.cfg.drone_id) if self.node is not None else None
+        mav_ok = self.vehicle is not None and self.vehicle.state.link_ok
+        if est is None:
+            health, source, sigma = "no_fix", "none", math.nan
+        else:
+            sigma = est.sigma_horizontal_m
+            source = "gnss" if "gnss" in est.sources else (est.sources[0] if est.sources else "prediction")
+            health = "ok" if mav_ok and sigma < 5.0 else "degraded"
+        self._publish(M.Heartbeat(health, source, sigma, mav_ok, len(self.peers.live())))
+        report = self._drop_report()
+        if report != self._dropped_logged:
+            self._dropped_logged = report
+            self.outputs.json("/swarm/dropped", report)
+
+    def _drop_report(self) -> dict[str, int]:
+        return {**dict(self.codec.dropped), "inbox_overflow": self.counters["inbox_overflow"]}
+
+    # -- fusion ---------------------------------------------------------------------------------
+    def _tick(self) -> None:
+        vehicle = self.vehicle
+        state = vehicle.state if vehicle is not None else None
+        if self.node is None:
+            origin = self.cfg.origin or _origin_of(state)
+            if origin is None:
+                return
+            self.node = Node(self.cfg.drone_id, origin, make_sink=self.outputs.fusion_sink)
+            log.info("fusion origin %.7f, %.7f, %.2f m", *origin)
+        if state is not None and state.link_ok:
+            self.node.add_telemetry(self.cfg.drone_id, state, lambda m: m.time_s,
+                                    use_gnss=self.injector is None)
+        estimates = self.node.update()
+        now = time.time()
+        fix = self.node.fix(self.cfg.drone_id, now)
+        if fix is None:
+            return
+        own = next((e for e in estimates if e.drone_id == self.cfg.drone_id), self.node.latest[self.cfg.drone_id])
+        self.counters["estimates"] += 1
+        self._publish(M.FusedEstimate(now, fix.lat_deg, fix.lon_deg, fix.alt_m, M._flat(fix.cov_enu_m2),
+                                      tuple(float(v) for v in own.vel_enu_mps), tuple(own.sources)))
+        self.outputs.json(f"/estimate/{self.cfg.drone_id}", {**own.to_dict(), "now_s": now}, own.time_s)
+        self.outputs.location_fix(self.cfg.drone_id, now, fix.lat_deg, fix.lon_deg, fix.alt_m, fix.cov_enu_m2)
+        if self.cfg.inject and vehicle is not None:
+            self._injection(vehicle, state, fix)
+
+    def _injection(self, vehicle, state, fix) -> None:
+        """GPS_INPUT of the fused fix while the drone's own GNSS is lost; stop when it is back."""
+        gnss_lost = state is not None and state.gps is not None and state.gps.fix_type < GNSS_OK_FIX_TYPE
+        if gnss_lost and self.injector is None:
+            try:
+                self.injector = vehicle.start_gps_injection(lambda: self.node.fix(self.cfg.drone_id, time.time()))
+            except SkyfixError as exc:
+                log.error("cannot inject the fused position: %s", exc)
+                return
+            self.outputs.json("/action", {"action": "gps_injection_start", "sigma_h_m": fix.sigma_horizontal_m})
+        elif not gnss_lost and self.injector is not None and state.gps is not None:
+            self.injector.stop()
+            self.injector = None
+            self.outputs.json("/action", {"action": "gps_injection_stop"})
+
+    # -- MAVLink supervision ----------------------------------------------------------------------
+    def _mavlink_loop(self) -> None:
+        from skyfix.drivers.vehicle import Vehicle
+
+        delay = BACKOFF_S[0]
+        lost_since = None
+        while not self.stop.is_set():
+            if self.vehicle is None:
+                try:
+                    self.vehicle = Vehicle.connect(self.cfg.mavlink_url, timeout_s=2.0, heartbeat_timeout_s=2.0)
+                except LinkError as exc:
+                    log.warning("MAVLink %s: %s; next attempt in %.1f s", self.cfg.mavlink_url, exc, delay)
+                    self.stop.wait(delay)
+                    delay = min(2 * delay, BACKOFF_S[1])
+                    continue
+                delay, lost_since = BACKOFF_S[0], None
+                self.counters["mavlink_connects"] += 1
+                self._mav_event("connected")
+            elif not self.vehicle.state.link_ok:
+                lost_since = lost_since or time.monotonic()
+                if time.monotonic() - lost_since > LINK_LOST_RECONNECT_S:
+                    self.counters["mavlink_lost"] += 1
+                    self._mav_event("lost")
+                    vehicle, self.vehicle, self.injector = self.vehicle, None, None
+                    vehicle.close()
+                    continue
+            else:
+                lost_since = None
+            self.stop.wait(0.1)
+
+    def _mav_event(self, kind: str) -> None:
+        log.info("MAVLink %s %s", self.cfg.mavlink_url, kind)
+        self.outputs.json("/mavlink/state", {"event": kind, "url": self.cfg.mavlink_url, **self.counters})
+
+
+def _origin_of(state) -> tuple[float, float, float] | None:
+    """The local frame's origin: the autopilot's home, else its first 3-D GNSS fix (ellipsoidal m)."""
+    if state is None:
+        return None
+    if state.home is not None and math.isfinite(getattr(state.home, "alt_ellipsoid_m", math.nan)):
+        return state.home.lat_deg, state.home.lon_deg, state.home.alt_ellipsoid_m
+    gps = state.gps
+    if gps is not None and gps.fix_type >= GNSS_OK_FIX_TYPE and math.isfinite(gps.alt_ellipsoid_m):
+        return gps.lat_deg, gps.lon_deg, gps.alt_ellipsoid_m
+    return None
+
+
+def config_from_args(args) -> ServiceConfig:
+    """Check ``skyfix serve``'s arguments (InputError naming the bad one)."""
+    from skyfix.drivers.link import check_url
+
+    check_name("--id", args.id)
+    check_name("--swarm-name", args.swarm_name)
+    check_url(args.mavlink)
+    roster = None
+    if args.roster:
+        roster = tuple(check_name("--roster entry", r.strip()) for r in args.roster.split(","))
+    origin = None
+    if args.origin:
+        try:
+            lat, lon, alt = (float(x) for x in args.origin.split(","))
+        except ValueError:
+            raise InputError(f"--origin must be LAT,LON,ALT_M, got {args.origin!r}") from None
+        origin = (lat, lon, alt)
+    rate = float(args.rate)
+    if not 0.5 <= rate <= 50.0:
+        raise InputError(f"--rate must be 0.5-50 Hz, got {args.rate}")
+    return ServiceConfig(args.id, args.mavlink, Endpoints.parse(args.swarm), M.read_key(args.swarm_key_file),
+                         swarm=args.swarm_name, roster=roster, origin=origin, log_path=args.log,
+                         live=args.live, estimate_hz=rate, inject=args.inject)
+
+
+SERVE_DESCRIPTION = (
+    "Run on a drone's companion computer: MAVLink telemetry in (reconnected with back-off when the link "
+    "is lost), the drone's fusion engine, signed messages to and from the other drones over Zenoh, camera "
+    "frames in, GPS_INPUT injection out (--inject); every input, message, estimate and action to an MCAP "
+    "log and a live Foxglove view. SIGINT/SIGTERM stop it cleanly; a bad argument is a one-line error "
+    "(exit 2).")
+
+SERVE_EPILOG = """\
+example (drone 2 of three on one machine, simulator from 'skyfix sim --vehicles 3'):
+  head -c 32 /dev/urandom > swarm.key
+  skyfix serve --id d2 --mavlink udpin:127.0.0.1:14551 \\
+      --swarm listen:tcp/127.0.0.1:7452,tcp/127.0.0.1:7451,tcp/127.0.0.1:7453 \\
+      --swarm-key-file swarm.key --roster d1,d2,d3 --log d2.mcap --live 8766
+
+--swarm lists zenoh endpoints: the one prefixed listen: is this drone's own, the others
+its peers' (no multicast discovery: a drone hears exactly the peers it is given).
+Every message is signed with the swarm key (HMAC-SHA256); forged, replayed, stale,
+oversized or malformed messages and senders not on --roster are dropped and counted.
+Logs: 'skyfix fusion replay d2.mcap' reproduces the estimates; the .mcap opens in Foxglove
+(topics /fix/<drone> are LocationFix: a map panel shows the swarm).
+"""
+
+
+def register(subparsers) -> None:
+    """Add ``skyfix serve`` and ``skyfix swarm``."""
+    import argparse
+
+    p = subparsers.add_parser("serve", help="the onboard service: MAVLink + fusion + swarm network + MCAP log",
+                              description=SERVE_DESCRIPTION, epilog=SERVE_EPILOG,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--id", required=True, help="this drone's id in the swarm (letters, digits, - and _)")
+    p.add_argument("--mavlink", required=True, metavar="URL",
+                   help="autopilot link: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or /dev/ttyACM0[:BAUD]")
+    p.add_argument("--swarm", required=True, metavar="ENDPOINTS",
+                   help="comma-separated zenoh endpoints: listen:tcp/HOST:PORT (own), tcp/HOST:PORT (peers)")
+    p.add_argument("--swarm-key-file", required=True, type=Path, metavar="FILE",
+                   help="the swarm's shared secret (at least 16 bytes)")
+    p.add_argument("--swarm-name", default="skyfix", help="swarm name in the key expressions (default skyfix)")
+    p.add_argument("--roster", default=None, metavar="IDS",
+                   help="comma-separated ids allowed to speak (default: anyone holding the key)")
+    p.add_argument("--origin", default=None, metavar="LAT,LON,ALT_M",
+                   help="fusion frame origin (default: the autopilot's home or first GNSS fix)")
+    p.add_argument("--camera", default=None, metavar="SRC",
+                   help="camera frames: a folder of images, an OpenCV device index or stream URL")
+    p.add_argument("--log", type=Path, default=None, metavar="FILE.mcap", help="MCAP log to write (never overwritten)")
+    p.add_argument("--live", default=None, metavar="[HOST:]PORT",
+                   help="stream the log's topics over the Foxglove WebSocket protocol (default host 127.0.0.1)")
+    p.add_argument("--rate", type=float, default=10.0, help="fusion and estimate rate, Hz (default 10)")
+    p.add_argument("--inject", action="store_true",
+                   help="while the drone's own GNSS is lost, inject the fused position as GPS_INPUT")
+    p.set_defaults(func=run_serve)
+
+    from skyfix.crps.swarm import register_status
+
+    register_status(subparsers)
+
+
+def run_serve(args) -> int:
+    """The ``skyfix serve`` command: exit 0 after SIGINT/SIGTERM, 2 on a bad argument."""
+    import signal
+    import sys
+
+    try:
+        cfg = config_from_args(args)
+        service = Service(cfg)
+    except (InputError, LinkError) as exc:
+        sys.stderr.write(f"skyfix serve: error: {exc}\n")
+        return 2
+    if args.camera:
+        from skyfix.crps.camera_feed import CameraFeed
+
+        try:
+            service.camera = CameraFeed(args.camera, service.outputs).start()
+        except InputError as exc:
+            service.close()
+            sys.stderr.write(f"skyfix serve: error: {exc}\n")
+            return 2
+
+    def on_signal(signum, _frame) -> None:
+        log.info("signal %d: stopping", signum)
+        service.stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    log.info("skyfix serve %s: MAVLink %s, swarm %s", cfg.drone_id, cfg.mavlink_url, args.swarm)
+    service.run()
+    return 0
