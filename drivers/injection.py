@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import logging
 import math
-import queue
 import threading
 import time
 from collections.abc import Callable
@@ -27,6 +26,7 @@ from typing import TYPE_CHECKING
 from skyfix import validate
 from skyfix.drivers import units
 from skyfix.drivers.mav import mavlink
+from skyfix.drivers.request import DONE, transact
 from skyfix.errors import ConfigurationError, InputError, SkyfixError, SkyfixTimeout
 from skyfix.rotation import r_ned_from_frd
 from skyfix.types import GeoFix
@@ -185,17 +185,14 @@ def set_origin(vehicle: Vehicle, lat_deg: float, lon_deg: float, alt_amsl_m: flo
         return m.get_type() == "GPS_GLOBAL_ORIGIN" and abs(m.latitude - lat_e7) <= 1 \
             and abs(m.longitude - lon_e7) <= 1 and abs(m.altitude - alt_mm) <= 10
 
-    with vehicle.subscribe(confirms) as q:
-        for _ in range(retries + 1):
-            vehicle.send(M.MAVLink_set_gps_global_origin_message(vehicle.system_id, lat_e7, lon_e7, alt_mm,
-                                                                 int(time.time() * 1e6)))
-            try:
-                q.get(timeout=timeout_s)
-                return
-            except queue.Empty:
-                continue
-    raise SkyfixTimeout(f"vehicle {vehicle.system_id} did not confirm the EKF origin "
-                        f"{lat_deg:.7f},{lon_deg:.7f},{alt_amsl_m:.2f} with GPS_GLOBAL_ORIGIN")
+    try:
+        transact(vehicle, lambda attempt: M.MAVLink_set_gps_global_origin_message(
+            vehicle.system_id, lat_e7, lon_e7, alt_mm, int(time.time() * 1e6)),
+            lambda m: DONE if confirms(m) else None, types=("GPS_GLOBAL_ORIGIN",), timeout_s=timeout_s,
+            retries=retries, what="SET_GPS_GLOBAL_ORIGIN")
+    except SkyfixTimeout as exc:
+        raise SkyfixTimeout(f"vehicle {vehicle.system_id} did not confirm the EKF origin "
+                            f"{lat_deg:.7f},{lon_deg:.7f},{alt_amsl_m:.2f} with GPS_GLOBAL_ORIGIN: {exc}") from None
 
 
 class PositionInjector:

@@ -9,7 +9,6 @@ and drops item 0 on download, so callers see the same list on both autopilots.
 
 from __future__ import annotations
 
-import queue
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -17,7 +16,8 @@ from typing import TYPE_CHECKING
 
 from skyfix import validate
 from skyfix.drivers.mav import mavlink
-from skyfix.errors import CommandRejected, InputError, SkyfixTimeout
+from skyfix.drivers.request import DONE, transact
+from skyfix.errors import CommandRejected, InputError
 
 if TYPE_CHECKING:
     from skyfix.drivers.vehicle import Vehicle
@@ -136,35 +136,31 @@ def upload(vehicle: Vehicle, items: Sequence[MissionItem], *, progress: Callable
         return m.get_type() in ("MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK") \
             and getattr(m, "mission_type", 0) == M.MAV_MISSION_TYPE_MISSION
 
+    retries = max(1, int(timeout_s / item_timeout_s))
+    resends = [0]
+
+    def count_resend() -> None:
+        resends[0] += 1
+
     with vehicle.subscribe(wanted) as q:
-        last = count_msg
-        vehicle.send(count_msg)
-        quiet_since = time.monotonic()
+        out = count_msg
         while True:
-            try:
-                msg, _ = q.get(timeout=item_timeout_s)
-            except queue.Empty:
-                if time.monotonic() - quiet_since > timeout_s:
-                    raise SkyfixTimeout(f"vehicle {sysid}: mission upload stalled at item "
-                                        f"{highest + 1}/{n} for {timeout_s:.0f} s") from None
-                vehicle.send(last)
-                resent += 1
-                continue
-            quiet_since = time.monotonic()
+            msg = transact(vehicle, out, lambda m: DONE, types=(), replies=q, timeout_s=item_timeout_s,
+                           retries=retries, what=f"mission upload at item {highest + 1}/{n}",
+                           on_resend=count_resend)
             if msg.get_type() == "MISSION_ACK":
                 if msg.type == M.MAV_MISSION_ACCEPTED and (highest == n - 1 or n == 0):
-                    return TransferStats(len(items), time.monotonic() - t0, resent)
+                    return TransferStats(len(items), time.monotonic() - t0, resends[0] + resent)
                 if msg.type != M.MAV_MISSION_ACCEPTED:
                     name = _RESULTS.get(msg.type, str(msg.type))
                     raise CommandRejected(f"vehicle {sysid} rejected the mission upload ({name}) "
                                           f"at item {highest + 1}/{n}{vehicle._reasons(t0)}",
                                           command="MISSION_COUNT", result=msg.type)
-                continue  # a stale ACK from an earlier transaction
+                continue  # a stale ACK from an earlier transaction: keep listening, re-send on silence
             seq = msg.seq
             if not 0 <= seq < n:
                 continue
-            last = wire[seq].to_message(seq, sysid, comp)
-            vehicle.send(last)
+            out = wire[seq].to_message(seq, sysid, comp)
             if seq > highest:
                 highest = seq
                 if progress is not None:
@@ -176,54 +172,37 @@ def upload(vehicle: Vehicle, items: Sequence[MissionItem], *, progress: Callable
 def download(vehicle: Vehicle, *, item_timeout_s: float = 0.25, timeout_s: float = 60.0) -> list[MissionItem]:
     """Read the vehicle's mission; lost requests or items are asked for again."""
     sysid, comp = vehicle.system_id, vehicle.component_id
-    deadline = time.monotonic() + timeout_s
 
     def wanted(m) -> bool:
         return m.get_type() in ("MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ITEM")
 
+    retries = max(1, int(timeout_s / item_timeout_s))
+
+    def ask(q, request, match: Callable, what: str):
+        return transact(vehicle, request, lambda m: DONE if match(m) else None, types=(), replies=q,
+                        timeout_s=item_timeout_s, retries=retries, what=what)
+
     with vehicle.subscribe(wanted) as q:
         req = M.MAVLink_mission_request_list_message(sysid, comp, M.MAV_MISSION_TYPE_MISSION)
-        count = _ask(vehicle, q, req, lambda m: m.get_type() == "MISSION_COUNT", item_timeout_s,
-                     deadline).count
+        count = ask(q, req, lambda m: m.get_type() == "MISSION_COUNT", "MISSION_REQUEST_LIST").count
         items = []
         for seq in range(count):
             req = M.MAVLink_mission_request_int_message(sysid, comp, seq, M.MAV_MISSION_TYPE_MISSION)
-            msg = _ask(vehicle, q, req, lambda m, s=seq: m.get_type() != "MISSION_COUNT" and m.seq == s,
-                       item_timeout_s, deadline)
+            msg = ask(q, req, lambda m, s=seq: m.get_type() != "MISSION_COUNT" and m.seq == s,
+                      f"MISSION_REQUEST_INT {seq}/{count}")
             items.append(MissionItem.from_message(msg))
         vehicle.send(M.MAVLink_mission_ack_message(sysid, comp, M.MAV_MISSION_ACCEPTED,
                                                    M.MAV_MISSION_TYPE_MISSION))
     return items[1:] if vehicle.autopilot == "ardupilot" and items else items
 
 
-def _ask(vehicle: Vehicle, q: queue.Queue, request, match: Callable, item_timeout_s: float, deadline: float):
-    while time.monotonic() < deadline:
-        vehicle.send(request)
-        end = time.monotonic() + item_timeout_s
-        while (left := end - time.monotonic()) > 0:
-            try:
-                msg, _ = q.get(timeout=left)
-            except queue.Empty:
-                break
-            if match(msg):
-                return msg
-    raise SkyfixTimeout(f"vehicle {vehicle.system_id} stopped answering {request.get_type()} during "
-                        "mission download")
-
-
 def clear(vehicle: Vehicle, *, timeout_s: float = 1.0, retries: int = 3) -> None:
     """Delete the vehicle's mission (MISSION_CLEAR_ALL, acknowledged)."""
     sysid, comp = vehicle.system_id, vehicle.component_id
-    with vehicle.subscribe(lambda m: m.get_type() == "MISSION_ACK") as q:
-        for _ in range(retries + 1):
-            vehicle.send(M.MAVLink_mission_clear_all_message(sysid, comp, M.MAV_MISSION_TYPE_MISSION))
-            try:
-                msg, _ = q.get(timeout=timeout_s)
-            except queue.Empty:
-                continue
-            if msg.type == M.MAV_MISSION_ACCEPTED:
-                return
-            raise CommandRejected(f"vehicle {sysid} refused to clear its mission "
-                                  f"({_RESULTS.get(msg.type, msg.type)})", command="MISSION_CLEAR_ALL",
-                                  result=msg.type)
-    raise SkyfixTimeout(f"vehicle {sysid} did not acknowledge MISSION_CLEAR_ALL")
+    msg = transact(vehicle, M.MAVLink_mission_clear_all_message(sysid, comp, M.MAV_MISSION_TYPE_MISSION),
+                   lambda m: DONE, types=("MISSION_ACK",), timeout_s=timeout_s, retries=retries,
+                   what="MISSION_CLEAR_ALL")
+    if msg.type != M.MAV_MISSION_ACCEPTED:
+        raise CommandRejected(f"vehicle {sysid} refused to clear its mission "
+                              f"({_RESULTS.get(msg.type, msg.type)})", command="MISSION_CLEAR_ALL",
+                              result=msg.type)

@@ -13,6 +13,7 @@ geoid model.
 from __future__ import annotations
 
 import math
+import struct
 from functools import lru_cache
 
 from skyfix.drivers.state import Battery, GpsStatus, Home, Position, Velocity
@@ -93,3 +94,39 @@ def battery(msg, now_s: float) -> Battery:
     return Battery(msg.voltage_battery / 1000.0 if msg.voltage_battery != UINT16_UNKNOWN else math.nan,
                    msg.current_battery / 100.0 if msg.current_battery >= 0 else math.nan,
                    float(msg.battery_remaining) if msg.battery_remaining >= 0 else math.nan, now_s)
+
+
+# ---------------------------------------------------------------- parameters
+#: MAV_PARAM_TYPE -> struct code of the integer it holds (REAL32/REAL64 absent: floats).
+_PARAM_INT_CODES = {1: "<B", 2: "<b", 3: "<H", 4: "<h", 5: "<I", 6: "<i"}
+REAL32 = 9
+
+
+def param_is_int(param_type: int) -> bool:
+    return int(param_type) in _PARAM_INT_CODES
+
+
+def param_from_wire(value: float, param_type: int, bytewise: bool) -> int | float:
+    """PARAM_VALUE's float ``param_value`` -> the parameter's value.
+
+    ArduPilot casts integers to float (C cast); PX4 copies the integer's bytes into the
+    float's (byte-wise encoding, MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE)."""
+    code = _PARAM_INT_CODES.get(int(param_type))
+    if code is None:
+        return float(value)
+    if not bytewise:
+        return int(round(value)) if math.isfinite(value) else 0
+    raw = struct.pack("<f", value)
+    return struct.unpack(code, raw[:struct.calcsize(code)])[0]
+
+
+def param_to_wire(value: float, param_type: int, bytewise: bool) -> float:
+    """A parameter value -> PARAM_SET's float, in the autopilot's encoding."""
+    code = _PARAM_INT_CODES.get(int(param_type))
+    if code is None:
+        return float(value)
+    ivalue = int(round(value))
+    if not bytewise:
+        return float(ivalue)
+    raw = struct.pack(code, ivalue).ljust(4, b"\x00")
+    return struct.unpack("<f", raw)[0]

@@ -24,9 +24,11 @@ from typing import Any
 
 from skyfix import validate
 from skyfix.drivers import injection, mission, units
+from skyfix.drivers import params as param_io
 from skyfix.drivers.link import MavlinkLink
 from skyfix.drivers.mav import command_name, mavlink, result_name
 from skyfix.drivers.modes import PX4_MODES, custom_mode_of, flavour_of, mode_name, role_mode
+from skyfix.drivers.request import AGAIN, DONE, WAIT, transact
 from skyfix.drivers.safety import SafetyGate
 from skyfix.drivers.state import Attitude, Position, VehicleEvent, VehicleState, Velocity
 from skyfix.errors import CommandRejected, InputError, LinkError, SafetyViolation, SkyfixTimeout
@@ -67,7 +69,10 @@ class Vehicle:
         self._chunks: dict[int, list[str]] = {}
         self.events: deque[VehicleEvent] = deque(maxlen=1000)
         self._listeners: list[Callable[[VehicleEvent], None]] = []
-        self.params: dict[str, float] = {}
+        self.params: dict[str, int | float] = {}
+        self.param_types: dict[str, int] = {}  # MAV_PARAM_TYPE per name, as last reported
+        self._command_lock = threading.Lock()  # one command in flight per vehicle
+        self._command_seq = 0  # commands given so far: a newer one supersedes the safety action
         self.ekf_origin: tuple[float, float, float] | None = None
         self.safety: SafetyGate | None = None
         self._safety_latched = False
@@ -161,16 +166,18 @@ class Vehicle:
 
     def wait_until(self, predicate: Callable[[VehicleState], bool], timeout_s: float, *,
                    what: str = "condition") -> VehicleState:
-        """Block until ``predicate(state)`` is true; SkyfixTimeout after ``timeout_s``,
-        LinkError as soon as the autopilot's heartbeat is lost."""
+        """Block until ``predicate(state)`` is true; SkyfixTimeout after ``timeout_s``.
+        LinkError as soon as the heartbeat is lost during the wait; a wait that starts while
+        the link is down (e.g. for ``s.link_ok``) waits for it to come back."""
         validate.positive_scalar("timeout_s", timeout_s)
         deadline = time.monotonic() + timeout_s
         with self._lock:
+            link_was_ok = self._state.link_ok
             while True:
                 st = self._state
                 if predicate(st):
                     return st
-                if not st.link_ok:
+                if link_was_ok and not st.link_ok:
                     raise LinkError(f"lost the heartbeat of vehicle {self.system_id} while waiting "
                                     f"for {what}; last state: {st.summary()}")
                 left = deadline - time.monotonic()
@@ -178,6 +185,11 @@ class Vehicle:
                     raise SkyfixTimeout(f"vehicle {self.system_id}: {what} not reached within "
                                         f"{timeout_s:.1f} s; state: {st.summary()}{self._reasons(deadline - timeout_s)}")
                 self._lock.wait(min(left, 0.1))
+
+    def wait_link(self, timeout_s: float) -> VehicleState:
+        """Wait until the autopilot's heartbeat is heard again (after a reboot, a cable
+        pulled, a radio out of range); SkyfixTimeout after ``timeout_s``."""
+        return self.wait_until(lambda s: s.link_ok, timeout_s, what="the link back")
 
     def _update(self, **fields) -> None:
         with self._lock:
@@ -270,8 +282,9 @@ class Vehicle:
                    alt_amsl_m=self.ekf_origin[2])
 
     def _rx_param_value(self, msg, now: float, t_mono: float) -> None:
-        name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")
-        self.params[name.rstrip("\x00")] = float(msg.param_value)
+        name = param_io.param_name(msg)
+        self.param_types[name] = int(msg.param_type)
+        self.params[name] = param_io.decode(self, msg)
 
     def _rx_statustext(self, msg, now: float, t_mono: float) -> None:
         text = msg.text if isinstance(msg.text, str) else msg.text.decode(errors="replace")
@@ -307,57 +320,58 @@ class Vehicle:
         self.link.send(msg)
 
     # ------------------------------------------------------------------ commands
-    def _send_command_long(self, command: int, params: list[float], confirmation: int) -> None:
+    def _command_long(self, command: int, params: list[float], confirmation: int):
         p = [float(x) for x in params] + [0.0] * (7 - len(params))
-        self.send(M.MAVLink_command_long_message(self.system_id, self.component_id, command,
-                                                 confirmation, *p))
+        return M.MAVLink_command_long_message(self.system_id, self.component_id, command, confirmation, *p)
+
+    def _send_command_long(self, command: int, params: list[float], confirmation: int) -> None:
+        """Fire and forget (stream rates): no ACK awaited, so no command lock either."""
+        self.send(self._command_long(command, params, confirmation))
 
     def command(self, command: int, *params: float, timeout_s: float = 1.0, retries: int = 3) -> int:
         """Send COMMAND_LONG and wait for its COMMAND_ACK, resending up to ``retries`` times.
 
-        Returns the MAV_RESULT (ACCEPTED). Raises CommandRejected (with the autopilot's
-        STATUSTEXT reason), SkyfixTimeout, or LinkError when the heartbeat is lost.
+        Commands to one vehicle go out one at a time (the safety gate's included), so an ACK
+        is never taken for another request's. Returns the MAV_RESULT (ACCEPTED). Raises
+        CommandRejected (with the autopilot's STATUSTEXT reason), SkyfixTimeout, or LinkError
+        when the heartbeat is lost.
         """
         if len(params) > 7:
             raise InputError(f"a COMMAND_LONG takes at most 7 params, got {len(params)}")
         for i, p in enumerate(params):
             if isinstance(p, float) and math.isinf(p):
                 raise InputError(f"param{i + 1} of {command_name(command)} must be finite or NaN, got {p}")
+        with self._command_lock:
+            self._command_seq += 1
+            return self._command_locked(command, list(params), timeout_s, retries)
+
+    def _ack_verdict(self, command: int) -> Callable[[Any], str | None]:
+        src = (self.link.source_system, self.link.source_component) if self.link else (0, 0)
+
+        def verdict(ack) -> str | None:
+            if ack.command != command or getattr(ack, "target_system", 0) not in (0, src[0]) \
+                    or getattr(ack, "target_component", 0) not in (0, src[1]):
+                return None
+            if ack.result == M.MAV_RESULT_IN_PROGRESS:
+                return WAIT
+            return AGAIN if ack.result == M.MAV_RESULT_TEMPORARILY_REJECTED else DONE
+
+        return verdict
+
+    def _command_locked(self, command: int, params: list[float], timeout_s: float, retries: int, *,
+                        first_sent: bool = False) -> int:
+        """One command transaction; the caller holds ``_command_lock``."""
         name = command_name(command)
         t0 = time.monotonic()
-
-        def is_ack(m) -> bool:
-            return m.get_type() == "COMMAND_ACK" and m.command == command
-
-        with self.subscribe(is_ack) as acks:
-            for attempt in range(retries + 1):
-                self._send_command_long(command, list(params), attempt)
-                deadline = time.monotonic() + timeout_s
-                while True:
-                    left = deadline - time.monotonic()
-                    if left <= 0:
-                        break
-                    try:
-                        ack, _ = acks.get(timeout=left)
-                    except queue.Empty:
-                        break
-                    if ack.result == M.MAV_RESULT_IN_PROGRESS:
-                        deadline = time.monotonic() + timeout_s
-                        continue
-                    if ack.result == M.MAV_RESULT_ACCEPTED:
-                        return ack.result
-                    if ack.result == M.MAV_RESULT_TEMPORARILY_REJECTED and attempt < retries:
-                        time.sleep(0.1)
-                        break
-                    time.sleep(0.02)  # a STATUSTEXT explaining the refusal may trail the ACK
-                    reason = self._reasons(t0 - 0.5)
-                    raise CommandRejected(
-                        f"vehicle {self.system_id} rejected {name} ({result_name(ack.result)}){reason}",
-                        command=name, result=ack.result, reason=reason.removeprefix("; autopilot says: "))
-                if not self._state.link_ok:
-                    raise LinkError(f"vehicle {self.system_id}: no heartbeat; {name} not acknowledged")
-        raise SkyfixTimeout(f"vehicle {self.system_id}: no COMMAND_ACK for {name} after "
-                            f"{retries + 1} attempts of {timeout_s:.1f} s")
+        ack = transact(self, lambda attempt: self._command_long(command, params, attempt),
+                       self._ack_verdict(command), types=("COMMAND_ACK",), timeout_s=timeout_s,
+                       retries=retries, what=f"{name} (COMMAND_ACK)", first_sent=first_sent)
+        if ack.result == M.MAV_RESULT_ACCEPTED:
+            return ack.result
+        time.sleep(0.02)  # a STATUSTEXT explaining the refusal may trail the ACK
+        reason = self._reasons(t0 - 0.5)
+        raise CommandRejected(f"vehicle {self.system_id} rejected {name} ({result_name(ack.result)}){reason}",
+                              command=name, result=ack.result, reason=reason.removeprefix("; autopilot says: "))
 
     def arm(self, *, force: bool = False, timeout_s: float = 3.0) -> None:
         """Arm the motors and wait until the heartbeat shows it."""
@@ -373,23 +387,19 @@ class Vehicle:
         """Switch flight mode by name (``GUIDED``, ``AUTO.MISSION``, ``OFFBOARD``...) and wait
         for the heartbeat to report it. PX4 OFFBOARD gets a setpoint stream first."""
         name = str(name).upper()
-        custom = custom_mode_of(self.autopilot, name)
-        if self.autopilot == "px4":
-            if name == "OFFBOARD" and self._setpoint is None:
+        custom_mode_of(self.autopilot, name)  # InputError for an unknown mode
+        if self.autopilot == "px4" and name == "OFFBOARD":
+            if self._setpoint is None:
                 self._start_setpoints(self._hold_setpoint())
-            if name == "OFFBOARD":
-                time.sleep(max(0.0, 3.0 / self.setpoint_rate_hz))  # PX4 wants a live stream
-            main, sub = PX4_MODES[name]
-            params = [M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub]
-        else:
-            params = [M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom]
+            time.sleep(max(0.0, 3.0 / self.setpoint_rate_hz))  # PX4 wants a live stream
+        mode_params = self._mode_params(name)
         if name not in ("OFFBOARD", "GUIDED"):
             self._stop_setpoints()
         if name == "OFFBOARD" and self._setpoint is not None:
             # a fresh setpoint right before the switch: the stream thread may have been delayed
             # (PX4 refuses OFFBOARD unless a setpoint arrived within COM_OF_LOSS_T)
             self.send(self._setpoint)
-        self.command(M.MAV_CMD_DO_SET_MODE, *params)
+        self.command(M.MAV_CMD_DO_SET_MODE, *mode_params)
         self.wait_until(lambda s: s.mode == name, timeout_s, what=f"mode {name}")
 
     def _ensure_guided(self) -> None:
@@ -534,62 +544,66 @@ class Vehicle:
         self._safety_latched = True
         self._stop_setpoints()
         mode = role_mode(self.autopilot, self.safety.action)
-        custom = custom_mode_of(self.autopilot, mode)
-        if self.autopilot == "px4":
-            main, sub = PX4_MODES[mode]
-            params = [M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub]
-        else:
-            params = [M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom]
-        self._send_command_long(M.MAV_CMD_DO_SET_MODE, params, 0)
+        params = self._mode_params(mode)
+        # the action goes out now from the reader thread when no command is in flight;
+        # otherwise the safety thread sends it right after the current one (one channel)
+        generation = self._command_seq
+        sent = self._command_lock.acquire(blocking=False)
+        if sent:
+            self._send_command_long(M.MAV_CMD_DO_SET_MODE, params, 0)
         latency_s = time.monotonic() - t_mono
         self.safety_log.append((latency_s, why))
-        log.warning("vehicle %d safety violation: %s -> %s (%.1f ms after telemetry)",
-                    self.system_id, why, mode, latency_s * 1e3)
+        log.warning("vehicle %d safety violation: %s -> %s (%.1f ms after telemetry%s)", self.system_id,
+                    why, mode, latency_s * 1e3, "" if sent else ", queued behind a command in flight")
         self._emit("safety_violation", why, action=mode, latency_s=latency_s)
-        threading.Thread(target=self._confirm_safety_action, args=(mode, params), daemon=True).start()
+        threading.Thread(target=self._safety_action, args=(mode, params, generation, sent), daemon=True,
+                         name=f"skyfix-safety-{self.system_id}").start()
 
-    def _confirm_safety_action(self, mode: str, params: list[float]) -> None:
+    def _safety_action(self, mode: str, params: list[float], generation: int, holding: bool) -> None:
+        """Confirm the gate's mode change (ACK, then heartbeat) without ever overriding a command
+        the user gave after the violation, and without acting on a time-out."""
+        if not holding:
+            self._command_lock.acquire()
         try:
-            self.command(M.MAV_CMD_DO_SET_MODE, *params, timeout_s=0.5, retries=4)
-            self.wait_until(lambda s: s.mode == mode, 3.0, what=f"safety action {mode}")
-        except Exception as exc:  # fall back to landing: the envelope is already breached
-            log.error("vehicle %d: safety action %s failed (%s); landing", self.system_id, mode, exc)
+            if self._command_seq != generation:
+                log.warning("vehicle %d: safety action %s dropped: a newer command was given",
+                            self.system_id, mode)
+                return
+            self._command_seq += 1
+            generation = self._command_seq
+            self._command_locked(M.MAV_CMD_DO_SET_MODE, params, 0.5, 4, first_sent=holding)
+        except CommandRejected as exc:
+            if self._command_seq == generation:  # refused outright: land (envelope already breached)
+                log.error("vehicle %d: safety action %s refused (%s); landing", self.system_id, mode, exc)
+                self._emit("safety_action_failed", str(exc), action=mode)
+                with contextlib.suppress(Exception):
+                    self._command_locked(M.MAV_CMD_NAV_LAND, [], 0.5, 4)
+            return
+        except Exception as exc:  # no ACK / link lost: report, do not act on a time-out
+            log.error("vehicle %d: safety action %s not confirmed: %s", self.system_id, mode, exc)
             self._emit("safety_action_failed", str(exc), action=mode)
-            with contextlib.suppress(Exception):
-                self.command(M.MAV_CMD_NAV_LAND, timeout_s=0.5, retries=4)
+            return
+        finally:
+            self._command_lock.release()
+        with contextlib.suppress(SkyfixTimeout, LinkError):
+            self.wait_until(lambda s: s.mode == mode or self._command_seq != generation, 3.0,
+                            what=f"safety action {mode}")
+
+    def _mode_params(self, mode: str) -> list[float]:
+        """DO_SET_MODE params for a mode name (PX4: main and sub mode)."""
+        if self.autopilot == "px4":
+            main, sub = PX4_MODES[mode]
+            return [M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub]
+        return [M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom_mode_of(self.autopilot, mode)]
 
     # ------------------------------------------------------------------ parameters
-    def get_param(self, name: str, *, timeout_s: float = 1.0, retries: int = 3) -> float:
-        """Read one autopilot parameter (PARAM_REQUEST_READ -> PARAM_VALUE)."""
-        with self.subscribe(_param_value_matcher(name)) as q:
-            for _ in range(retries + 1):
-                self.send(M.MAVLink_param_request_read_message(self.system_id, self.component_id,
-                                                               name.encode(), -1))
-                try:
-                    msg, _ = q.get(timeout=timeout_s)
-                    return float(msg.param_value)
-                except queue.Empty:
-                    continue
-        raise SkyfixTimeout(f"vehicle {self.system_id} did not report parameter {name} "
-                            f"(it may not exist on this {self.autopilot} firmware)")
+    def get_param(self, name: str, *, timeout_s: float = 1.0, retries: int = 3) -> int | float:
+        """Read one autopilot parameter: int for integer parameters, float otherwise."""
+        return param_io.get_param(self, name, timeout_s=timeout_s, retries=retries)
 
-    def set_param(self, name: str, value: float, *, timeout_s: float = 1.0, retries: int = 3) -> None:
-        """Write one parameter and wait for the autopilot's PARAM_VALUE echo."""
-        value = validate.finite_scalar(f"value of {name}", value)
-        with self.subscribe(_param_value_matcher(name)) as q:
-            for _ in range(retries + 1):
-                self.send(M.MAVLink_param_set_message(self.system_id, self.component_id, name.encode(),
-                                                      value, M.MAV_PARAM_TYPE_REAL32))
-                try:
-                    msg, _ = q.get(timeout=timeout_s)
-                except queue.Empty:
-                    continue
-                if abs(msg.param_value - value) <= 1e-6 * max(1.0, abs(value)):
-                    return
-                raise CommandRejected(f"vehicle {self.system_id} kept {name}={msg.param_value} "
-                                      f"instead of {value}", command="PARAM_SET")
-        raise SkyfixTimeout(f"vehicle {self.system_id} did not confirm {name}={value}"
-                            f"{self._reasons(time.monotonic() - 5)}")
+    def set_param(self, name: str, value: float, *, timeout_s: float = 1.0, retries: int = 3) -> int | float:
+        """Write one parameter (in the type the autopilot reports for it) and wait for the echo."""
+        return param_io.set_param(self, name, value, timeout_s=timeout_s, retries=retries)
 
     # ------------------------------------------------------------------ missions
     def upload_mission(self, items: list[mission.MissionItem], *,
@@ -663,17 +677,3 @@ class Vehicle:
                    timeout_s: float = 1.0, retries: int = 3) -> None:
         """Set the EKF origin (SET_GPS_GLOBAL_ORIGIN) and wait for GPS_GLOBAL_ORIGIN to confirm."""
         injection.set_origin(self, lat_deg, lon_deg, alt_amsl_m, timeout_s=timeout_s, retries=retries)
-
-
-def _param_value_matcher(name: str) -> Callable[[Any], bool]:
-    """Predicate selecting the PARAM_VALUE message that reports parameter ``name``."""
-    if not isinstance(name, str) or not 0 < len(name) <= 16:
-        raise InputError(f"parameter name must be a string of 1-16 characters, got {name!r}")
-
-    def match(m) -> bool:
-        if m.get_type() != "PARAM_VALUE":
-            return False
-        pid = m.param_id if isinstance(m.param_id, str) else m.param_id.decode(errors="replace")
-        return pid.rstrip("\x00") == name
-
-    return match

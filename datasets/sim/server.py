@@ -19,6 +19,7 @@ import numpy as np
 
 from skyfix.datasets.sim.vehicle import (
     FORCE_MAGIC,
+    INT_PARAMS,
     MAV_RESULT_DENIED,
     MissionItem,
     Refusal,
@@ -26,6 +27,7 @@ from skyfix.datasets.sim.vehicle import (
 )
 from skyfix.drivers.mav import mavlink
 from skyfix.drivers.modes import custom_mode_of, mode_name
+from skyfix.drivers.units import param_from_wire, param_to_wire
 
 log = logging.getLogger(__name__)
 
@@ -458,10 +460,14 @@ class VehicleServer:
                 self._next_due_s[name] = self.vehicle.t_s
 
     # ------------------------------------------------------------- parameters
+    def _param_type(self, name: str) -> int:
+        return M.MAV_PARAM_TYPE_INT32 if name in INT_PARAMS else M.MAV_PARAM_TYPE_REAL32
+
     def _param_value(self, name: str):
         names = list(self.vehicle.params)
-        return M.MAVLink_param_value_message(name.encode(), float(self.vehicle.params[name]),
-                                             M.MAV_PARAM_TYPE_REAL32, len(names), names.index(name))
+        ptype = self._param_type(name)
+        wire = param_to_wire(self.vehicle.params[name], ptype, self.vehicle.flavour == "px4")
+        return M.MAVLink_param_value_message(name.encode(), wire, ptype, len(names), names.index(name))
 
     def _on_param_list(self, msg, addr) -> None:
         for name in list(self.vehicle.params):
@@ -481,10 +487,16 @@ class VehicleServer:
     def _on_param_set(self, msg, addr) -> None:
         name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")
         name = name.rstrip("\x00")
-        if name not in self.vehicle.params or not math.isfinite(msg.param_value):
-            self.statustext(f"Param set failed: {name}", M.MAV_SEVERITY_WARNING)
+        if name not in self.vehicle.params:
+            self.statustext(f"Param set failed: {name} not found", M.MAV_SEVERITY_WARNING)
             return
-        self.vehicle.params[name] = float(msg.param_value)
+        # decoded with the parameter's own type (a client sending the wrong type gets what
+        # the firmware would make of the bytes)
+        value = param_from_wire(msg.param_value, self._param_type(name), self.vehicle.flavour == "px4")
+        if not math.isfinite(value):
+            self.statustext(f"Param set failed: {name} not finite", M.MAV_SEVERITY_WARNING)
+            return
+        self.vehicle.params[name] = value
         self.send(self._param_value(name))
 
     # ------------------------------------------------------------- setpoints

@@ -50,6 +50,13 @@ ARDUPILOT_PARAMS: dict[str, float] = {
     "SIM_GPS1_ENABLE": 1, "SIM_GPS1_GLTCH_X": 0, "SIM_GPS1_GLTCH_Y": 0, "SIM_GPS1_GLTCH_Z": 0,
     "SIM_WIND_SPD": 0, "SIM_WIND_DIR": 180,
 }
+#: Integer parameters (the rest are REAL32): ArduPilot sends them as floats (C cast),
+#: PX4 copies the INT32's bytes into the float (byte-wise encoding).
+INT_PARAMS: frozenset[str] = frozenset({
+    "SYSID_THISMAV", "GPS1_TYPE", "GPS_TYPE", "GPS2_TYPE", "GPS_AUTO_SWITCH", "EK3_SRC1_POSXY",
+    "EK3_SRC1_VELXY", "EK3_SRC1_POSZ", "VISO_TYPE", "RTL_ALT", "FS_EKF_ACTION", "BATT_CAPACITY",
+    "ARMING_CHECK", "SIM_GPS1_ENABLE", "SIM_GPS_DISABLE", "DISARM_DELAY",
+    "MAV_SYS_ID", "EKF2_GPS_CTRL", "EKF2_EV_CTRL", "EKF2_HGT_REF", "SIM_GPS_BLOCK"})
 #: ArduPilot 4.6+ parameter names -> the names of earlier firmware (``legacy_params``).
 #: SIM_GPS_DISABLE is the inverse of SIM_GPS1_ENABLE.
 ARDUPILOT_LEGACY_NAMES: dict[str, str] = {

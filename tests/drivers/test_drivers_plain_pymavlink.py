@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import struct
 import time
 
 os.environ.setdefault("MAVLINK20", "1")
@@ -84,6 +85,9 @@ def test_plain_pymavlink_flies_the_simulator(flavour, udp_port):
             # parameters answer like an autopilot's
             master.mav.param_request_read_send(1, 1, b"GPS1_TYPE" if flavour == "ardupilot" else b"EKF2_GPS_CTRL", -1)
             pv = _wait(master, "PARAM_VALUE")
-            assert pv.param_value == (1.0 if flavour == "ardupilot" else 7.0)
+            assert pv.param_type == mavutil.mavlink.MAV_PARAM_TYPE_INT32
+            # ArduPilot casts an integer to the float; PX4 copies its bytes (7 -> 9.8e-45)
+            raw = struct.unpack("<i", struct.pack("<f", pv.param_value))[0]
+            assert (pv.param_value if flavour == "ardupilot" else raw) == (1.0 if flavour == "ardupilot" else 7)
         finally:
             master.close()
