@@ -19,6 +19,16 @@ class FusionConfig:
     walks with ``bias_walk_mps_per_sqrt_s``. Every step also carries a weak ``p_k+1 - p_k
     ~ N(0, (max_speed_mps dt)^2)`` so a drone whose velocity stops arriving stays
     constrained, with honestly growing sigma.
+
+    GNSS: each receiver's error is a state n_k, a first-order Gauss-Markov process per axis
+    (``gnss_gm_*``), so consecutive fixes are not independent evidence; the receiver's
+    reported accuracy beyond that wandering part is white (at least ``gnss_white_min_sigma_m``).
+    Defaults describe a consumer receiver (1.5 m horizontal per axis, 2.5 m vertical, about a
+    minute of correlation); for a receiver whose errors are white set the GM sigmas small.
+
+    Trust: relative observations are accepted only from observers on ``roster`` (drone ids);
+    an empty roster admits a drone that has reported its own GNSS, velocity, altitude or
+    fix. At most ``max_drones`` drones are ever created.
     """
 
     state_dt_s: float = 0.1
@@ -33,10 +43,18 @@ class FusionConfig:
     gnss_min_satellites: int = 6        # fewer -> degraded
     gnss_max_hdop: float = 2.5          # above -> degraded
     degraded_sigma_factor: float = 2.0  # degraded GNSS is fused with sigma x this
+    gnss_gm_h_sigma_m: float = 1.5      # wandering error per horizontal axis (multipath, atmosphere, orbits)
+    gnss_gm_v_sigma_m: float = 2.5      # wandering error, vertical
+    gnss_gm_tau_s: float = 60.0         # its correlation time
+    gnss_white_min_sigma_m: float = 0.3  # white part at least this (receiver noise)
+    # drift: GNSS displacement over a window against the GNSS-independent velocity
+    drift_window_s: float = 10.0
+    drift_gate_probability: float = 0.99999  # per test, two fixes in a row (5 Hz, overlapping windows)
     # innovation gating (every absolute / relative source)
     gate_probability: float = 0.999
     reject_after: int = 2               # consecutive gate failures -> rejected
-    readmit_after_s: float = 5.0        # consistent this long before a lost/rejected source is fused again
+    readmit_after_s: float = 5.0        # a lost/rejected source is judged over this long before it is fused again
+    readmit_fraction: float = 0.8       # ... and fused again when this fraction of its messages passed
     robust_k: float = 2.8               # Huber threshold on the whitened 3-D residual norm (95 % of inliers below)
     # other sources
     velocity_timeout_s: float = 1.0
@@ -47,25 +65,41 @@ class FusionConfig:
     # smoother
     max_iterations: int = 1             # LM iterations per update; the problem is linear but for robust weights
     log_fsync_s: float = 1.0            # measurement log: fsync at most this often
+    # trust
+    max_drones: int = 16                # bound on drone ids (observations cannot create more)
+    roster: tuple[str, ...] = ()        # drone ids allowed to observe others; () = drones that report their own sensors
 
     def __post_init__(self) -> None:
+        roster = self.roster
+        if isinstance(roster, str) or not all(isinstance(d, str) and d.strip() for d in roster):
+            raise InputError(f"FusionConfig.roster must be a sequence of non-empty drone id strings, got {roster!r}")
+        object.__setattr__(self, "roster", tuple(roster))
         for f in dataclasses.fields(self):
+            if f.name == "roster":
+                continue
             value = getattr(self, f.name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value == value:
                 raise InputError(f"FusionConfig.{f.name} must be a number, got {value!r}")
             if value <= 0 and f.name not in ("log_fsync_s",):
                 raise InputError(f"FusionConfig.{f.name} must be > 0, got {value!r}")
-        if not self.gate_probability < 1.0:
-            raise InputError(f"FusionConfig.gate_probability must be in (0, 1), got {self.gate_probability}")
+        for name in ("gate_probability", "drift_gate_probability"):
+            if not getattr(self, name) < 1.0:
+                raise InputError(f"FusionConfig.{name} must be in (0, 1), got {getattr(self, name)}")
+        if not self.readmit_fraction <= 1.0:
+            raise InputError(f"FusionConfig.readmit_fraction must be in (0, 1], got {self.readmit_fraction}")
+        if len(self.roster) > self.max_drones:
+            raise InputError(f"FusionConfig.roster has {len(self.roster)} ids, more than max_drones {self.max_drones}")
 
-    def gate_chi2(self, dof: int) -> float:
-        """Innovation gate: the chi-square quantile of ``gate_probability`` for ``dof``."""
+    def gate_chi2(self, dof: int, probability: float | None = None) -> float:
+        """Innovation gate: the chi-square quantile of ``probability`` (default ``gate_probability``) for ``dof``."""
         from scipy.stats import chi2
 
-        return float(chi2.ppf(self.gate_probability, dof))
+        return float(chi2.ppf(self.gate_probability if probability is None else probability, dof))
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        out = dataclasses.asdict(self)
+        out["roster"] = list(self.roster)
+        return out
 
     @classmethod
     def from_dict(cls, data: dict) -> FusionConfig:

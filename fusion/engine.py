@@ -13,9 +13,16 @@ bias-corrected velocity (the move's uncertainty is added). Inputs may arrive out
 order as long as they are inside the lag; older ones raise :class:`InputError`.
 
 Health (:mod:`skyfix.fusion.health`): each absolute or relative measurement is gated
-against the fused prediction (chi-square, ``gate_probability``) before it is fused;
-failures drop it, repeated failures reject the source, and a lost or rejected source
-must be consistent for ``readmit_after_s`` before it is fused again.
+against the fused prediction (chi-square, ``gate_probability``; a relative observation
+with the joint covariance of both drones, cross terms included) before it is fused;
+failures drop it, repeated failures reject the source, and a lost or rejected source is
+fused again on evidence (``readmit_after_s``, ``readmit_fraction``). GNSS also goes
+through a windowed drift test against the drone's own velocity (:mod:`skyfix.fusion.drift`);
+after a drift it is re-admitted when it agrees with the velocity again, and the drone's
+chain is re-anchored on it (the spoof corrupted the estimate, not the honest receiver).
+
+Trust: relative observations come only from observers on the roster (see
+:class:`FusionConfig`); the observer's position is always its own state in the engine.
 """
 
 from __future__ import annotations
@@ -30,6 +37,7 @@ import numpy as np
 from skyfix import validate
 from skyfix.errors import InputError, NotAvailableError
 from skyfix.fusion.config import FusionConfig
+from skyfix.fusion.drift import GnssDriftTest
 from skyfix.fusion.estimate import Estimate
 from skyfix.fusion.health import HealthState, SourceHealth, SourceMonitor
 from skyfix.fusion.log import MeasurementLog
@@ -58,6 +66,10 @@ class _Drone:
     up_minus_alt_m: float | None = None      # near there: up_m = alt_m + this
     cov_cache: tuple[int, np.ndarray] | None = None
     intervals: IntervalVelocity | None = None
+    drift: GnssDriftTest | None = None
+    drift_rejected: bool = False             # GNSS refused by the drift test; re-admitted against the velocity
+    drift_strikes: int = 0                   # consecutive fixes failing the drift test
+    reporting: bool = False                  # has reported its own sensors (may observe others on an open roster)
 
     @property
     def anchored(self) -> bool:
@@ -88,7 +100,13 @@ class FusionEngine:
         if self.lag_s < 3 * self.config.state_dt_s:
             raise InputError(f"lag_s must be at least 3 state steps ({3 * self.config.state_dt_s:g} s), got {lag_s}")
         cfg = self.config
-        self._gate = {dof: cfg.gate_chi2(dof) for dof in (1, 3)}
+        self._gate = {dof: cfg.gate_chi2(dof) for dof in (1, 2, 3)}
+        self._drift_gate = cfg.gate_chi2(2, cfg.drift_gate_probability)
+        self._readmit_gate = cfg.gate_chi2(2, 0.99)  # after a drift: agreement with the velocity, both tests
+        self._gm_sigma = np.array([cfg.gnss_gm_h_sigma_m, cfg.gnss_gm_h_sigma_m, cfg.gnss_gm_v_sigma_m])
+        self._next_index = 0
+        self._unknown_observers = 0
+        self._unknown_last: tuple[str, float] | None = None
         self._vel_sigma_floor = cfg.velocity_model_sigma_mps
         self._window: GraphWindow | None = None
         self._drones: dict[str, _Drone] = {}
@@ -121,7 +139,7 @@ class FusionEngine:
         v = None if v_sigma_m is None else validate.positive_scalar("v_sigma_m", v_sigma_m)
         self._record("gnss", dict(drone_id=drone_id, time_s=t, lat_deg=lat_deg, lon_deg=lon_deg, alt_m=alt_m,
                                   h_sigma_m=h, v_sigma_m=v, fix_type=fix_type, satellites=sats, hdop=hd))
-        drone = self._drone(drone_id)
+        drone = self._reporter(drone_id)
         self._advance(t, drone)
         cfg = self.config
         monitor = self._monitor(drone, "gnss", cfg.gnss_timeout_s, t)
@@ -148,11 +166,13 @@ class FusionEngine:
         if issues:
             h_sigma *= cfg.degraded_sigma_factor
             v_sigma *= cfg.degraded_sigma_factor
+        # The wandering part of the reported accuracy is the error state; the rest is white.
+        floor2 = cfg.gnss_white_min_sigma_m**2
+        white2 = np.maximum(np.array([h_sigma, h_sigma, v_sigma]) ** 2 - self._gm_sigma**2, floor2)
         enu = np.array([float(c) for c in self.frame.to_enu(lat, lon, alt)])
         self._refresh_axes(drone, enu)
         r = drone.r_frame_from_local
-        cov = r @ np.diag([h_sigma**2, h_sigma**2, v_sigma**2]) @ r.T
-        self._absolute(drone, monitor, t, enu, cov, ", ".join(issues) or None)
+        self._gnss(drone, monitor, t, enu, r @ np.diag(white2) @ r.T, ", ".join(issues) or None)
 
     def add_velocity(self, drone_id: str, time_s: float, vel_enu_mps, sigma_mps) -> None:
         """The autopilot's velocity (m/s, ENU axes at the drone) and its white-noise 1-sigma.
@@ -168,12 +188,13 @@ class FusionEngine:
         if sigma.shape != (3,) or (sigma <= 0).any():
             raise InputError(f"sigma_mps must be > 0 (a scalar or 3 values), got {sigma_mps!r}")
         self._record("velocity", dict(drone_id=drone_id, time_s=t, vel_enu_mps=vel, sigma_mps=sigma))
-        drone = self._drone(drone_id)
+        drone = self._reporter(drone_id)
         self._advance(t, drone)
         self._monitor(drone, "velocity", self.config.velocity_timeout_s, t).judge(t, True)
         if drone.anchored and drone.axes_at_enu_m is None:
             self._refresh_from_estimate(drone)
         vel_frame = drone.r_frame_from_local @ vel
+        self._drift_test(drone).velocity(t, vel_frame)
         if drone.velocity is None or t >= drone.velocity[0]:
             drone.velocity = (t, vel_frame, float(sigma.max()) ** 2 + self._vel_sigma_floor**2)
         for j, mean, sig in self._intervals(drone).add(t, vel_frame, sigma):
@@ -189,7 +210,7 @@ class FusionEngine:
         alt = validate.finite_scalar("alt_m", alt_m)
         sigma = validate.positive_scalar("sigma_m", sigma_m)
         self._record("altitude", dict(drone_id=drone_id, time_s=t, alt_m=alt, sigma_m=sigma))
-        drone = self._drone(drone_id)
+        drone = self._reporter(drone_id)
         self._advance(t, drone)
         monitor = self._monitor(drone, "altitude", self.config.altitude_timeout_s, t)
         if monitor.repeat(t):
@@ -221,7 +242,7 @@ class FusionEngine:
         t = self._time("fix.time_s", fix.time_s)
         _positive_definite("fix.cov_enu_m2", fix.cov_enu_m2)
         self._record("fix", dict(drone_id=drone_id, fix=fix))
-        drone = self._drone(drone_id)
+        drone = self._reporter(drone_id)
         self._advance(t, drone)
         monitor = self._monitor(drone, f"fix:{fix.source_id or 'fix'}", self.config.fix_timeout_s, t)
         if monitor.repeat(t):
@@ -235,10 +256,12 @@ class FusionEngine:
     def add_relative(self, obs: RelativeObservation) -> None:
         """A helper's observation of a target (source ``relative:<observer_id>`` of the target).
 
-        Both drones' states are tied by the observation, so the observer's own
-        uncertainty is accounted for. If the engine cannot place the observer but the
-        observation carries the observer's geodetic position and covariance, it is
-        used as an absolute fix of the target instead.
+        The observer must be on the roster (``FusionConfig.roster``; with none, a drone that
+        reports its own sensors to this engine); otherwise :class:`InputError`, counted in
+        the target's ``health()`` as ``relative:unknown``. The observer's position is its
+        own state here: a position carried in the message is never used. Both drones'
+        states are tied by the observation, so the observer's own uncertainty counts, and
+        the gate uses their joint covariance. An observer not yet localised is ignored.
         """
         if not isinstance(obs, RelativeObservation):
             raise InputError(f"obs must be a skyfix.types.RelativeObservation, got {type(obs).__name__}")
@@ -247,11 +270,13 @@ class FusionEngine:
             raise InputError(f"RelativeObservation observer and target are the same drone {observer_id!r}")
         t = self._time("obs.time_s", obs.time_s)
         _positive_definite("obs.cov_enu_m2", obs.cov_enu_m2)
-        if obs.observer_cov_enu_m2 is not None:
-            _positive_definite("obs.observer_cov_enu_m2", obs.observer_cov_enu_m2)
+        self._check_observer(observer_id, target_id, t)
         self._record("relative", dict(obs=obs))
-        observer, target = self._drone(observer_id), self._drone(target_id)
+        observer, target = self._drones[observer_id], self._drone(target_id)
         self._advance(t, target)
+        if not observer.anchored:
+            log.debug("observer %s not localised: observation of %s unused", observer_id, target_id)
+            return
         monitor = self._monitor(target, f"relative:{observer_id}", self.config.relative_timeout_s, t)
         if monitor.repeat(t):
             log.debug("duplicate message at time_s=%s dropped", t)
@@ -259,20 +284,13 @@ class FusionEngine:
         r = observer.r_frame_from_local
         offset = r @ obs.offset_enu_m
         cov = r @ obs.cov_enu_m2 @ r.T
-        if not observer.anchored:
-            if obs.has_observer_position and obs.observer_cov_enu_m2 is not None:
-                helper = np.array([float(c) for c in self.frame.to_enu(obs.observer_lat_deg, obs.observer_lon_deg,
-                                                                           obs.observer_alt_m)])
-                self._absolute(target, monitor, t, helper + offset, cov + r @ obs.observer_cov_enu_m2 @ r.T, None)
-            else:
-                monitor.judge(t, True, "observer not localised: observation unused")
-            return
         k = self._step_checked(t, "relative observation")
         consistent = True
         p_obs, p_tgt = self._predict(observer, t), self._predict(target, t)
         if p_tgt is not None:
             innovation = offset - (p_tgt[0] - p_obs[0])
-            consistent = self._nis(innovation, p_tgt[1] + p_obs[1] + cov) <= self._gate[3]
+            cross = self._cross_cov(observer, target)
+            consistent = self._nis(innovation, p_tgt[1] + p_obs[1] - cross - cross.T + cov) <= self._gate[3]
         if not monitor.judge(t, consistent):
             return
         self._ensure(observer, k)
@@ -302,7 +320,7 @@ class FusionEngine:
         for drone in self._drones.values():
             if drone.anchored:
                 for k in range(max(drone.first_k, self._settled_step(drone) - 1), drone.last_k + 1):
-                    tail += [self._window.key(drone.index, 0, k), self._window.key(drone.index, 1, k)]
+                    tail += [self._window.key(drone.index, kind, k) for kind in range(3)]
         self._window.update(tail)
         oldest = self._window.oldest_alive_step()
         for drone_id, drone in self._drones.items():
@@ -386,10 +404,53 @@ class FusionEngine:
     def _drone(self, drone_id: str) -> _Drone:
         drone = self._drones.get(drone_id)
         if drone is None:
-            if len(self._drones) >= 1 << 20:
-                raise InputError("too many drone ids")
-            drone = self._drones[drone_id] = _Drone(index=len(self._drones))
+            if len(self._drones) >= self.config.max_drones:
+                raise InputError(f"drone id {drone_id!r} would be drone {len(self._drones) + 1}, more than "
+                                 f"FusionConfig.max_drones {self.config.max_drones}; known: {sorted(self._drones)}")
+            drone = self._drones[drone_id] = _Drone(index=self._new_index())
         return drone
+
+    def _new_index(self) -> int:
+        self._next_index += 1
+        return self._next_index - 1
+
+    def _reporter(self, drone_id: str) -> _Drone:
+        """The drone sending its own sensor data (it may then observe others on an open roster)."""
+        drone = self._drone(drone_id)
+        drone.reporting = True
+        return drone
+
+    def _check_observer(self, observer_id: str, target_id: str, t: float) -> None:
+        """Refuse (InputError) an observation by a drone off the roster, or of a target off it."""
+        roster = self.config.roster
+        observer = self._drones.get(observer_id)
+        if roster:
+            trusted = observer_id in roster
+        else:
+            trusted = observer is not None and observer.reporting
+        if trusted and roster and target_id not in roster:
+            raise InputError(f"relative observation of {target_id!r}, which is not on the roster {list(roster)}")
+        if trusted:
+            if observer is None:
+                self._drone(observer_id)
+            return
+        self._unknown_observers += 1
+        self._unknown_last = (observer_id, t)
+        target = self._drones.get(target_id)
+        if target is not None:
+            target.monitors.setdefault("relative:unknown", SourceMonitor(math.inf, 1, math.inf, t)).reject(
+                t, f"{self._unknown_observers} observation(s) from observers not on the roster (last {observer_id!r})")
+        who = f"the roster {list(roster)}" if roster else f"the drones reporting their own sensors {self._reporting()}"
+        raise InputError(f"relative observation from unknown observer {observer_id!r} (not in {who}); "
+                         "its observation and any position it carries are ignored")
+
+    def _reporting(self) -> list[str]:
+        return sorted(d for d, drone in self._drones.items() if drone.reporting)
+
+    @property
+    def unknown_observations(self) -> int:
+        """Relative observations refused because their observer is not on the roster."""
+        return self._unknown_observers
 
     def _known(self, drone_id) -> _Drone:
         drone = self._drones.get(_drone_id(drone_id))
@@ -431,6 +492,88 @@ class FusionEngine:
         """Local axes at the drone's current estimate (drones placed only by helpers)."""
         self._refresh_axes(drone, self._window.value(drone.index, 0, drone.last_k))
 
+    def _drift_test(self, drone: _Drone) -> GnssDriftTest:
+        if drone.drift is None:
+            cfg = self.config
+            drone.drift = GnssDriftTest(cfg.drift_window_s, cfg.gnss_gm_h_sigma_m, cfg.gnss_gm_tau_s,
+                                        cfg.bias_walk_mps_per_sqrt_s, cfg.velocity_timeout_s)
+        return drone.drift
+
+    def _gnss(self, drone: _Drone, monitor: SourceMonitor, t: float, enu: np.ndarray, cov_white: np.ndarray,
+              quality: str | None) -> None:
+        """Gate, drift-test and fuse a GNSS fix (``cov_white``: its white part, frame axes)."""
+        k = self._step_checked(t, "GNSS fix")
+        drift = self._drift_test(drone)
+        residual = drift.residual(t, enu)
+        white_var = float(np.trace(cov_white[:2, :2])) / 2.0
+        predicted = self._predict(drone, t, gnss=True)
+        consistent = predicted is None or self._nis(enu - predicted[0], predicted[1] + cov_white) <= self._gate[3]
+        after_drift = drone.drift_rejected and drift.reference is not None
+        if after_drift:
+            # the estimate is suspect: judge GNSS against the velocity since before the drift
+            drift.record(t, residual, white_var)
+            consistent = drift.agrees_with_reference(t, residual, white_var, self._readmit_gate)
+        elif monitor.on_probation:
+            drift.forget()  # a track GNSS had while out of use must not count in the drift test
+        if not monitor.judge(t, consistent, quality):
+            return
+        if after_drift or drone.drift_rejected:
+            drone.drift_rejected = False
+            drift.forget()
+            if after_drift:
+                log.warning("GNSS re-admitted after a drift: re-anchoring the drone on it")
+                self._reanchor(drone, k)
+        else:
+            drift.record(t, residual, white_var)
+            if self._drifting(drone, monitor, t):
+                return
+        if not drone.anchored:
+            self._anchor(drone, k, enu)
+        self._ensure(drone, k)
+        shift, shift_var = self._shift(drone, t, k)
+        self._window.gnss(drone.index, k, enu + shift, cov_white + _EYE3 * shift_var)
+
+    def _drifting(self, drone: _Drone, monitor: SourceMonitor, t: float) -> bool:
+        """Windowed drift test of the drone's GNSS against its velocity; rejects GNSS on failure."""
+        cached = self._latest_cov(drone) if drone.anchored else None
+        if cached is None:
+            return False
+        k, cov = cached
+        drone.drift.bias(t, self._window.value(drone.index, 1, k), cov[3:6, 3:6])
+        nis = drone.drift.window_nis(t)
+        drone.drift_strikes = drone.drift_strikes + 1 if nis is not None and nis > self._drift_gate else 0
+        if drone.drift_strikes < 2:  # two fixes in a row: one odd window is not a drift
+            return False
+        drone.drift.hold_reference(t)
+        drone.drift_rejected = True
+        monitor.reject(t, f"drifting against the velocity over {self.config.drift_window_s:g} s (NIS {nis:.0f})")
+        return True
+
+    def _reanchor(self, drone: _Drone, k: int) -> None:
+        """Start a new state chain for the drone at step k (its history was corrupted); the
+        velocity bias carries over with its covariance, the position comes from what follows."""
+        old, last = drone.index, drone.last_k
+        b, b_cov = np.zeros(3), _EYE3 * self.config.bias_initial_sigma_mps**2
+        cached = self._latest_cov(drone) if drone.anchored else None
+        if cached is not None:
+            b, b_cov = self._window.value(old, 1, cached[0]), cached[1][3:6, 3:6]
+        p0 = self._window.value(old, 0, last) if last is not None else None
+        drone.index = self._new_index()
+        drone.first_k = drone.last_k = None
+        drone.intervals = None
+        drone.cov_cache = None
+        if p0 is not None:
+            self._anchor(drone, k, p0, b, b_cov, p_sigma_m=self.config.max_speed_mps)
+
+    def _cross_cov(self, a: _Drone, b: _Drone) -> np.ndarray:
+        """Cross covariance (3, 3) of two drones' newest solved positions (zero if unknown)."""
+        ca, cb = self._latest_cov(a), self._latest_cov(b)
+        if ca is None or cb is None:
+            return np.zeros((3, 3))
+        w = self._window
+        joint = w.joint_covariance([w.key(a.index, 0, ca[0]), w.key(b.index, 0, cb[0])])
+        return np.zeros((3, 3)) if joint is None else joint[:3, 3:]
+
     def _absolute(self, drone: _Drone, monitor: SourceMonitor, t: float, enu: np.ndarray, cov: np.ndarray,
                   quality: str | None, robust: bool = True) -> None:
         k = self._step_checked(t, "measurement")
@@ -446,10 +589,21 @@ class FusionEngine:
         shift, shift_var = self._shift(drone, t, k)
         self._window.position(drone.index, k, enu + shift, cov + _EYE3 * shift_var, robust)
 
-    def _anchor(self, drone: _Drone, k: int, p0: np.ndarray) -> None:
-        """First state of a drone at step k; the caller adds the factor that fixes its position."""
-        self._window.new_state(drone.index, k, p0, np.zeros(3))
-        self._window.prior_bias(drone.index, k, self.config.bias_initial_sigma_mps)
+    def _anchor(self, drone: _Drone, k: int, p0: np.ndarray, b0: np.ndarray | None = None,
+                b_cov: np.ndarray | None = None, p_sigma_m: float | None = None) -> None:
+        """First state of a drone at step k; the caller adds the factor that fixes its position
+        (or ``p_sigma_m`` gives it a weak prior about ``p0``). The GNSS error starts from its
+        stationary distribution."""
+        window, cfg = self._window, self.config
+        window.new_state(drone.index, k, p0, np.zeros(3) if b0 is None else b0, np.zeros(3))
+        if b_cov is None:
+            window.prior_bias(drone.index, k, cfg.bias_initial_sigma_mps)
+        else:
+            window.prior(drone.index, 1, k, b0, b_cov)
+        r = drone.r_frame_from_local
+        window.prior(drone.index, 2, k, np.zeros(3), r @ np.diag(self._gm_sigma**2) @ r.T)
+        if p_sigma_m is not None:
+            window.prior(drone.index, 0, k, p0, _EYE3 * p_sigma_m**2)
         drone.first_k = drone.last_k = k
         self._intervals(drone).start_at(k)
 
@@ -463,22 +617,25 @@ class FusionEngine:
         window, cfg = self._window, self.config
         walk = cfg.max_speed_mps * cfg.state_dt_s
         bias_walk = cfg.bias_walk_mps_per_sqrt_s * math.sqrt(cfg.state_dt_s)
+        phi = math.exp(-cfg.state_dt_s / cfg.gnss_gm_tau_s)
+        i = drone.index
         while drone.last_k < k:
             prev = drone.last_k
-            p_prev = window.value(drone.index, 0, prev)
-            b_prev = window.value(drone.index, 1, prev)
+            p_prev, b_prev = window.value(i, 0, prev), window.value(i, 1, prev)
             step = np.zeros(3)
             if drone.velocity is not None and abs(window.time_of(prev) - drone.velocity[0]) <= cfg.velocity_timeout_s:
                 step = (drone.velocity[1] - b_prev) * window.dt_s
-            window.new_state(drone.index, prev + 1, p_prev + step, b_prev)
-            window.motion(drone.index, prev, walk, bias_walk)
+            window.new_state(i, prev + 1, p_prev + step, b_prev, phi * window.value(i, 2, prev))
+            window.motion(i, prev, walk, bias_walk)
+            window.gauss_markov(i, prev, phi, self._gm_sigma)
             drone.last_k = prev + 1
         while drone.first_k > k:
             nxt = drone.first_k
             if nxt - 1 < window.oldest_alive_step():
                 raise InputError("measurement is older than the fusion lag")
-            window.new_state(drone.index, nxt - 1, window.value(drone.index, 0, nxt), window.value(drone.index, 1, nxt))
-            window.motion(drone.index, nxt - 1, walk, bias_walk)
+            window.new_state(i, nxt - 1, window.value(i, 0, nxt), window.value(i, 1, nxt), window.value(i, 2, nxt))
+            window.motion(i, nxt - 1, walk, bias_walk)
+            window.gauss_markov(i, nxt - 1, phi, self._gm_sigma)
             drone.first_k = nxt - 1
 
     def _velocity_now(self, drone: _Drone, t: float) -> tuple[np.ndarray, float] | None:
@@ -512,27 +669,39 @@ class FusionEngine:
         return max(drone.first_k, min(drone.last_k, iv.next_interval))
 
     def _latest_cov(self, drone: _Drone) -> tuple[int, np.ndarray] | None:
-        """Covariance of the settled (else newest optimised) position state, cached per update."""
+        """Joint covariance (9, 9) of [p, b, n] at the settled (else newest optimised) step, cached per update."""
         if drone.cov_cache is None:
             window = self._window
             for k in range(self._settled_step(drone), drone.first_k - 1, -1):
                 if window.is_optimised(drone.index, 0, k):
-                    drone.cov_cache = (k, window.covariance(drone.index, 0, k))
+                    keys = [window.key(drone.index, kind, k) for kind in range(3)]
+                    cov = window.joint_covariance(keys)
+                    if cov is None:  # not in the tail: marginals without cross terms
+                        cov = np.zeros((9, 9))
+                        for kind in range(3):
+                            cov[3 * kind:3 * kind + 3, 3 * kind:3 * kind + 3] = window.covariance(drone.index, kind, k)
+                    drone.cov_cache = (k, cov)
                     break
         return drone.cov_cache
 
-    def _predict(self, drone: _Drone, t: float) -> tuple[np.ndarray, np.ndarray] | None:
-        """Fused prediction of the drone's position at t (without the measurement at hand)."""
+    def _predict(self, drone: _Drone, t: float, gnss: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
+        """Fused prediction of the drone's position at t (without the measurement at hand);
+        with ``gnss``, of what its receiver would report (position plus receiver error)."""
         if not drone.anchored:
             return None
         window = self._window
         k = min(max(window.step_of(t), drone.first_k), self._settled_step(drone))
         shift, shift_var = self._shift(drone, t, k)
         p = window.value(drone.index, 0, k) - shift
+        if gnss:
+            p = p - window.value(drone.index, 2, k)
         cached = self._latest_cov(drone)
         if cached is None:  # nothing optimised yet: no basis for gating
             return p, _EYE3 * 1e12
-        k_cov, cov = cached
+        k_cov, joint = cached
+        cov = joint[:3, :3]
+        if gnss:  # Cov(p - n)
+            cov = cov + joint[6:9, 6:9] - joint[:3, 6:9] - joint[6:9, :3]
         gap_s = abs(t - window.time_of(k_cov))
         vel = self._velocity_now(drone, t)
         grow = (self.config.max_speed_mps * gap_s) ** 2 if vel is None else \

@@ -10,8 +10,11 @@ innovation gate against the fused prediction; it answers whether to fuse it.
   spoofed jump, a multipath excursion, a misread tag).
 - **degraded**: fused, but with a quality flag (few satellites, high HDOP, 2-D fix) or
   a single gate failure.
-- A source that was lost or rejected is fused again only after it has been consistent
-  with the fused estimate for ``readmit_after_s`` without a failure.
+- A source that was lost or rejected is fused again on evidence: it has been heard for
+  at least ``readmit_after_s`` since, and at least ``readmit_fraction`` of its messages in
+  the last ``readmit_after_s`` passed the consistency test (one outlier does not restart
+  the clock). The caller chooses the test: the innovation gate against the fused
+  estimate, or, after a drift, agreement with GNSS-independent sources.
 """
 
 from __future__ import annotations
@@ -46,10 +49,12 @@ class SourceHealth:
 class SourceMonitor:
     """The health state machine of one positioning source of one drone."""
 
-    def __init__(self, timeout_s: float, reject_after: int, readmit_after_s: float, now_s: float) -> None:
+    def __init__(self, timeout_s: float, reject_after: int, readmit_after_s: float, now_s: float,
+                 readmit_fraction: float = 0.8) -> None:
         self.timeout_s = timeout_s
         self.reject_after = reject_after
         self.readmit_after_s = readmit_after_s
+        self.readmit_fraction = readmit_fraction
         self._state = HealthState.OK
         self._reason = "first message"
         self._since_s = now_s
@@ -57,7 +62,8 @@ class SourceMonitor:
         self.last_fused_s = -float("inf")
         self._failures = 0
         self._probation = False
-        self._consistent_since_s: float | None = None
+        self._probation_first_s: float | None = None   # first message judged on probation
+        self._evidence: deque[tuple[float, bool]] = deque()  # (time, passed) on probation
         self._recent_s: list[float] = []   # last message times, for the rate
         self._stamps: deque[float] = deque(maxlen=64)  # recent time stamps, for duplicates
         self._usual_rate_hz = 0.0
@@ -112,8 +118,34 @@ class SourceMonitor:
 
     def _enter_probation(self) -> None:
         self._probation = True
-        self._consistent_since_s = None
+        self._probation_first_s = None
+        self._evidence.clear()
         self._failures = 0
+
+    @property
+    def on_probation(self) -> bool:
+        return self._probation
+
+    def reject(self, t_s: float, reason: str) -> None:
+        """Reject the source for a reason found outside the per-message gate (e.g. a drift test)."""
+        self._enter_probation()
+        self._set(HealthState.REJECTED, reason, t_s)
+
+    def _readmit(self, t_s: float, consistent: bool) -> bool:
+        """Record one probation result; True when the evidence is enough to fuse again."""
+        if self._probation_first_s is None:
+            self._probation_first_s = t_s
+        ev = self._evidence
+        ev.append((t_s, consistent))
+        while ev and ev[0][0] < t_s - self.readmit_after_s - 1e-9:
+            ev.popleft()
+        waited_s = t_s - self._probation_first_s
+        passed = sum(ok for _, ok in ev) / len(ev)
+        if self._state is not HealthState.OK:
+            self._reason = (f"{self._reason.split(';')[0]}; on probation {waited_s:.1f} s, {100 * passed:.0f} % "
+                            f"consistent (re-admitted at >= {100 * self.readmit_fraction:.0f} % over "
+                            f"{self.readmit_after_s:g} s)")
+        return consistent and waited_s >= self.readmit_after_s - 1e-9 and passed >= self.readmit_fraction
 
     def judge(self, t_s: float, consistent: bool, quality_issue: str | None = None) -> bool:
         """Record a usable message at ``t_s``; return True when it should be fused.
@@ -122,13 +154,15 @@ class SourceMonitor:
         ``quality_issue``: why its own figures are poor (fused as degraded), or None.
         """
         self.last_heard_s = max(self.last_heard_s, t_s)
-        if not consistent:
-            self._consistent_since_s = None
-            self._failures += 1
-            if self._probation:
-                if self._state is HealthState.LOST:
-                    self._set(HealthState.REJECTED, "inconsistent with the fused estimate after recovery", t_s)
+        if self._probation:
+            if not consistent and self._state is HealthState.LOST:
+                self._set(HealthState.REJECTED, "inconsistent with the fused estimate after recovery", t_s)
+            if not self._readmit(t_s, consistent):
                 return False
+            self._probation = False
+            self._failures = 0
+        elif not consistent:
+            self._failures += 1
             if self._failures >= self.reject_after:
                 self._enter_probation()
                 self._set(HealthState.REJECTED, f"{self.reject_after} consecutive innovation-gate failures", t_s)
@@ -136,15 +170,6 @@ class SourceMonitor:
                 self._set(HealthState.DEGRADED, "innovation outlier dropped", t_s)
             return False
         self._failures = 0
-        if self._probation:
-            if self._consistent_since_s is None:
-                self._consistent_since_s = t_s
-            waited_s = t_s - self._consistent_since_s
-            if waited_s < self.readmit_after_s:
-                if self._state is HealthState.LOST:
-                    self._reason = f"back, consistent for {waited_s:.1f} s (re-admitted after {self.readmit_after_s:g} s)"
-                return False
-            self._probation = False
         if quality_issue:
             self._set(HealthState.DEGRADED, quality_issue, t_s)
         else:

@@ -1,10 +1,12 @@
 """The gtsam sliding-window graph behind :class:`skyfix.fusion.FusionEngine`.
 
-Variables (all ``gtsam.Point3`` in the engine's local ENU frame, metres / m/s), one
-pair per drone per grid step k (time ``epoch + k * dt``):
+Variables (all ``gtsam.Point3`` in the engine's local ENU frame, metres / m/s), per
+drone per grid step k (time ``epoch + k * dt``):
 
 - ``p`` position of the drone,
-- ``b`` bias of the drone's autopilot velocity.
+- ``b`` bias of the drone's autopilot velocity,
+- ``n`` (optional) the drone's GNSS error, negated: a fix measures ``p - n`` (so GNSS is a
+  ``BetweenFactorPoint3(n, p)``), and n follows a first-order Gauss-Markov process.
 
 Factors are gtsam's own C++ ones: ``PriorFactorPoint3`` (GNSS, tag fixes),
 ``BetweenFactorPoint3`` (relative observations, the bias random walk, the weak motion
@@ -42,7 +44,8 @@ _EYE = np.eye(3)
 _UP_ROW = np.array([[0.0, 0.0, 1.0]])
 
 
-_STEP_MASK = (1 << 39) - 1
+_STEP_MASK = (1 << 38) - 1
+KINDS = 3  # p, b, n
 
 
 class GraphWindow:
@@ -72,8 +75,9 @@ class GraphWindow:
     # -- keys and time -------------------------------------------------------------
     @staticmethod
     def key(drone_index: int, kind: int, k: int) -> int:
-        """Integer gtsam key of variable ``kind`` (0 position, 1 bias) of a drone at step k >= 0."""
-        return (drone_index << 40) | (kind << 39) | k
+        """Integer gtsam key of variable ``kind`` (0 position, 1 bias, 2 negated GNSS error) of a
+        drone at step k >= 0."""
+        return (drone_index << 40) | (kind << 38) | k
 
     def step_of(self, t_s: float) -> int:
         """Nearest grid step of time ``t_s``."""
@@ -95,11 +99,13 @@ class GraphWindow:
         return self._live
 
     # -- variables ---------------------------------------------------------------------
-    def new_state(self, drone_index: int, k: int, p0: np.ndarray, b0: np.ndarray) -> None:
-        """Insert p_k, b_k with initial guesses; the caller adds their constraining factors."""
+    def new_state(self, drone_index: int, k: int, p0: np.ndarray, b0: np.ndarray, n0: np.ndarray | None = None) -> None:
+        """Insert p_k, b_k (and n_k) with initial guesses; the caller adds their constraining factors."""
         if k < 0 or k > _STEP_MASK:
             raise EstimationError(f"grid step {k} outside the window's key range")
-        for kind, guess in ((0, p0), (1, b0)):
+        for kind, guess in ((0, p0), (1, b0), (2, n0)):
+            if guess is None:
+                continue
             key = self.key(drone_index, kind, k)
             self._values.insert(key, gtsam.Point3(*guess))
             self._keys_by_step.setdefault(k, []).append(key)
@@ -115,6 +121,15 @@ class GraphWindow:
 
     def is_optimised(self, drone_index: int, kind: int, k: int) -> bool:
         return self.key(drone_index, kind, k) in self._optimised
+
+    def joint_covariance(self, keys: list[int]) -> np.ndarray | None:
+        """Joint covariance (3n, 3n) of variables of the last update's tail (cross terms included),
+        or None if one of them is not in the tail."""
+        rows = [self._tail_index.get(key) for key in keys]
+        if self._tail_cov is None or any(r is None for r in rows):
+            return None
+        idx = np.concatenate([np.arange(r, r + 3) for r in rows])
+        return self._tail_cov[np.ix_(idx, idx)]
 
     def covariance(self, drone_index: int, kind: int, k: int) -> np.ndarray:
         """Marginal covariance (3, 3) of an optimised variable after the last update."""
@@ -144,6 +159,23 @@ class GraphWindow:
     def prior_bias(self, drone_index: int, k: int, sigma_mps: float) -> None:
         self._add(gtsam.PriorFactorPoint3(self.key(drone_index, 1, k), gtsam.Point3(0.0, 0.0, 0.0),
                                           gtsam.noiseModel.Isotropic.Sigma(3, sigma_mps)), k)
+
+    def prior(self, drone_index: int, kind: int, k: int, mean: np.ndarray, cov: np.ndarray) -> None:
+        """Gaussian prior on one variable (e.g. the GNSS error's stationary distribution)."""
+        self._add(gtsam.PriorFactorPoint3(self.key(drone_index, kind, k), gtsam.Point3(*mean),
+                                          gtsam.noiseModel.Gaussian.Covariance(cov)), k)
+
+    def gauss_markov(self, drone_index: int, k: int, phi: float, sigma_m: np.ndarray) -> None:
+        """n_k+1 = phi n_k + w, w ~ N(0, (1 - phi^2) sigma^2) per axis (``sigma_m`` (3,), stationary)."""
+        keys = (self.key(drone_index, 2, k), self.key(drone_index, 2, k + 1))
+        factor = gtsam.JacobianFactor(keys[0], -phi * _EYE, keys[1], _EYE, np.zeros(3),
+                                      gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigma_m) * np.sqrt(1.0 - phi * phi)))
+        self._add(gtsam.LinearContainerFactor(factor, self._zeros(keys)), k)
+
+    def gnss(self, drone_index: int, k: int, enu_m: np.ndarray, cov_m2: np.ndarray) -> None:
+        """A GNSS fix of p_k - n_k (the drone's position plus its receiver's error), robust."""
+        self._add(gtsam.BetweenFactorPoint3(self.key(drone_index, 2, k), self.key(drone_index, 0, k),
+                                            gtsam.Point3(*enu_m), self._robust(cov_m2)), k, measurement=True)
 
     def motion(self, drone_index: int, k: int, walk_sigma_m: float, bias_walk_sigma_mps: float) -> None:
         """Step k -> k+1: weak bound on the position change and the bias random walk."""

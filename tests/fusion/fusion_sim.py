@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from skyfix.datasets.observations import relative_observation
+from skyfix.fusion import FusionConfig
 from skyfix.geo import LocalFrame
 from skyfix.types import RelativeObservation
 
@@ -14,6 +15,9 @@ ORIGIN = (47.0, 8.0, 400.0)
 FRAME = LocalFrame(*ORIGIN)
 GNSS_H_M, GNSS_V_M = 1.5, 2.5
 VEL_SIGMA = 0.1
+# This simulator's GNSS errors are white: tell the engine (its default is a consumer receiver's
+# wandering error, which would make it distrust these fixes' independence).
+WHITE_GNSS = FusionConfig(gnss_gm_h_sigma_m=0.05, gnss_gm_v_sigma_m=0.05)
 
 
 @dataclass
