@@ -30,6 +30,7 @@ from skyfix.datasets.render import _pixel_rays
 from skyfix.datasets.terrain import Terrain
 from skyfix.datasets.thermal_scene import FireSpec, ThermalSensor, forest_texture
 from skyfix.errors import GeometryError, InputError
+from skyfix.thermal.detect import Hotspot
 from skyfix.thermal.poselog import PoseLog
 
 GRAVITY_MPS2 = 9.81
@@ -229,6 +230,33 @@ class MountainFlight:
             tau = float(self.stamps_s[k] + self.errors.time_offset_s)
             celsius = self.scene.render(self.camera, cam, r, tau)
             yield float(self.stamps_s[k]), self.sensor.to_counts(self.sensor.observe(celsius, rng))
+
+
+def projected_hotspots(flight: MountainFlight, rng: np.random.Generator, *, pixel_sigma_px: float = 0.3
+                       ) -> list[tuple[float, list[Hotspot]]]:
+    """Measurement-level sightings without rendering, for fast tests: each fire centre
+    visible from the true camera (in the image, not hidden by the terrain) becomes a
+    hotspot at its projection plus ``pixel_sigma_px`` Gaussian centroid noise."""
+    cam_model = flight.camera
+    pts = flight.scene.fire_enu()
+    out = []
+    for k, stamp in enumerate(flight.stamps_s):
+        cam, r = flight.true_camera(k)
+        uv = cam_model.project((pts - cam) @ r)
+        spots = []
+        for i in np.flatnonzero(np.isfinite(uv).all(axis=1)):
+            if not cam_model.in_image(uv[i:i + 1])[0]:
+                continue
+            ray = pts[i] - cam
+            rng_m = float(np.linalg.norm(ray))
+            t = flight.scene.terrain.cast(cam, (ray / rng_m)[None])[0]
+            if not np.isfinite(t) or t < rng_m - 1.0:
+                continue  # behind a ridge
+            u, v = uv[i] + rng.normal(0.0, pixel_sigma_px, 2)
+            spots.append(Hotspot(float(u), float(v), 50, flight.scene.fires[i].peak_c, 100.0,
+                                 (int(u) - 4, int(v) - 4, 9, 9), "celsius"))
+        out.append((float(stamp), spots))
+    return out
 
 
 def fly(scene: MountainScene, camera: Camera, truth_log: PoseLog, errors: PoseErrorModel, *, frame_rate_hz: float = 1.0,

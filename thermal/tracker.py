@@ -102,6 +102,15 @@ class TrackerSettings:
     kelvin_per_count: float = DEFAULT_KELVIN_PER_COUNT
 
 
+def ground_area_m2(camera: Camera, cam_enu_m: np.ndarray, pts_enu_m: np.ndarray, area_px: np.ndarray) -> np.ndarray:
+    """Hot area on the ground ``(N,)`` m^2 of hotspots of ``area_px`` pixels whose ground
+    points are ``pts_enu_m`` ``(N, 3)``: pixels x range^2 / (fx fy) / cos(incidence)."""
+    ray = pts_enu_m - cam_enu_m
+    rng2 = np.einsum("ij,ij->i", ray, ray)
+    cos_inc = np.abs(ray[:, 2]) / np.sqrt(rng2)
+    return np.asarray(area_px, float) * rng2 / (camera.fx * camera.fy) / cos_inc
+
+
 class FireTracker:
     """Feed ``update(frame, pose, time_s)``; read ``fires``.
 
@@ -181,13 +190,8 @@ class FireTracker:
         return seen
 
     def _ground_areas(self, pose: CameraPose, pts: np.ndarray, hotspots: list[Hotspot]) -> np.ndarray:
-        """Hot area on the ground, m^2: pixels x (range^2 / (fx fy)) / cos(incidence)."""
         cam_enu, _ = pose.in_frame(self.frame)
-        ray = pts - cam_enu
-        rng2 = np.einsum("ij,ij->i", ray, ray)
-        cos_inc = np.abs(ray[:, 2]) / np.sqrt(rng2)
-        px = np.array([h.area_px for h in hotspots], float)
-        return px * rng2 / (self.camera.fx * self.camera.fy) / cos_inc
+        return ground_area_m2(self.camera, cam_enu, pts, np.array([h.area_px for h in hotspots], float))
 
     def _predict(self, t: float) -> None:
         q = self.settings.drift_m_per_sqrt_s ** 2
