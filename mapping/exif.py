@@ -9,12 +9,13 @@ orientation, XMP, ICC profile). The EXIF copy is updated for the corrected camer
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import re
+from dataclasses import dataclass, field
 from fractions import Fraction
 
 from skyfix.errors import DataError
 
-__all__ = ["PhotoMetadata", "jpeg_quality", "read_metadata", "transfer_metadata"]
+__all__ = ["FocalEstimate", "PhotoMetadata", "jpeg_quality", "read_metadata", "read_xmp", "transfer_metadata"]
 
 _SOI = b"\xff\xd8"
 _DIAGONAL_35MM_MM = math.hypot(36.0, 24.0)
@@ -40,12 +41,49 @@ def _dms(values, ref: bytes, negative: bytes) -> float | None:
     return -deg if ref == negative else deg
 
 
+#: XMP attributes (DJI ``drone-dji`` namespace) read from a photo, as ``name="value"`` or elements.
+_XMP_KEYS = ("RelativeAltitude", "AbsoluteAltitude", "CalibratedFocalLength", "CalibratedOpticalCenterX")
+
+
+def read_xmp(data: bytes) -> dict[str, float]:
+    """Numeric DJI XMP values of a JPEG (``drone-dji:RelativeAltitude`` metres above take-off,
+    ``CalibratedFocalLength`` pixels of the full-resolution image, ...); {} without XMP."""
+    start = data.find(b"<x:xmpmeta")
+    if start < 0:
+        return {}
+    end = data.find(b"</x:xmpmeta>", start)
+    packet = data[start:end if end > 0 else start + 65536].decode("utf-8", "replace")
+    out = {}
+    for key in _XMP_KEYS:
+        found = re.search(rf'drone-dji:{key}\s*=\s*"([^"]+)"|<drone-dji:{key}>([^<]+)<', packet)
+        if found:
+            try:
+                value = float(found.group(1) or found.group(2))
+            except ValueError:
+                continue
+            if math.isfinite(value):
+                out[key] = value
+    return out
+
+
+@dataclass(frozen=True)
+class FocalEstimate:
+    """Focal length in pixels and where it came from (``source``), most trusted first:
+    ``xmp-calibrated`` (DJI factory calibration), ``focal-plane`` (EXIF sensor pixel density),
+    ``sensor-table`` (known sensor width), ``35mm-equivalent`` (an approximation: 4-5 %
+    off on frames cropped from the sensor when the sensor's shape is not known)."""
+
+    focal_px: float
+    source: str
+
+
 @dataclass(frozen=True)
 class PhotoMetadata:
-    """What skyfix reads from a photo's EXIF. Angles in degrees, lengths in millimetres.
+    """What skyfix reads from a photo's EXIF and XMP. Angles in degrees, lengths in millimetres.
 
     ``gps_alt_m`` is as recorded (usually above mean sea level). ``focal_plane_px_per_mm``
-    is the sensor pixel density, from which the focal length in pixels follows.
+    is the sensor pixel density, from which the focal length in pixels follows. ``xmp``:
+    numeric DJI XMP values (see :func:`read_xmp`).
     """
 
     source: str
@@ -58,13 +96,31 @@ class PhotoMetadata:
     gps_lat_deg: float | None
     gps_lon_deg: float | None
     gps_alt_m: float | None
+    xmp: dict = field(default_factory=dict)
 
     def focal_length_px(self, width: int, height: int) -> float:
         """Focal length in pixels of a ``width x height`` image; DataError when EXIF lacks it."""
+        return self.focal_estimate(width, height).focal_px
+
+    def focal_estimate(self, width: int, height: int) -> FocalEstimate:
+        """The best-founded focal length in pixels of a ``width x height`` image (see
+        :class:`FocalEstimate`); DataError when neither EXIF nor XMP gives one."""
+        from skyfix.mapping.sensors import sensor_width_mm
+
+        calibrated, centre_x = self.xmp.get("CalibratedFocalLength"), self.xmp.get("CalibratedOpticalCenterX")
+        if calibrated and calibrated > 0:
+            # Calibrated on the full-resolution frame: scale by the width its optical centre implies.
+            scale = width / (2.0 * centre_x) if centre_x and centre_x > 0 else 1.0
+            return FocalEstimate(calibrated * scale, "xmp-calibrated")
         if self.focal_length_mm and self.focal_plane_px_per_mm:
-            return self.focal_length_mm * self.focal_plane_px_per_mm
+            return FocalEstimate(self.focal_length_mm * self.focal_plane_px_per_mm, "focal-plane")
+        sensor_mm = sensor_width_mm(self.make, self.model)
+        if self.focal_length_mm and sensor_mm:
+            # A cropped frame (16:9 from a 4:3 or 3:2 sensor) keeps the sensor's full width.
+            return FocalEstimate(self.focal_length_mm * max(width, height) / sensor_mm, "sensor-table")
         if self.focal_length_35mm:
-            return self.focal_length_35mm * math.hypot(width, height) / _DIAGONAL_35MM_MM
+            return FocalEstimate(self.focal_length_35mm * math.hypot(width, height) / _DIAGONAL_35MM_MM,
+                                 "35mm-equivalent")
         raise DataError(f"{self.source}: EXIF has no FocalLength with FocalPlaneXResolution nor "
                         "FocalLengthIn35mmFilm; the focal length in pixels is unknown")
 
@@ -109,7 +165,7 @@ def read_metadata(data: bytes, source: str = "photo", require_exif: bool = True)
         orientation=zeroth.get(piexif.ImageIFD.Orientation),
         gps_lat_deg=_dms(gps.get(piexif.GPSIFD.GPSLatitude), gps.get(piexif.GPSIFD.GPSLatitudeRef), b"S"),
         gps_lon_deg=_dms(gps.get(piexif.GPSIFD.GPSLongitude), gps.get(piexif.GPSIFD.GPSLongitudeRef), b"W"),
-        gps_alt_m=alt)
+        gps_alt_m=alt, xmp=read_xmp(data))
 
 
 def _segments(data: bytes, source: str) -> list[bytes]:

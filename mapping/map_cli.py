@@ -35,6 +35,8 @@ def _map(args: argparse.Namespace) -> int:
     if report.georeferenced:
         out.write(f"georeferenced to GPS: RMS {report.georef_rms_m:.2f} m, EPSG:{report.crs_epsg}, "
                   f"GSD {report.gsd_cm:.1f} cm, covered {report.covered_area_m2 / 1e4:.2f} ha\n")
+    if report.flying_height:
+        out.write(report.flying_height["line"] + "\n")
     for warning in report.warnings:
         out.write(f"warning: {warning}\n")
     for name, path in report.outputs.items():

@@ -27,7 +27,9 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Photo:
-    """A usable photo. ``focal_px`` from EXIF; ``gps_alt_amsl_m`` as recorded (AMSL)."""
+    """A usable photo. ``focal_px`` from EXIF/XMP (``focal_source`` says which tag, see
+    :class:`~skyfix.mapping.exif.FocalEstimate`); ``gps_alt_amsl_m`` as recorded (AMSL);
+    ``relative_alt_m`` the drone's own height above its take-off point (DJI XMP), if any."""
 
     name: str
     path: str
@@ -40,6 +42,8 @@ class Photo:
     gps_lat_deg: float | None
     gps_lon_deg: float | None
     gps_alt_amsl_m: float | None
+    focal_source: str = ""
+    relative_alt_m: float | None = None
 
     @property
     def has_gps(self) -> bool:
@@ -74,9 +78,11 @@ def _photo(path: Path) -> Photo:
     if meta.orientation not in (None, 1):
         # Pixels are used as stored; EXIF rotation only matters for display.
         log.info("%s: EXIF orientation %s ignored (pixels used as stored)", path.name, meta.orientation)
+    focal = meta.focal_estimate(width, height)
     return Photo(name=path.name, path=str(path), width=width, height=height, make=meta.make, model=meta.model,
-                 focal_px=meta.focal_length_px(width, height), orientation=meta.orientation,
-                 gps_lat_deg=meta.gps_lat_deg, gps_lon_deg=meta.gps_lon_deg, gps_alt_amsl_m=meta.gps_alt_m)
+                 focal_px=focal.focal_px, orientation=meta.orientation,
+                 gps_lat_deg=meta.gps_lat_deg, gps_lon_deg=meta.gps_lon_deg, gps_alt_amsl_m=meta.gps_alt_m,
+                 focal_source=focal.source, relative_alt_m=meta.xmp.get("RelativeAltitude"))
 
 
 def load_photos(photos_dir: str | os.PathLike) -> tuple[list[Photo], list[Rejected]]:

@@ -59,6 +59,9 @@ class PipelineConfig:
     georef_max_error_m: float = 10.0      # RANSAC inlier distance camera centre <-> GPS
     two_view_max_offset_m: float = 5.0    # a photo placed by a two-view model must be this close to its GPS
     blend_power: float = 2.0              # seam feathering exponent of the edge-distance weight
+    refine_focal: bool = False            # let bundle adjustment move the focal length (see sfm.reconstruct)
+    gps_sigma_m: tuple[float, float] = (2.0, 4.0)  # GPS pose prior std dev (horizontal, vertical); () = no priors
+    seed: int = 0                         # pycolmap's random seed: the same photos give the same model
     threads: int = -1                     # -1: all cores
     force: tuple[str, ...] = ()           # stages to re-run even when their outputs exist
 
@@ -169,7 +172,13 @@ def _photos_run(config, project, state, report) -> dict:
                         + "; ".join(f"{r.name}: {r.reason}" for r in rejected[:5]))
     groups = camera_groups(photos)
     report.camera_groups = [{"make": k[0], "model": k[1], "width": k[2], "height": k[3], "focal_px": k[4],
+                             "focal_source": v[0].focal_source, "focal_refined": config.refine_focal,
                              "photos": len(v)} for k, v in groups.items()]
+    for k, v in groups.items():
+        if v[0].focal_source == "35mm-equivalent" and max(k[2], k[3]) / min(k[2], k[3]) > 1.6:
+            report.warnings.append(f"{k[0]} {k[1]}: focal length from the 35 mm equivalent of a {k[2]}x{k[3]} "
+                                   "frame; if it is cropped from the sensor this is 4-5 % short and every height "
+                                   "above ground with it (give a lens calibration)")
     if len(groups) > 1:
         report.warnings.append(f"mixed cameras: {len(groups)} camera models, each with its own calibration")
     report.without_gps = [p.name for p in photos if not p.has_gps]
@@ -233,7 +242,7 @@ def _matches_run(config, project, state, report) -> dict:
     from skyfix.mapping import sfm
 
     report.matching = sfm.match(project.database, state["photos"], exhaustive_max_photos=config.exhaustive_max_photos,
-                                neighbours=config.spatial_neighbours, threads=config.threads)
+                                neighbours=config.spatial_neighbours, seed=config.seed, threads=config.threads)
     return {"method": report.matching}
 
 
@@ -246,8 +255,15 @@ def _mapping_run(config, project, state, report) -> dict:
 
     if project.sparse.exists():
         shutil.rmtree(project.sparse)
+    from skyfix.mapping.georef import survey_frame
+
+    frame = survey_frame(state["photos"])
+    priors = 0
+    if frame is not None and config.gps_sigma_m:
+        priors = sfm.set_pose_priors(project.database, state["photos"], frame, config.gps_sigma_m)
     models = sfm.reconstruct(project.database, state["image_dir"], project.sparse,
-                             calibrated=config.calibration is not None, threads=config.threads)
+                             calibrated=config.calibration is not None, refine_focal=config.refine_focal,
+                             pose_priors=priors >= 3, seed=config.seed, threads=config.threads)
     if not models:
         raise DataError("structure from motion reconstructed nothing: the photos share too few features "
                         "(do they overlap? are they sharp?)")
@@ -389,7 +405,11 @@ def _dsm_run(config, project, state, report) -> dict:
     write_dsm_tif(project.root / "dsm.tif", dsm.surface_m, grid)
     np.save(project.work / "dsm_filled.npy", dsm.filled_m)
     np.save(project.work / "dsm_surface.npy", dsm.surface_m)
-    data = {"grid": grid.to_dict(), "points": len(xyz)}
+    from skyfix.mapping.height_check import flying_height
+
+    check = flying_height(state["referenced"], state["photos"], frame, dsm)
+    data = {"grid": grid.to_dict(), "points": len(xyz), "flying_height": check.to_dict(),
+            "flying_height_suspicious": check.suspicious()}
     _dsm_load(config, project, state, report, data)
     return data
 
@@ -406,6 +426,10 @@ def _dsm_load(config, project, state, report, marker) -> None:
     state["dsm"] = Dsm(grid, surface, np.load(project.work / "dsm_filled.npy"), np.isfinite(surface))
     report.crs_epsg = grid.epsg
     report.dsm_resolution_m = grid.resolution_m
+    report.flying_height = marker.get("flying_height", {})
+    if marker.get("flying_height_suspicious"):
+        report.warnings.append(report.flying_height["line"] + ": the model's heights are probably wrong (focal "
+                               "length?) unless the take-off point was that far above or below the ground surveyed")
     report.outputs["dsm"] = str(project.root / "dsm.tif")
 
 

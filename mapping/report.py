@@ -22,6 +22,8 @@ class Report:
     time and is listed in ``resumed_stages``). ``warnings``: every user-facing warning.
     ``registered_two_view``: photos registered via a two-view model with one registered
     neighbour (photo, partner, inliers, distance from GPS). ``error``: why the run stopped.
+    ``flying_height``: the model's camera height above its ground next to the photos' own
+    relative altitude (see :mod:`skyfix.mapping.height_check`), with the readable ``line``.
     """
 
     photos_dir: str
@@ -48,6 +50,7 @@ class Report:
     dsm_resolution_m: float = math.nan
     covered_area_m2: float = 0.0
     height_datum: str = "AMSL (as recorded by the photos' GPS)"
+    flying_height: dict = field(default_factory=dict)
     stage_seconds: dict[str, float] = field(default_factory=dict)
     resumed_stages: list[str] = field(default_factory=list)
     total_seconds: float = 0.0

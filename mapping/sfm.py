@@ -14,13 +14,16 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from skyfix.camera import Camera
 from skyfix.distortion import BrownConrady, Fisheye
 from skyfix.errors import ConfigurationError
+from skyfix.geo import LocalFrame
 from skyfix.mapping.photos import Photo, camera_groups
 
 __all__ = ["ColmapCamera", "PairModel", "colmap_camera", "extract", "load_models", "match", "pair_models",
-           "reconstruct"]
+           "reconstruct", "set_pose_priors"]
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +71,12 @@ def colmap_camera(photo: Photo, calibration: Camera | None = None) -> ColmapCame
 
 def extract(database: Path, image_dir: Path, photos: list[Photo], *, calibration: Camera | None = None,
             max_image_size_px: int = 1600, max_features: int = 4000, threads: int = -1) -> None:
-    """SIFT features of ``photos`` into ``database``; images already there are skipped by pycolmap."""
+    """SIFT features of ``photos`` into ``database``; images already there are skipped by pycolmap.
+
+    The images are registered in the database first, one by one in name order, so their
+    ids do not depend on which extraction thread finishes first (the mapper's choices
+    follow the ids: without this two runs on the same photos differ).
+    """
     import pycolmap
 
     options = pycolmap.FeatureExtractionOptions()
@@ -79,13 +87,17 @@ def extract(database: Path, image_dir: Path, photos: list[Photo], *, calibration
         cam = colmap_camera(group[0], calibration)
         reader = pycolmap.ImageReaderOptions(camera_model=cam.model, camera_params=cam.params_text)
         log.info("extracting features of %d photo(s) from camera %s %s (%s)", len(group), key[0], key[1], cam.model)
-        pycolmap.extract_features(database, image_dir, image_names=[p.name for p in group],
+        names = sorted(p.name for p in group)
+        pycolmap.Database.open(str(database)).close()  # import_images needs the file to exist
+        pycolmap.import_images(database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, image_names=names,
+                               options=reader)
+        pycolmap.extract_features(database, image_dir, image_names=names,
                                   camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
                                   extraction_options=options, device=pycolmap.Device.cpu)
 
 
 def match(database: Path, photos: list[Photo], *, exhaustive_max_photos: int = 40, neighbours: int = 12,
-          threads: int = -1) -> str:
+          seed: int = 0, threads: int = -1) -> str:
     """Match features; returns the method used ('exhaustive' or 'spatial').
 
     Small sets (or any set with photos lacking GPS) are matched exhaustively; larger ones
@@ -96,21 +108,57 @@ def match(database: Path, photos: list[Photo], *, exhaustive_max_photos: int = 4
 
     options = pycolmap.FeatureMatchingOptions()
     options.num_threads = int(threads)
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = int(seed)  # each pair's RANSAC seeded: the same matches every run
     if len(photos) <= exhaustive_max_photos or not all(p.has_gps for p in photos):
         log.info("exhaustive matching of %d photos (%d pairs)", len(photos), len(photos) * (len(photos) - 1) // 2)
-        pycolmap.match_exhaustive(database, matching_options=options, device=pycolmap.Device.cpu)
+        pycolmap.match_exhaustive(database, matching_options=options, verification_options=verification,
+                                  device=pycolmap.Device.cpu)
         return "exhaustive"
     pairing = pycolmap.SpatialPairingOptions()
     pairing.max_num_neighbors = int(neighbours)
     pairing.max_distance = 1e6  # neighbours by count, not by distance
     pairing.ignore_z = True
     log.info("spatial matching of %d photos with their %d nearest GPS neighbours", len(photos), neighbours)
-    pycolmap.match_spatial(database, matching_options=options, pairing_options=pairing, device=pycolmap.Device.cpu)
+    pycolmap.match_spatial(database, matching_options=options, pairing_options=pairing,
+                           verification_options=verification, device=pycolmap.Device.cpu)
     return "spatial"
 
 
+def set_pose_priors(database: Path, photos: list[Photo], frame: LocalFrame, sigma_m: tuple[float, float]) -> int:
+    """Replace the database's pose priors (pycolmap stores EXIF GPS as WGS84 without a
+    covariance) by the photos' GPS in ``frame`` (ENU metres, CARTESIAN) with a diagonal
+    covariance of (horizontal, vertical) standard deviations ``sigma_m``; returns how many."""
+    import pycolmap
+
+    by_name = {p.name: p for p in photos if p.has_gps}
+    cov = np.diag([sigma_m[0] ** 2, sigma_m[0] ** 2, sigma_m[1] ** 2])
+    db = pycolmap.Database.open(str(database))
+    try:
+        existing = {prior.corr_data_id.id: prior for prior in db.read_all_pose_priors()}
+        written = 0
+        for image in db.read_all_images():
+            photo = by_name.get(image.name)
+            if photo is None:
+                continue
+            prior = existing.get(image.data_id.id) or pycolmap.PosePrior()
+            prior.corr_data_id = image.data_id
+            prior.position = frame.to_enu_points(np.array([[photo.gps_lat_deg, photo.gps_lon_deg,
+                                                            photo.gps_alt_amsl_m]]))[0]
+            prior.position_covariance = cov
+            prior.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
+            if image.data_id.id in existing:
+                db.update_pose_prior(prior)
+            else:
+                db.write_pose_prior(prior)
+            written += 1
+    finally:
+        db.close()
+    return written
+
+
 def reconstruct(database: Path, image_dir: Path, out_dir: Path, *, calibrated: bool = False,
-                threads: int = -1) -> list:
+                refine_focal: bool = True, pose_priors: bool = False, seed: int = 0, threads: int = -1) -> list:
     """Incremental mapping; every model (largest first) as a ``pycolmap.Reconstruction``.
 
     Registration thresholds are lowered from COLMAP's defaults (30 -> 15 absolute-pose
@@ -119,28 +167,77 @@ def reconstruct(database: Path, image_dir: Path, out_dir: Path, *, calibrated: b
     (on the Seneca photos this joins two partial models into one); every registration
     still passes RANSAC and bundle adjustment with the 4 px reprojection filter. Models
     are written under ``out_dir/<i>``.
+
+    ``refine_focal=False`` holds the focal length at its prior (a nadir grid at constant
+    height cannot tell focal length from depth: both scale the image of the ground alike);
+    radial distortion is still refined. ``pose_priors``: the database's pose priors (see
+    :func:`set_pose_priors`) enter every global bundle adjustment as position priors, so
+    the model lies in their frame and cannot drift away from GPS. ``seed`` fixes
+    pycolmap's random sampling (RANSAC, initial pair) so a run repeats.
     """
     import pycolmap
 
     out_dir.mkdir(parents=True, exist_ok=True)
+    pycolmap.set_random_seed(int(seed))
     options = pycolmap.IncrementalPipelineOptions()
+    options.random_seed = int(seed)
+    options.mapper.random_seed = int(seed)
     options.num_threads = int(threads)
+    options.use_prior_position = bool(pose_priors)
+    options.use_robust_loss_on_prior_position = True
     options.min_model_size = 3
     options.mapper.abs_pose_min_num_inliers = 15
     options.mapper.init_min_num_inliers = 50
     options.triangulation.ignore_two_view_tracks = False
-    if calibrated:
+    if calibrated or not refine_focal:
         options.ba_refine_focal_length = False
-        options.ba_refine_extra_params = False
         options.mapper.abs_pose_refine_focal_length = False
+    if calibrated:
+        options.ba_refine_extra_params = False
         options.mapper.abs_pose_refine_extra_params = False
     models = pycolmap.incremental_mapping(database, image_dir, out_dir, options=options)
     ordered = sorted(models.values(), key=lambda r: r.num_reg_images(), reverse=True)
+    if not calibrated:
+        ordered = [_without_unsupported_distortion(rec) for rec in ordered]
     for i, rec in enumerate(ordered):
         path = out_dir / str(i)
         path.mkdir(exist_ok=True)
         rec.write(str(path))
     return ordered
+
+
+def _without_unsupported_distortion(rec, min_gain: float = 0.05):
+    """``rec``, or a copy re-adjusted with the radial distortion at 0 when the refined
+    distortion lowers the mean reprojection error by less than ``min_gain`` (5 %).
+
+    Over a nadir grid flown at constant height the radial term trades off against depth
+    (the "doming" of parallel-axis surveys): on a rendered pinhole survey pycolmap settled
+    at k = 0.0056 with no better fit than k = 0, and every height came out 1.2 % of the
+    flying height too high. A real lens shows its distortion as a clear gain and keeps it.
+    """
+    import pycolmap
+
+    radial = {"SIMPLE_RADIAL": (3,), "RADIAL": (3, 4)}
+    cams = [c for c in rec.cameras.values() if c.model.name in radial and any(
+        c.params[i] != 0.0 for i in radial[c.model.name])]
+    if not cams or rec.num_reg_images() < 3:
+        return rec
+    with_k = rec.compute_mean_reprojection_error()
+    trial = pycolmap.Reconstruction(rec)
+    for cam in trial.cameras.values():
+        if cam.model.name in radial:
+            params = cam.params
+            for i in radial[cam.model.name]:
+                params[i] = 0.0
+            cam.params = params
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = options.refine_extra_params = options.refine_principal_point = False
+    pycolmap.bundle_adjustment(trial, options)
+    without_k = trial.compute_mean_reprojection_error()
+    keep = with_k < (1.0 - min_gain) * without_k
+    log.info("radial distortion %s: reprojection %.4f px with it, %.4f px without", "kept" if keep else
+             "dropped (not supported by the photos)", with_k, without_k)
+    return rec if keep else trial
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,111 @@
+"""The photo-to-model pipeline on a rendered DJI-like survey with exact ground truth.
+
+A nadir grid (3 lines x 5 photos, 512x288, 16:9 crop of a 3:2 sensor) flown 30 m above
+the take-off point over hills, buildings and trees (skyfix.datasets.survey_scene). The
+EXIF 35 mm equivalent (24 mm) scaled by the image diagonal is 4.5 % short of the true
+focal length, as on real cropped frames; the XMP carries DJI's calibrated focal length.
+GPS has a correlated random-walk error (0.4 m horizontal, 0.2 m vertical per photo).
+
+Bounds: a focal length off by 4.5 % would put the ground 1.35 m (4.5 % of 30 m) off; the
+issue asks for 0.3 m median. GPS noise over a 28 m x 32 m block leaves a scale error of
+~0.2 % (6 cm at 30 m), well inside it.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from skyfix.datasets.survey_scene import make_scene, survey_camera, write_survey
+from skyfix.mapping.exif import read_metadata
+from skyfix.mapping.pipeline import PipelineConfig, run_pipeline
+
+FAST = {"threads": 2}
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene()
+
+
+@pytest.fixture(scope="module")
+def survey(scene, tmp_path_factory) -> tuple[Path, list]:
+    folder = tmp_path_factory.mktemp("survey")
+    return folder, write_survey(folder, scene)
+
+
+@pytest.fixture(scope="module")
+def run(survey, tmp_path_factory):
+    out = tmp_path_factory.mktemp("project")
+    return run_pipeline(PipelineConfig(survey[0], out, **FAST)), out
+
+
+def _dsm_errors(scene, path: Path) -> tuple[np.ndarray, float]:
+    """Model DSM minus true surface at every valid cell (m), and the valid share."""
+    import rasterio
+
+    from skyfix.mapping.grid import UtmToEnu
+
+    with rasterio.open(path) as ds:
+        z = ds.read(1, masked=True).filled(np.nan)
+        rows, cols = np.nonzero(np.isfinite(z))
+        east, north = ds.transform * (cols + 0.5, rows + 0.5)
+        to_enu = UtmToEnu(scene.frame, ds.crs.to_epsg(), (east.min(), north.min(), east.max(), north.max()))
+    enu = to_enu(np.asarray(east), np.asarray(north), z[rows, cols])
+    return enu[:, 2] - scene.height_at(enu[:, 0], enu[:, 1]), float(np.isfinite(z).mean())
+
+
+def test_focal_prior_from_sensor_geometry(scene, tmp_path):
+    true_f = survey_camera().fx
+    with_xmp = write_survey(tmp_path / "a", scene, lines=1, per_line=1)[0]
+    meta = read_metadata(Path(with_xmp.path).read_bytes())
+    assert meta.focal_estimate(512, 288).source == "xmp-calibrated"
+    assert meta.focal_estimate(512, 288).focal_px == pytest.approx(true_f, rel=1e-6)
+    # The diagonal rule on the 35 mm equivalent alone: 24 * hypot(512, 288) / 43.27 mm is 4.5 % short.
+    f35 = 24 * math.hypot(512, 288) / math.hypot(36, 24)
+    assert f35 / true_f == pytest.approx(0.955, abs=0.002)
+    plain = write_survey(tmp_path / "b", scene, lines=1, per_line=1, calibrated_focal=False)[0]
+    meta = read_metadata(Path(plain.path).read_bytes())
+    assert meta.xmp["RelativeAltitude"] == pytest.approx(30.0, abs=0.5)
+    estimate = meta.focal_estimate(512, 288)  # FC6310 is in the sensor table: 13.2 mm wide
+    assert (estimate.source, estimate.focal_px) == ("sensor-table", pytest.approx(true_f, rel=1e-3))
+    plane = write_survey(tmp_path / "c", scene, lines=1, per_line=1, calibrated_focal=False, focal_plane=True)[0]
+    estimate = read_metadata(Path(plane.path).read_bytes()).focal_estimate(512, 288)
+    assert (estimate.source, estimate.focal_px) == ("focal-plane", pytest.approx(true_f, rel=1e-3))
+
+
+@pytest.mark.slow
+def test_ground_heights_match_truth(run, scene, survey):
+    report, out = run
+    assert len(report.registered) == 15
+    assert report.camera_groups[0]["focal_source"] == "xmp-calibrated"
+    assert report.camera_groups[0]["focal_refined"] is False
+    errors, _ = _dsm_errors(scene, out / "dsm.tif")
+    assert len(errors) > 300
+    assert abs(float(np.nanmedian(errors))) <= 0.3
+    assert float(np.nanmedian(np.abs(errors))) <= 0.3
+    # The height check: model height above its ground vs the photos' barometric relative
+    # altitude differ by the true ground height below the cameras (terrain, +-1.5 m).
+    centres = np.array([p.centre_enu_m for p in survey[1]])
+    ground_below = float(np.median(scene.height_at(centres[:, 0], centres[:, 1])))
+    fh = report.flying_height
+    assert fh["photos"] == 15 and "relative altitude" in fh["line"]
+    assert fh["difference_m"] == pytest.approx(-ground_below, abs=0.3)
+    assert not any("probably wrong" in w for w in report.warnings)
+
+
+@pytest.mark.slow
+def test_same_output_twice(run, survey, tmp_path):
+    import rasterio
+
+    first_report, first = run
+    second_report = run_pipeline(PipelineConfig(survey[0], tmp_path, **FAST))
+    assert second_report.points == first_report.points
+    assert (tmp_path / "points.ply").read_bytes() == (first / "points.ply").read_bytes()
+    for name in ("dsm.tif", "orthophoto.tif"):
+        with rasterio.open(first / name) as a, rasterio.open(tmp_path / name) as b:
+            assert a.transform == b.transform
+            assert np.array_equal(a.read(), b.read())
