@@ -145,14 +145,17 @@ class SitlInstance:
 class SitlFleet:
     """``count`` SITL instances started together; a context manager that always stops them.
 
-    ``speedup``: simulated seconds per wall second. ``wipe``: fresh default parameters.
+    ``speedup``: simulated seconds per wall second. ``wipe``: erase the stored parameters
+    at every boot, reboots included (the firmware re-runs with its arguments); a fresh
+    working folder (the default) starts from the default parameters without it, and keeps
+    what is set across a reboot (``GPS1_TYPE`` needs one).
     ``homes``: one (lat_deg, lon_deg, alt_amsl_m, heading_deg) per instance (default: the
     first 20 m apart east of ``DEFAULT_HOME``). ``workdir``: parent folder of the instance
     folders (a temporary folder, removed on close, by default). ``first_system_id``: system
     ids are consecutive from it.
     """
 
-    def __init__(self, count: int = 1, *, speedup: float = 5.0, wipe: bool = True,
+    def __init__(self, count: int = 1, *, speedup: float = 5.0, wipe: bool = False,
                  homes: list[tuple[float, float, float, float]] | None = None,
                  workdir: str | Path | None = None, first_system_id: int = 1,
                  start_timeout_s: float = 20.0) -> None:
@@ -260,7 +263,7 @@ def record_tlog(url: str, path: str | Path, duration_s: float, *, fly_to_m: floa
                 v.wait_until(lambda s: s.gps is not None and s.gps.fix_type >= 3 and s.home is not None,
                              60.0, what="GPS fix and home")
                 v.set_mode("GUIDED")
-                _arm_when_ready(v, 60.0)
+                arm_when_ready(v, 60.0)
                 v.takeoff(fly_to_m)
             time.sleep(duration_s)
         finally:
@@ -269,7 +272,7 @@ def record_tlog(url: str, path: str | Path, duration_s: float, *, fly_to_m: floa
         return packets[0]
 
 
-def _arm_when_ready(vehicle, timeout_s: float) -> None:
+def arm_when_ready(vehicle, timeout_s: float) -> None:
     """ArduPilot refuses to arm until its EKF has settled (pre-arm checks): retry until it arms."""
     from skyfix.errors import CommandRejected
 

@@ -237,6 +237,8 @@ class MavlinkLink:
             self.reconnects += 1
             self.send_heartbeat()
             log.info("MAVLink link %s reopened", self.url)
+            for vehicle in list(self.vehicles.values()):
+                vehicle.request_streams()  # a rebooted autopilot forgot our rates
             return
 
     def _monitor_loop(self) -> None:

@@ -64,6 +64,8 @@ class Vehicle:
         self._lock = threading.Condition()
         self._state = VehicleState(system_id=self.system_id, autopilot=self.autopilot, link_ok=True)
         self._hb_mono = time.monotonic()
+        self._position_mono = -math.inf  # last GLOBAL_POSITION_INT received
+        self._streams_mono = -math.inf  # last time the streams were requested
         self._subs: list[_Subscription] = []
         self.statustexts: deque[tuple[float, int, str]] = deque(maxlen=200)
         self._chunks: dict[int, list[str]] = {}
@@ -134,7 +136,9 @@ class Vehicle:
         self.close()
 
     def request_streams(self) -> None:
-        """Ask for each telemetry message at ``stream_rates_hz`` (fire and forget)."""
+        """Ask for each telemetry message at ``stream_rates_hz`` (fire and forget; asked again
+        when positions stop while heartbeats go on, e.g. after the autopilot rebooted)."""
+        self._streams_mono = time.monotonic()
         for name, rate in self.stream_rates_hz.items():
             msg_id = getattr(M, f"MAVLINK_MSG_ID_{name}", None)
             if msg_id is None:
@@ -214,6 +218,8 @@ class Vehicle:
         if msg.get_srcComponent() != self.component_id:
             return
         self._hb_mono = t_mono
+        if t_mono - self._position_mono > 2.0 and t_mono - self._streams_mono > 2.0:
+            self.request_streams()  # heartbeats but no positions: rates forgotten (reboot)
         old = self._state
         mode = mode_name(self.autopilot, msg.custom_mode)
         armed = bool(msg.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
@@ -239,6 +245,7 @@ class Vehicle:
             self._update(link_ok=False)
 
     def _rx_global_position_int(self, msg, now: float, t_mono: float) -> None:
+        self._position_mono = t_mono
         pos, vel = units.position_velocity(msg, now)
         self._update(position=pos, velocity=vel)
         if self.safety is not None:
@@ -300,10 +307,9 @@ class Vehicle:
         self._emit("statustext", text, severity=msg.severity)
 
     def _reasons(self, since_mono: float, limit: int = 3) -> str:
-        """The autopilot's recent warnings since ``since_mono``, for error messages."""
+        """The autopilot's recent warnings (severity NOTICE or worse) since ``since_mono``, for
+        error messages; its INFO chatter ("EKF3 IMU0 origin set") explains nothing."""
         lines = [t for (tm, sev, t) in self.statustexts if tm >= since_mono and sev <= 5]
-        if not lines:
-            lines = [t for (tm, sev, t) in self.statustexts if tm >= since_mono]
         return ("; autopilot says: " + " | ".join(lines[-limit:])) if lines else ""
 
     @contextlib.contextmanager

@@ -1,0 +1,57 @@
+"""skyfix.datasets.sitl: three ArduPilot SITL instances at once (ports, system ids,
+working folders), all stopped at the end; a clear reason where the firmware is missing."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from skyfix.datasets import sitl
+from skyfix.drivers.vehicle import Vehicle
+from skyfix.errors import ConfigurationError
+
+
+@pytest.mark.sitl
+@pytest.mark.slow
+@pytest.mark.skipif(bool(sitl.missing_reason()), reason=sitl.missing_reason() or "-")
+def test_three_instances_start_fly_apart_and_stop(tmp_path):
+    fleet = sitl.SitlFleet(3, speedup=5.0, workdir=tmp_path, first_system_id=11)
+    with fleet:
+        assert len({i.port for i in fleet}) == 3 and len({i.workdir for i in fleet}) == 3
+        vehicles = []
+        try:
+            for inst in fleet:
+                vehicles.append(Vehicle.connect(inst.url, timeout_s=30.0))
+            assert [v.system_id for v in vehicles] == [11, 12, 13]
+            homes = [v.wait_until(lambda s: s.home is not None, 60.0, what="home").home for v in vehicles]
+            # default homes 20 m apart along east
+            assert homes[1].lon_deg - homes[0].lon_deg == pytest.approx(2.6e-4, abs=2e-6)
+            for inst in fleet:
+                assert (inst.workdir / "eeprom.bin").exists()
+        finally:
+            for v in vehicles:
+                v.close()
+        procs = [inst.process for inst in fleet]
+        ports = [inst.port for inst in fleet]
+    assert all(p.poll() is not None for p in procs)  # stopped, no orphan firmware
+    assert fleet.instances == []
+    deadline = time.monotonic() + 5.0
+    while not all(sitl._port_free(p) for p in ports) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert all(sitl._port_free(p) for p in ports)
+
+
+def test_missing_firmware_is_a_clear_error(tmp_path, monkeypatch):
+    monkeypatch.setenv(sitl.ENV_DIR, str(tmp_path))
+    monkeypatch.setattr(sitl, "sitl_dir", lambda: None)
+    assert str(tmp_path) in sitl.missing_reason()
+    with pytest.raises(ConfigurationError, match="SITL not found"):
+        sitl.SitlFleet(1).start()
+
+
+def test_env_var_points_elsewhere(tmp_path, monkeypatch):
+    (tmp_path / "run-sitl.sh").write_text("#!/bin/sh\n")
+    (tmp_path / "arducopter").write_text("")
+    monkeypatch.setenv(sitl.ENV_DIR, str(tmp_path))
+    assert sitl.sitl_dir() == tmp_path
