@@ -19,7 +19,7 @@ from skyfix import validate
 from skyfix.errors import DataError
 from skyfix.mapping.grid import Grid
 
-__all__ = ["Dsm", "auto_dsm_resolution_m", "build_dsm"]
+__all__ = ["Dsm", "auto_dsm_resolution_m", "build_dsm", "cell_median"]
 
 
 @dataclass(frozen=True)
@@ -45,6 +45,17 @@ def auto_dsm_resolution_m(points_utm_m: np.ndarray, min_m: float = 0.5, max_m: f
     return float(np.clip(2.0 * math.sqrt(area_m2 / max(len(pts), 1)), min_m, max_m))
 
 
+def cell_median(cells: np.ndarray, heights_m: np.ndarray, n_cells: int) -> np.ndarray:
+    """Median height per cell index (``n_cells`` long, NaN where no point falls), vectorised."""
+    order = np.lexsort((heights_m, cells))
+    cells, heights_m = cells[order], heights_m[order]
+    starts = np.flatnonzero(np.r_[True, cells[1:] != cells[:-1]])
+    counts = np.diff(np.r_[starts, len(cells)])
+    out = np.full(n_cells, np.nan)
+    out[cells[starts]] = 0.5 * (heights_m[starts + (counts - 1) // 2] + heights_m[starts + counts // 2])
+    return out
+
+
 def build_dsm(points_utm_m: np.ndarray, grid: Grid, spike_m: float = 5.0) -> Dsm:
     """DSM of ``(N, 3)`` points (easting_m, northing_m, height_m) in ``grid``'s zone.
 
@@ -60,17 +71,8 @@ def build_dsm(points_utm_m: np.ndarray, grid: Grid, spike_m: float = 5.0) -> Dsm
     inside = (col_i >= 0) & (col_i < grid.width) & (row_i >= 0) & (row_i < grid.height)
     if inside.sum() < 3:
         raise DataError(f"only {int(inside.sum())} 3-D point(s) fall inside the DSM grid; at least 3 are needed")
-    cell = row_i[inside] * grid.width + col_i[inside]
-    heights = pts[inside, 2]
-    order = np.lexsort((heights, cell))
-    cell, heights = cell[order], heights[order]
-    starts = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
-    counts = np.diff(np.r_[starts, len(cell)])
-    lower = heights[starts + (counts - 1) // 2]
-    upper = heights[starts + counts // 2]
-    surface = np.full(grid.height * grid.width, np.nan)
-    surface[cell[starts]] = 0.5 * (lower + upper)
-    surface = surface.reshape(grid.height, grid.width)
+    surface = cell_median(row_i[inside] * grid.width + col_i[inside], pts[inside, 2],
+                          grid.height * grid.width).reshape(grid.height, grid.width)
     with warnings.catch_warnings():  # all-NaN neighbourhoods give NaN, as wanted
         warnings.simplefilter("ignore", RuntimeWarning)
         local = generic_filter(surface, np.nanmedian, size=5, mode="constant", cval=np.nan)

@@ -26,6 +26,8 @@ def _map(args: argparse.Namespace) -> int:
         resolution_cm=args.resolution_cm, dsm_resolution_m=args.dsm_resolution_m,
         max_image_size_px=args.max_image_size, max_features=args.max_features,
         exhaustive_max_photos=args.exhaustive_max, max_agl_m=args.max_agl, threads=args.threads,
+        refine_focal=args.refine_focal, gps_sigma_m=tuple(args.gps_sigma) if args.gps_sigma[0] > 0 else (),
+        seed=args.seed,
         force=tuple(args.force or ()))
     report = run_pipeline(config)
     out = sys.stdout
@@ -73,6 +75,14 @@ def register_map(subparsers: argparse._SubParsersAction) -> None:
                    help="match exhaustively up to this many photos, by GPS neighbours beyond")
     p.add_argument("--max-agl", type=float, default=120.0,
                    help="highest possible flight height above ground (m), for the GPS overlap check")
+    p.add_argument("--refine-focal", action="store_true",
+                   help="let bundle adjustment move the focal length (by default it is held at the photos' "
+                        "calibrated/sensor value: over a nadir grid flown at constant height focal length and "
+                        "depth trade off and the whole model can end up metres too low)")
+    p.add_argument("--gps-sigma", type=float, nargs=2, default=(2.0, 4.0), metavar=("H_M", "V_M"),
+                   help="GPS standard deviations (horizontal, vertical, metres) of the pose priors in bundle "
+                        "adjustment; 0 0 turns the priors off")
+    p.add_argument("--seed", type=int, default=0, help="random seed (the same photos and seed give the same outputs)")
     p.add_argument("--threads", type=int, default=-1, help="worker threads (-1: all cores)")
     p.add_argument("--force", action="append", choices=STAGES, metavar="STAGE",
                    help=f"re-run this stage and the ones after it (repeat); one of {', '.join(STAGES)}")

@@ -62,6 +62,10 @@ class PipelineConfig:
     refine_focal: bool = False            # let bundle adjustment move the focal length (see sfm.reconstruct)
     gps_sigma_m: tuple[float, float] = (2.0, 4.0)  # GPS pose prior std dev (horizontal, vertical); () = no priors
     seed: int = 0                         # pycolmap's random seed: the same photos give the same model
+    dense: bool = True                    # DSM from dense stereo matching (False: from the sparse points)
+    dense_scale: float = 0.5              # photos are matched at this fraction of their size
+    dense_cell_px: float = 2.0            # DSM cell = this many matched pixels on the ground
+    max_dense_points: int = 5_000_000     # points.ply holds at most this many dense points (stated in the report)
     threads: int = -1                     # -1: all cores
     force: tuple[str, ...] = ()           # stages to re-run even when their outputs exist
 
@@ -398,10 +402,15 @@ def _dsm_run(config, project, state, report) -> dict:
         raise DataError(f"only {len(xyz)} well-measured 3-D points; a DSM needs more")
     epsg = utm_epsg(frame.lat0_deg, frame.lon0_deg)
     utm = enu_to_utm(frame, xyz, epsg)
-    res_m = config.dsm_resolution_m or auto_dsm_resolution_m(utm)
     lo, hi = utm[:, :2].min(axis=0), utm[:, :2].max(axis=0)
-    grid = Grid.covering(epsg, lo[0], lo[1], hi[0], hi[1], res_m)
-    dsm = build_dsm(utm, grid)
+    extra = {}
+    if config.dense:
+        dsm, extra = _dense(config, project, state, xyz, epsg)
+        grid = dsm.grid
+    else:
+        res_m = config.dsm_resolution_m or auto_dsm_resolution_m(utm)
+        grid = Grid.covering(epsg, lo[0], lo[1], hi[0], hi[1], res_m)
+        dsm = build_dsm(utm, grid)
     write_dsm_tif(project.root / "dsm.tif", dsm.surface_m, grid)
     np.save(project.work / "dsm_filled.npy", dsm.filled_m)
     np.save(project.work / "dsm_surface.npy", dsm.surface_m)
@@ -409,9 +418,44 @@ def _dsm_run(config, project, state, report) -> dict:
 
     check = flying_height(state["referenced"], state["photos"], frame, dsm)
     data = {"grid": grid.to_dict(), "points": len(xyz), "flying_height": check.to_dict(),
-            "flying_height_suspicious": check.suspicious()}
+            "flying_height_suspicious": check.suspicious(), "valid_share": _valid_share(dsm.observed), **extra}
     _dsm_load(config, project, state, report, data)
     return data
+
+
+def _valid_share(observed: np.ndarray) -> float:
+    """Share of the cells inside the surveyed area (convex hull of the measured cells) that
+    hold a measured height (not interpolated)."""
+    import cv2
+
+    rows, cols = np.nonzero(observed)
+    if len(rows) < 3:
+        return 0.0
+    hull = cv2.convexHull(np.stack((cols, rows), axis=1).astype(np.int32))
+    area = np.zeros(observed.shape, np.uint8)
+    cv2.fillConvexPoly(area, hull, 1)
+    return float(observed[area > 0].mean())
+
+
+def _dense(config, project, state, sparse_enu: np.ndarray, epsg: int) -> tuple:
+    """Dense DSM (mapping.dense) on a grid of ``dense_cell_px`` matched pixels; saves the cloud."""
+    from skyfix.mapping.dense import dense_dsm
+    from skyfix.mapping.grid import EnuToUtm, Grid
+    from skyfix.mapping.ortho import load_views
+
+    views = load_views(state["referenced"], state["image_dir"])
+    up = (float(np.percentile(sparse_enu[:, 2], 1)) - 20.0, float(np.percentile(sparse_enu[:, 2], 99)) + 20.0)
+    lo, hi = sparse_enu[:, :2].min(axis=0), sparse_enu[:, :2].max(axis=0)
+    to_utm = EnuToUtm(state["frame"], epsg, (lo[0], lo[1], hi[0], hi[1]), up)
+    gsd_m = _median_gsd_m(state["referenced"], state["frame"], None, float(np.median(sparse_enu[:, 2])))
+    res_m = config.dsm_resolution_m or gsd_m / config.dense_scale * config.dense_cell_px
+    utm = to_utm(sparse_enu)
+    grid = Grid.covering(epsg, *utm[:, :2].min(axis=0), *utm[:, :2].max(axis=0), res_m)
+    dsm, cloud = dense_dsm(views, {v.name: v.path for v in views}, sparse_enu, to_utm, grid,
+                           scale=config.dense_scale, max_points=config.max_dense_points, seed=config.seed)
+    np.savez(project.work / "dense_points.npz", xyz=cloud.xyz_utm_m, rgb=cloud.rgb)
+    return dsm, {"dense_points": len(cloud.xyz_utm_m), "dense_pairs": cloud.pairs, "dense_scale": cloud.scale,
+                 "enu_to_utm_max_residual_m": to_utm.max_residual_m}
 
 
 def _dsm_load(config, project, state, report, marker) -> None:
@@ -427,15 +471,20 @@ def _dsm_load(config, project, state, report, marker) -> None:
     report.crs_epsg = grid.epsg
     report.dsm_resolution_m = grid.resolution_m
     report.flying_height = marker.get("flying_height", {})
+    report.dsm_valid_share = marker.get("valid_share", math.nan)
+    report.dense_points = marker.get("dense_points", 0)
+    report.dense_pairs = marker.get("dense_pairs", 0)
     if marker.get("flying_height_suspicious"):
         report.warnings.append(report.flying_height["line"] + ": the model's heights are probably wrong (focal "
                                "length?) unless the take-off point was that far above or below the ground surveyed")
     report.outputs["dsm"] = str(project.root / "dsm.tif")
 
 
-def _median_gsd_m(models: list, frame, dsm) -> float:
-    """Median ground sample distance: height above the median DSM height / focal length."""
-    ground_up = float(np.nanmedian(dsm.filled_m)) - frame.alt0_m
+def _median_gsd_m(models: list, frame, dsm, ground_up: float | None = None) -> float:
+    """Median ground sample distance: height above the median DSM height (or ``ground_up``,
+    ENU metres) / focal length."""
+    if ground_up is None:
+        ground_up = float(np.nanmedian(dsm.filled_m)) - frame.alt0_m
     gsd = []
     for rec in models:
         for image in rec.images.values():
@@ -506,9 +555,14 @@ def _export_run(config, project, state, report) -> dict:
     by_name = {p.name: p for p in state["photos"]}
     features, cams_utm, gps_utm = [], [], []
     residuals = {n: r for m in report.models for n, r in m["residuals_enu_m"].items()}
-    if state["referenced"]:
+    dense = project.work / "dense_points.npz"
+    if state["referenced"] and config.dense and dense.exists():
+        with np.load(dense) as cloud:
+            write_ply(project.root / "points.ply", cloud["xyz"], cloud["rgb"])
+    elif state["referenced"]:
         xyz, rgb = _points(state["referenced"], max_error_px=4.0, min_track=2)
         write_ply(project.root / "points.ply", enu_to_utm(frame, xyz, report.crs_epsg) if len(xyz) else xyz, rgb)
+    if state["referenced"]:
         emitted: set[str] = set()  # a photo shared by two models is listed once, from the first model
         for rec in state["referenced"]:
             for image in rec.images.values():

@@ -51,6 +51,9 @@ class Report:
     covered_area_m2: float = 0.0
     height_datum: str = "AMSL (as recorded by the photos' GPS)"
     flying_height: dict = field(default_factory=dict)
+    dsm_valid_share: float = math.nan
+    dense_points: int = 0
+    dense_pairs: int = 0
     stage_seconds: dict[str, float] = field(default_factory=dict)
     resumed_stages: list[str] = field(default_factory=list)
     total_seconds: float = 0.0

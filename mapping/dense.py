@@ -1,0 +1,247 @@
+"""Dense surface: OpenCV semi-global matching on rectified pairs of overlapping photos.
+
+Each registered photo is paired with up to ``neighbours`` others that overlap it with a
+useful baseline (0.08-0.8 of the flying height). A pair is rectified with one common
+rotation whose x axis is the baseline (both views turned to look alike, so epipolar
+lines are image rows and the left camera is the first), undistorted through its lens
+model, matched by ``cv2.StereoSGBM`` (left-right consistency, uniqueness and speckle
+filters on) within the disparity range the sparse points allow, and triangulated:
+depth = f * baseline / disparity. Photos are matched at ``scale`` of their size, so a
+disparity pixel is 1/scale photo pixels.
+
+Every pair's points land in the DSM grid in metres; each cell takes the median height of
+all its points from all pairs, spikes (a cell more than ``spike_m`` off its 5x5 median)
+are dropped, and only cells seen by at least ``min_pairs`` pairs are kept; holes are
+filled from a coarser level for ``filled_m`` (the orthophoto's surface) and stay NaN in
+``surface_m``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from skyfix.errors import DataError
+from skyfix.mapping.dsm import Dsm, cell_median
+from skyfix.mapping.grid import EnuToUtm, Grid
+from skyfix.mapping.ortho import View
+from skyfix.progress import progress
+
+__all__ = ["DenseCloud", "dense_dsm", "opencv_lens", "stereo_pairs"]
+
+log = logging.getLogger(__name__)
+
+_OPENCV_LENS = {  # pycolmap model -> (indices of fx, fy, cx, cy), indices of OpenCV distortion coefficients
+    "SIMPLE_PINHOLE": ((0, 0, 1, 2), ()), "PINHOLE": ((0, 1, 2, 3), ()),
+    "SIMPLE_RADIAL": ((0, 0, 1, 2), (3,)), "RADIAL": ((0, 0, 1, 2), (3, 4)),
+    "OPENCV": ((0, 1, 2, 3), (4, 5, 6, 7)), "FULL_OPENCV": ((0, 1, 2, 3), (4, 5, 6, 7, 8, 9, 10, 11)),
+}
+
+
+def opencv_lens(camera, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray] | None:
+    """(K, distortion) in OpenCV's pixel convention of a ``pycolmap.Camera`` seen at
+    ``scale`` of its size, or None for models OpenCV's pinhole undistortion lacks."""
+    entry = _OPENCV_LENS.get(camera.model.name)
+    if entry is None:
+        return None
+    p = np.asarray(camera.params, dtype=np.float64)
+    (ifx, ify, icx, icy), idist = entry
+    k = np.array([[p[ifx] * scale, 0.0, p[icx] * scale - 0.5], [0.0, p[ify] * scale, p[icy] * scale - 0.5],
+                  [0.0, 0.0, 1.0]])
+    dist = np.zeros(8 if len(idist) > 4 else 4)
+    dist[:len(idist)] = p[list(idist)]
+    if len(idist) == 2:  # RADIAL: k1, k2 then p1 = p2 = 0
+        dist[:2] = p[list(idist)]
+    return k, dist
+
+
+@dataclass(frozen=True)
+class DenseCloud:
+    """Fused dense points: ``xyz_utm_m`` (N, 3) easting, northing, height; ``rgb`` (N, 3) uint8;
+    ``pairs`` matched; ``scale`` of the photos matched."""
+
+    xyz_utm_m: np.ndarray
+    rgb: np.ndarray
+    pairs: int
+    scale: float
+
+
+def _centre(view: View) -> np.ndarray:
+    return -view.cam_from_enu[:, :3].T @ view.cam_from_enu[:, 3]
+
+
+def stereo_pairs(views: list[View], depth_m: float, neighbours: int = 2, min_ratio: float = 0.08,
+                 max_ratio: float = 0.8) -> list[tuple[int, int]]:
+    """Index pairs (i < j) of overlapping views: for each view its ``neighbours`` nearest
+    others whose baseline is ``min_ratio``-``max_ratio`` of ``depth_m`` (the flying height)
+    and whose image centre's ground point falls inside the other photo."""
+    centres = np.array([_centre(v) for v in views])
+    pairs: set[tuple[int, int]] = set()
+    for i, view in enumerate(views):
+        look = view.cam_from_enu[2, :3]  # optical axis in ENU
+        ground = centres[i] + depth_m * look / max(-look[2], 1e-6)
+        found = []
+        for j in np.argsort(np.linalg.norm(centres - centres[i], axis=1)):
+            baseline = float(np.linalg.norm(centres[j] - centres[i]))
+            if j == i or not min_ratio * depth_m <= baseline <= max_ratio * depth_m:
+                continue
+            other = views[j]
+            p = other.cam_from_enu[:, :3] @ ground + other.cam_from_enu[:, 3]
+            if p[2] <= 0:
+                continue
+            u, v = np.asarray(other.camera.img_from_cam(p[None, :]))[0]
+            if 0 <= u < other.camera.width and 0 <= v < other.camera.height:
+                found.append(int(j))
+            if len(found) == neighbours:
+                break
+        pairs.update((min(i, j), max(i, j)) for j in found)
+    return sorted(pairs)
+
+
+def _rectification(left: View, right: View) -> tuple[np.ndarray, float]:
+    """World(ENU)->rectified rotation with x along the baseline, and the baseline (m)."""
+    base = _centre(right) - _centre(left)
+    baseline = float(np.linalg.norm(base))
+    x = base / baseline
+    z_mean = left.cam_from_enu[2, :3] + right.cam_from_enu[2, :3]
+    y = np.cross(z_mean, x)
+    y /= np.linalg.norm(y)
+    z = np.cross(x, y)
+    return np.stack((x, y, z)), baseline
+
+
+def _match_pair(left: View, right: View, images: dict, sparse_enu: np.ndarray, scale: float,
+                block_px: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(N, 3) ENU points and (N, 3) BGR colours from one pair, or None."""
+    lens_l, lens_r = opencv_lens(left.camera, scale), opencv_lens(right.camera, scale)
+    if lens_l is None or lens_r is None:
+        return None
+    r_rect, baseline = _rectification(left, right)
+    f = 0.5 * (lens_l[0][0, 0] + lens_r[0][0, 0])
+    # Rectified frame of the left camera: sparse depths bound the disparities.
+    pts = (sparse_enu - _centre(left)) @ r_rect.T
+    corners = []
+    for view, (k, _) in ((left, lens_l), (right, lens_r)):
+        w, h = view.camera.width * scale, view.camera.height * scale
+        uv = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], dtype=np.float64)
+        rays = (np.linalg.inv(k) @ uv.T).T @ (r_rect @ view.cam_from_enu[:, :3].T).T
+        corners.append(rays[:, :2] / rays[:, 2:3] * f)
+    xy = np.vstack(corners)
+    in_view = pts[:, 2] > 0
+    pts = pts[in_view]
+    u = pts[:, 0] / pts[:, 2] * f
+    v = pts[:, 1] / pts[:, 2] * f
+    left_box = corners[0]
+    inside = (u > left_box[:, 0].min()) & (u < left_box[:, 0].max()) & (v > left_box[:, 1].min()) & \
+        (v < left_box[:, 1].max())
+    if inside.sum() < 20:
+        return None
+    depth = pts[inside, 2]
+    d_lo, d_hi = f * baseline / np.percentile(depth, 99.5) * 0.9, f * baseline / np.percentile(depth, 0.5) * 1.1
+    min_disp = int(np.floor(d_lo))
+    num_disp = int(np.ceil((d_hi - min_disp) / 16.0) * 16)
+    if num_disp > 512:
+        return None
+    x0, y0 = np.floor(xy.min(axis=0)).astype(int)
+    x1, y1 = np.ceil(xy.max(axis=0)).astype(int)
+    size = (int(x1 - x0), int(y1 - y0))
+    k_new = np.array([[f, 0.0, -x0], [0.0, f, -y0], [0.0, 0.0, 1.0]])
+    rectified = []
+    for view, (k, dist) in ((left, lens_l), (right, lens_r)):
+        rot = r_rect @ view.cam_from_enu[:, :3].T  # camera -> rectified
+        map_x, map_y = cv2.initUndistortRectifyMap(k, dist, rot, k_new, size, cv2.CV_32FC1)
+        rectified.append(cv2.remap(images[view.name], map_x, map_y, cv2.INTER_LINEAR,
+                                   borderMode=cv2.BORDER_CONSTANT))
+    sgbm = cv2.StereoSGBM_create(minDisparity=min_disp, numDisparities=num_disp, blockSize=block_px,
+                                 P1=8 * 3 * block_px ** 2, P2=32 * 3 * block_px ** 2, disp12MaxDiff=1,
+                                 uniquenessRatio=10, speckleWindowSize=100, speckleRange=2,
+                                 mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    disparity = sgbm.compute(rectified[0], rectified[1]).astype(np.float32) / 16.0
+    seen = cv2.cvtColor(rectified[0], cv2.COLOR_BGR2GRAY) > 0
+    valid = (disparity >= min_disp) & seen
+    rows, cols = np.nonzero(valid)
+    d = disparity[rows, cols]
+    z = f * baseline / d
+    rect = np.stack(((cols + x0) * z / f, (rows + y0) * z / f, z), axis=1)
+    return rect @ r_rect + _centre(left), rectified[0][rows, cols]
+
+
+def fill_holes(surface_m: np.ndarray) -> np.ndarray:
+    """NaN cells filled from ever coarser block means (a pyramid), finite cells kept."""
+    if np.isfinite(surface_m).all() or not np.isfinite(surface_m).any():
+        return surface_m.copy()
+    h, w = surface_m.shape
+    padded = np.pad(surface_m, ((0, h % 2), (0, w % 2)), constant_values=np.nan)
+    blocks = padded.reshape(padded.shape[0] // 2, 2, padded.shape[1] // 2, 2)
+    with np.errstate(invalid="ignore"):
+        finite = np.isfinite(blocks)
+        coarse = np.where(finite, blocks, 0.0).sum(axis=(1, 3)) / finite.sum(axis=(1, 3))
+    coarse = fill_holes(coarse)
+    up = np.repeat(np.repeat(coarse, 2, axis=0), 2, axis=1)[:h, :w]
+    return np.where(np.isfinite(surface_m), surface_m, up)
+
+
+def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.ndarray, to_utm: EnuToUtm,
+              grid: Grid, *, scale: float = 0.5, neighbours: int = 2, block_px: int = 5, min_pairs: int = 1,
+              spike_m: float = 2.0, max_points: int = 5_000_000, seed: int = 0) -> tuple[Dsm, DenseCloud]:
+    """Dense DSM on ``grid`` (every matched pixel) and the dense point cloud (at most
+    ``max_points``: each pair contributes an equal seeded subset) from ``views`` (ENU poses) and the sparse points'
+    ENU positions ``sparse_enu`` (disparity ranges)."""
+    from scipy.ndimage import median_filter
+
+    if len(views) < 2:
+        raise DataError("a dense surface needs at least two registered photos")
+    depth_m = float(np.median([_centre(v)[2] for v in views]) - np.median(sparse_enu[:, 2]))
+    pairs = stereo_pairs(views, depth_m, neighbours)
+    if not pairs:
+        raise DataError("no pair of registered photos overlaps with a usable baseline for dense matching")
+    images: dict[str, np.ndarray] = {}
+    cells_all, heights_all, pair_ids, xyz_keep, rgb_keep = [], [], [], [], []
+    for n, (i, j) in enumerate(progress(pairs, desc="dense matching", unit="pair")):
+        for view in (views[i], views[j]):
+            if view.name not in images:
+                image = cv2.imread(image_paths[view.name], cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+                if image is None:
+                    raise DataError(f"{image_paths[view.name]}: photo could not be decoded for dense matching")
+                images[view.name] = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        # Left camera: the one the baseline leaves from, so disparities are positive.
+        found = _match_pair(views[i], views[j], images, sparse_enu, scale, block_px)
+        if found is None:
+            log.info("pair %s / %s: no dense match (lens model or disparity range)", views[i].name, views[j].name)
+            continue
+        enu, bgr = found
+        utm = to_utm(enu)
+        col, row = grid.to_pixel(utm[:, 0], utm[:, 1])
+        col, row = np.rint(col).astype(np.int64), np.rint(row).astype(np.int64)
+        ok = (col >= 0) & (col < grid.width) & (row >= 0) & (row < grid.height)
+        cells_all.append(row[ok] * grid.width + col[ok])
+        heights_all.append(utm[ok, 2])
+        pair_ids.append(np.full(int(ok.sum()), n, np.int32))
+        keep = np.flatnonzero(ok)
+        if len(keep) > max_points // len(pairs):  # the cloud's share of this pair, a seeded subset
+            keep = np.sort(np.random.default_rng(seed + n).choice(keep, max_points // len(pairs), replace=False))
+        xyz_keep.append(utm[keep])
+        rgb_keep.append(bgr[keep][:, ::-1])
+        if len(images) > 2 * neighbours + 4:  # keep memory flat: drop photos no later pair needs
+            needed = {views[a].name for a, b in pairs[n + 1:]} | {views[b].name for a, b in pairs[n + 1:]}
+            for name in [k for k in images if k not in needed]:
+                del images[name]
+    if not cells_all:
+        raise DataError("dense matching found no point in any pair")
+    cells, heights = np.concatenate(cells_all), np.concatenate(heights_all)
+    surface = cell_median(cells, heights, grid.width * grid.height).reshape(grid.height, grid.width)
+    if min_pairs > 1:
+        cell_pair = np.unique(np.stack((cells, np.concatenate(pair_ids)), axis=1), axis=0)
+        seen_by = np.bincount(cell_pair[:, 0], minlength=grid.width * grid.height).reshape(surface.shape)
+        surface[seen_by < min_pairs] = np.nan
+    filled = fill_holes(surface)
+    spikes = np.abs(surface - median_filter(filled, size=5, mode="nearest")) > spike_m
+    surface[spikes] = np.nan
+    filled = fill_holes(surface)
+    xyz, rgb = np.concatenate(xyz_keep), np.concatenate(rgb_keep)
+    observed = np.isfinite(surface)
+    dsm = Dsm(grid, surface.astype(np.float32), filled.astype(np.float32), observed)
+    return dsm, DenseCloud(xyz, rgb.astype(np.uint8), len(pairs), scale)
