@@ -1,6 +1,8 @@
 """Swarm messages: typed, versioned, small, authenticated.
 
-Every datagram is ``msgpack(Envelope) || HMAC-SHA256(swarm key, msgpack(Envelope))``.
+Every datagram is ``length || payload || HMAC-SHA256(swarm key, length || payload)`` with
+``payload = msgpack(Envelope)`` and ``length`` its size in bytes (unsigned 16 bit, big-endian),
+so a cut datagram is told from a forged one.
 The envelope carries the wire version, the sender's id, its boot id (milliseconds of
 UNIX time at start, so a restarted sender's sequence numbers are new), a per-sender
 sequence number, the send time (UNIX seconds) and one typed body. Bodies are msgspec
@@ -8,7 +10,7 @@ Structs tagged by name, encoded as arrays (small and fast). Frames: positions WG
 (ellipsoidal heights), covariances 3x3 row-major in the local ENU axes at the position, m^2.
 
 :class:`SwarmCodec` signs outgoing messages and checks incoming ones in a fixed order:
-size, HMAC, decoding, version, roster, self, age, replay. A message that fails any step
+size, length, HMAC, decoding, version, roster, self, age, replay. A message that fails any step
 is dropped and counted under that reason (:attr:`SwarmCodec.dropped`), logged, never raised.
 """
 
@@ -180,20 +182,24 @@ class SwarmCodec:
         """Sign ``body`` into one datagram (next sequence number, stamped now)."""
         env = Envelope(WIRE_VERSION, self.sender_id, self.boot_id, next(self._seq), self.clock(), body)
         payload = self._encoder.encode(env)
-        return payload + hmac.digest(self._key, payload, hashlib.sha256)
+        signed = len(payload).to_bytes(2, "big") + payload
+        return signed + hmac.digest(self._key, signed, hashlib.sha256)
 
     def decode(self, data: bytes) -> Envelope | None:
         """The checked envelope of datagram ``data``, or None (dropped and counted)."""
         n = len(data)
         if n > self.max_bytes:
             return self._drop("oversized", f"{n} bytes > {self.max_bytes}")
-        if n <= TAG_BYTES:
-            return self._drop("truncated", f"{n} bytes")
-        payload, tag = data[:-TAG_BYTES], data[-TAG_BYTES:]
-        if not hmac.compare_digest(hmac.digest(self._key, payload, hashlib.sha256), tag):
+        expected = 2 + int.from_bytes(data[:2], "big") + TAG_BYTES if n >= 2 else math.inf
+        if n < expected:
+            return self._drop("truncated", f"{n} bytes, the datagram says {expected}")
+        if n > expected:
+            return self._drop("malformed", f"{n} bytes, the datagram says {expected}")
+        signed, tag = data[:-TAG_BYTES], data[-TAG_BYTES:]
+        if not hmac.compare_digest(hmac.digest(self._key, signed, hashlib.sha256), tag):
             return self._drop("forged", "HMAC does not match the swarm key")
         try:
-            env = self._decoder.decode(payload)
+            env = self._decoder.decode(signed[2:])
         except (msgspec.DecodeError, msgspec.ValidationError) as exc:
             return self._drop("malformed", str(exc))
         if env.version != WIRE_VERSION:

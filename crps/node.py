@@ -123,6 +123,9 @@ class Node:
                     est = self.engine.estimate(drone_id)
                 except NotAvailableError:
                     continue
+                except SkyfixError as exc:  # e.g. a peer silent for longer than the lag: no estimate now
+                    log.debug("node %s: no estimate of %s: %s", self.drone_id, drone_id, exc)
+                    continue
                 out.append(est)
                 self.latest[drone_id] = est
             return out

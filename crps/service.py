@@ -29,7 +29,9 @@ from skyfix.crps.node import Node
 from skyfix.crps.outputs import Outputs
 from skyfix.crps.swarm import PeerTable
 from skyfix.crps.transport import Endpoints, Transport, ZenohTransport, check_name, split_key
+from skyfix.drivers.vehicle import Vehicle
 from skyfix.errors import InputError, LinkError, SkyfixError
+from skyfix.fusion.engine import FusionEngine
 
 log = logging.getLogger("skyfix.crps.service")
 
@@ -73,9 +75,10 @@ class Service:
         self.stop = threading.Event()
         self.inbox: queue.Queue[tuple[float, M.Envelope]] = queue.Queue(INBOX_SIZE)
         self.counters = {"mavlink_connects": 0, "mavlink_lost": 0, "inbox_overflow": 0, "sent": 0,
-                         "estimates": 0}
+                         "estimates": 0, "loop_errors": 0}
         self._peer_fix_s: dict[str, float] = {}
         self._dropped_logged: dict[str, int] = {}
+        _warm_up()
         try:
             self.transport = transport or ZenohTransport(config.swarm, config.drone_id, config.endpoints)
         except SkyfixError:
@@ -92,12 +95,16 @@ class Service:
         next_hb = next_tick = time.monotonic()
         try:
             while not self.stop.is_set():
-                self._drain_inbox()
-                self._tick()
-                now = time.monotonic()
-                if now >= next_hb:
-                    next_hb = now + 1.0 / self.cfg.heartbeat_hz
-                    self._heartbeat()
+                try:
+                    self._drain_inbox()
+                    self._tick()
+                    now = time.monotonic()
+                    if now >= next_hb:
+                        next_hb = now + 1.0 / self.cfg.heartbeat_hz
+                        self._heartbeat()
+                except SkyfixError as exc:  # a service never dies of one bad input: log it, go on
+                    self.counters["loop_errors"] += 1
+                    log.error("main loop: %s", exc)
                 next_tick += period
                 self.stop.wait(max(0.0, next_tick - time.monotonic()))
                 if time.monotonic() - next_tick > 1.0:  # far behind (machine stalled): do not burst
@@ -246,8 +253,6 @@ class Service:
 
     # -- MAVLink supervision ----------------------------------------------------------------------
     def _mavlink_loop(self) -> None:
-        from skyfix.drivers.vehicle import Vehicle
-
         delay = BACKOFF_S[0]
         lost_since = None
         while not self.stop.is_set():
@@ -277,6 +282,15 @@ class Service:
     def _mav_event(self, kind: str) -> None:
         log.info("MAVLink %s %s", self.cfg.mavlink_url, kind)
         self.outputs.json("/mavlink/state", {"event": kind, "url": self.cfg.mavlink_url, **self.counters})
+
+
+def _warm_up() -> None:
+    """Pay the one-time costs (scipy.stats behind the engine's gates, foxglove's schemas: seconds on a
+    loaded companion computer, holding the interpreter) before peers are listened to, so they do not
+    silence a running service."""
+    import foxglove.messages  # noqa: F401
+
+    FusionEngine((0.0, 0.0, 0.0))
 
 
 def _origin_of(state) -> tuple[float, float, float] | None:
@@ -375,6 +389,7 @@ def register(subparsers) -> None:
 
 def run_serve(args) -> int:
     """The ``skyfix serve`` command: exit 0 after SIGINT/SIGTERM, 2 on a bad argument."""
+    import faulthandler
     import signal
     import sys
 
@@ -400,6 +415,7 @@ def run_serve(args) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    faulthandler.register(signal.SIGUSR1, all_threads=True)  # kill -USR1 PID: every thread's stack to stderr
     log.info("skyfix serve %s: MAVLink %s, swarm %s", cfg.drone_id, cfg.mavlink_url, args.swarm)
     service.run()
     return 0

@@ -7,7 +7,7 @@ estimate, relative, help), and share one interface (:class:`Transport`): ``publi
 swarm but one's own) and ``close``. Zenoh runs in peer mode without a broker; multicast
 scouting is off, so a drone hears exactly the endpoints it is given: it listens on its
 own and connects to its peers', and zenoh reconnects (back-off from 250 ms to 1 s) to a
-peer that restarts. Callbacks run on the transport's threads and must return quickly.
+peer that restarts. Callbacks run on one receiving thread per subscription and must return quickly.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from skyfix.errors import InputError, LinkError
 log = logging.getLogger(__name__)
 
 Callback = Callable[[str, bytes], None]
+RX_QUEUE = 4096  # samples zenoh holds for the receiving thread (3 peers x 40 msg/s: ~30 s)
 _ENDPOINT = re.compile(r"^(tcp|udp|tls|quic)/(\[[0-9a-fA-F:]+\]|[A-Za-z0-9.\-]+):(\d{1,5})$")
 _NAME = re.compile(r"^[A-Za-z0-9_\-]{1,32}$")
 
@@ -103,30 +104,47 @@ class ZenohTransport:
                             ) from None
         self._publishers: dict[str, object] = {}
         self._subscribers: list[object] = []
+        self._readers: list[threading.Thread] = []
         self._lock = threading.Lock()
 
     def publish(self, topic: str, data: bytes) -> None:
         with self._lock:
             pub = self._publishers.get(topic)
             if pub is None:
-                pub = self._publishers[topic] = self._session.declare_publisher(key_expr(self.swarm, self.drone, topic))
+                pub = self._publishers[topic] = self._session.declare_publisher(
+                    key_expr(self.swarm, self.drone, topic), express=True)  # small messages: no batching delay
         pub.put(data)
 
     def subscribe(self, callback: Callback) -> None:
-        own = f"skyfix/{self.swarm}/{self.drone}/"
+        import zenoh
 
-        def on_sample(sample) -> None:
+        # Samples wait in zenoh's own bounded FIFO and a Python thread takes them out: zenoh's threads
+        # never need the interpreter, so a busy Python side cannot stall (or deadlock) the network side.
+        sub = self._session.declare_subscriber(f"skyfix/{self.swarm}/**", zenoh.handlers.FifoChannel(RX_QUEUE))
+        self._subscribers.append(sub)
+        reader = threading.Thread(target=self._receive, args=(sub, callback), daemon=True,
+                                  name=f"skyfix-zenoh-rx {self.drone}")
+        self._readers.append(reader)
+        reader.start()
+
+    def _receive(self, sub, callback: Callback) -> None:
+        import zenoh
+
+        own = f"skyfix/{self.swarm}/{self.drone}/"
+        while True:
+            try:
+                sample = sub.recv()
+            except (zenoh.ZError, RuntimeError):  # the session closed: the transport is closing
+                return
             key = str(sample.key_expr)
             if not key.startswith(own):
                 callback(key, sample.payload.to_bytes())
 
-        self._subscribers.append(self._session.declare_subscriber(f"skyfix/{self.swarm}/**", on_sample))
-
     def close(self) -> None:
-        for sub in self._subscribers:
-            sub.undeclare()
+        self._session.close()  # ends the subscribers' channels: the receiving threads return
+        for reader in self._readers:
+            reader.join(timeout=1.0)
         self._subscribers.clear()
-        self._session.close()
 
 
 class InProcessBus:

@@ -178,7 +178,7 @@ def _stream(path: Path) -> Iterator[object]:
             yield from StreamReader(f, skip_magic=False).records
         # a crash-cut tail surfaces as whichever decoding step ran out of bytes
         except (McapError, EOFError, ValueError, KeyError, RuntimeError, struct.error, ZstdError) as exc:
-            log.warning("%s: log ends in an incomplete record (%s: %s); read up to there",
+            log.info("%s: log ends in an incomplete record (%s: %s); read up to there",
                         path, type(exc).__name__, exc)
 
 

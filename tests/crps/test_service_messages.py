@@ -79,10 +79,12 @@ def test_bad_datagrams_are_dropped_and_counted():
     flipped = bytearray(a.encode(Heartbeat("ok", "gnss", 1.0, True)))
     flipped[10] ^= 0x01
     assert b.decode(bytes(flipped)) is None
-    signed_garbage = b"\x93\x01\xa1a" + hmac.digest(KEY, b"\x93\x01\xa1a", hashlib.sha256)
-    assert b.decode(signed_garbage) is None                          # right key, not an envelope
-    assert b.dropped["replayed"] == 1 and b.dropped["oversized"] == 1 and b.dropped["malformed"] == 1
-    assert b.dropped["forged"] + b.dropped["truncated"] == 50 + 4
+    garbage = b"\x00\x04\x93\x01\xa1a"
+    assert b.decode(garbage + hmac.digest(KEY, garbage, hashlib.sha256)) is None  # right key, not an envelope
+    assert b.decode(good + b"\x00") is None                        # longer than it says
+    assert b.dropped["replayed"] == 1 and b.dropped["oversized"] == 1
+    assert b.dropped["forged"] >= 2 and b.dropped["truncated"] >= 2 and b.dropped["malformed"] >= 2
+    assert sum(b.dropped.values()) == 50 + 8  # every bad datagram counted once
     assert b.accepted == 1
 
 
