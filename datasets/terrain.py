@@ -26,6 +26,7 @@ from skyfix import validate
 from skyfix.datasets.thermal_scene import forest_texture
 from skyfix.errors import GeometryError, InputError
 from skyfix.geo import LocalFrame
+from skyfix.thermal.demcast import bilinear
 from skyfix.thermal.ground import DemGround
 
 #: Ray-terrain intersections stop when the ray is this close above the surface, metres.
@@ -95,16 +96,7 @@ class Terrain:
 
     def _sample(self, grid: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
         """Bilinear samples of ``grid`` at (col, row) float arrays (any shape), NaN outside."""
-        # cv2.remap wants maps under 32767 rows: lay the points out 1024 to a row.
-        m = col.size
-        if m == 0:
-            return np.zeros(col.shape)
-        rows = -(-m // 1024)
-        maps = np.full((2, rows * 1024), -10.0, np.float32)
-        maps[0, :m], maps[1, :m] = col.ravel(), row.ravel()
-        out = cv2.remap(grid, maps[0].reshape(rows, 1024), maps[1].reshape(rows, 1024), cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-        return out.ravel()[:m].reshape(col.shape).astype(np.float64)
+        return bilinear(grid, col.ravel().astype(np.float32), row.ravel().astype(np.float32)).reshape(col.shape)
 
     def up_at(self, east_m, north_m) -> np.ndarray:
         """Terrain ``up`` (m, in the frame) at frame (east, north) metres; NaN off the grid."""

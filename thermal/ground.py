@@ -17,8 +17,9 @@ import pyproj
 
 from skyfix import validate
 from skyfix.camera import Camera, CameraPose, ground_intersection
-from skyfix.errors import DataError, GeometryError, InputError
+from skyfix.errors import DataError, InputError
 from skyfix.geo import LocalFrame
+from skyfix.thermal.demcast import LocalDem
 
 
 @dataclass(frozen=True)
@@ -58,14 +59,20 @@ class FlatGround:
 class DemGround:
     """A gridded elevation model: ``heights_m`` ``(H, W)`` ellipsoidal heights on a
     north-up grid in ``crs``, ``transform`` the GDAL affine (x0, dx, 0, y0, 0, dy) of the
-    pixel *corners*. NaN cells are no-data. ``sigma_m`` is the DEM's 1-sigma height error.
+    pixel *corners*. NaN cells are no-data: filled from their neighbours when
+    ``fill_holes`` (``hole_fraction`` says how much was filled), else refused when a ray
+    meets them. ``sigma_m`` is the DEM's 1-sigma height error.
     """
 
     heights_m: np.ndarray
     transform: tuple[float, float, float, float, float, float]
     crs: str = "EPSG:4326"
     sigma_m: float = 1.0
+    fill_holes: bool = True
     _to_grid: pyproj.Transformer = field(init=False, repr=False)
+    hole_fraction: float = field(init=False, default=0.0)
+    _median_m: float = field(init=False, repr=False, default=0.0)
+    _local: list = field(init=False, repr=False, default_factory=list)
 
     def __post_init__(self) -> None:
         h = np.asarray(self.heights_m, dtype=np.float64)
@@ -74,8 +81,13 @@ class DemGround:
         if not np.isfinite(h).any():
             raise InputError("DemGround.heights_m has no finite height")
         h = h.copy()
+        holes = ~np.isfinite(h)
+        if self.fill_holes and holes.any():
+            h = _inpaint(h, holes)
         h.setflags(write=False)
         object.__setattr__(self, "heights_m", h)
+        object.__setattr__(self, "hole_fraction", float(holes.mean()))
+        object.__setattr__(self, "_median_m", float(np.nanmedian(h)))
         t = tuple(float(x) for x in validate.finite_array("DemGround.transform", self.transform).reshape(-1))
         if len(t) != 6 or t[2] != 0.0 or t[4] != 0.0 or t[1] == 0.0 or t[5] == 0.0:
             raise InputError(f"DemGround.transform must be a north-up GDAL affine (x0, dx, 0, y0, 0, dy), got {t}")
@@ -85,15 +97,16 @@ class DemGround:
 
     @classmethod
     def from_geotiff(cls, path: str | Path, *, datum: str, geoid_undulation_m: float | None = None,
-                     sigma_m: float = 1.0) -> DemGround:
-        """Load band 1 of a GeoTIFF DEM. ``datum`` is "ellipsoid" (heights above WGS84) or
-        "amsl" (orthometric; then ``geoid_undulation_m`` N is added: h = H + N)."""
+                     sigma_m: float = 1.0, fill_holes: bool = True) -> DemGround:
+        """Load band 1 of a GeoTIFF DEM in any CRS (projected or geographic). ``datum``:
+        "ellipsoid" (heights above WGS84) or "amsl" (above the geoid: the EGM96 undulation
+        N of every cell is added from :mod:`skyfix.geoid`, or the constant
+        ``geoid_undulation_m`` when given). No-data cells are filled from their
+        neighbours (``fill_holes``) or left NaN (rays meeting them are refused)."""
         import rasterio
 
         if datum not in ("ellipsoid", "amsl"):
             raise InputError(f"datum must be 'ellipsoid' or 'amsl', got {datum!r}")
-        if datum == "amsl" and geoid_undulation_m is None:
-            raise InputError("an AMSL DEM needs geoid_undulation_m (geoid height above the ellipsoid at the site)")
         try:
             with rasterio.open(path) as src:
                 heights = src.read(1).astype(np.float64)
@@ -105,14 +118,35 @@ class DemGround:
             raise DataError(f"cannot read DEM {path}: {exc}") from None
         if crs is None:
             raise DataError(f"DEM {path} has no CRS")
+        transform = (a.c, a.a, a.b, a.f, a.d, a.e)
         if datum == "amsl":
-            heights = heights + validate.finite_scalar("geoid_undulation_m", geoid_undulation_m)
-        return cls(heights, (a.c, a.a, a.b, a.f, a.d, a.e), crs, sigma_m)
+            if geoid_undulation_m is not None:
+                heights = heights + validate.finite_scalar("geoid_undulation_m", geoid_undulation_m)
+            else:
+                heights = heights + _cell_undulations_m(heights.shape, transform, crs)
+        return cls(heights, transform, crs, sigma_m, fill_holes)
+
+    def local(self) -> LocalDem:
+        """The DEM resampled into the ENU frame of its centre, for fast ray casting
+        (built on first use, ~0.3 s per million cells)."""
+        if not self._local:
+            self._local.append(LocalDem(self.heights_m, self.transform, self.crs))
+        return self._local[0]
+
+    def check_covers(self, lat_deg, lon_deg, what: str = "the flight") -> None:
+        """Raise :class:`DataError` unless every point (WGS84) lies on the DEM's data."""
+        h = self.height_at(lat_deg, lon_deg)
+        if not np.all(np.isfinite(h)):
+            lat = np.asarray(lat_deg, float).ravel()
+            lon = np.asarray(lon_deg, float).ravel()
+            k = int(np.flatnonzero(~np.isfinite(h.ravel()))[0])
+            raise DataError(f"the DEM does not cover {what}: no height at lat {lat[k]:.6f}, lon {lon[k]:.6f} "
+                            f"({int(np.sum(~np.isfinite(h)))} of {h.size} points off the DEM or in no-data)")
 
     @property
     def alt_m(self) -> float:
         """Median ellipsoidal height of the DEM, metres (a starting guess for ray casting)."""
-        return float(np.nanmedian(self.heights_m))
+        return self._median_m
 
     def height_at(self, lat_deg, lon_deg) -> np.ndarray:
         """Bilinear ellipsoidal height (m) at the given points; NaN outside the grid."""
@@ -162,48 +196,53 @@ def _frame_at(lat_deg: float, lon_deg: float, alt_m: float) -> LocalFrame:
 
 
 def intersect(camera: Camera, pose: CameraPose, uv: np.ndarray, ground: FlatGround | DemGround,
-              frame: LocalFrame, *, tol_m: float = 0.01, max_iter: int = 50) -> tuple[np.ndarray, np.ndarray]:
+              frame: LocalFrame) -> tuple[np.ndarray, np.ndarray]:
     """Ground points ``(N, 3)`` ENU in ``frame`` and their ellipsoidal heights ``(N,)``.
 
     Flat ground: one exact ray/ellipsoid-height intersection (the foundation's
-    :func:`ground_intersection`). DEM: per ray, iterate h <- DEM(intersection at h) with
-    secant steps until the height changes by less than ``tol_m``; raises
-    :class:`GeometryError` when the ray leaves the DEM or does not converge.
+    :func:`ground_intersection`). DEM: first hit on the DEM, all rays at once
+    (:class:`~skyfix.thermal.demcast.LocalDem`, to a millimetre); raises
+    :class:`GeometryError` when a ray points above the horizon, leaves the DEM or meets
+    a no-data hole that was not filled.
     """
     if isinstance(ground, FlatGround):
         pts = ground_intersection(camera, pose, uv, ground.alt_m, frame)
         return pts, np.full(pts.shape[0], ground.alt_m)
     uv = validate.points("uv", uv, 2)
-    pts = np.empty((uv.shape[0], 3))
-    heights = np.empty(uv.shape[0])
-    for i in range(uv.shape[0]):
-        pts[i], heights[i] = _dem_ray(camera, pose, uv[i:i + 1], ground, frame, tol_m, max_iter)
-    return pts, heights
+    local = ground.local()
+    cam, r_local_from_cam = pose.in_frame(local.frame)
+    d = camera.pixel_to_ray(uv) @ r_local_from_cam.T
+    t = local.cast(cam, d)
+    p = cam + t[:, None] * d
+    lat, lon, h = local.frame.to_geodetic(p[:, 0], p[:, 1], p[:, 2])
+    return np.stack(frame.to_enu(lat, lon, h), axis=1), np.asarray(h, float)
 
 
-def _dem_ray(camera: Camera, pose: CameraPose, uv: np.ndarray, dem: DemGround, frame: LocalFrame,
-             tol_m: float, max_iter: int) -> tuple[np.ndarray, float]:
-    def residual(h: float) -> tuple[float, np.ndarray]:
-        p = ground_intersection(camera, pose, uv, h, frame)
-        lat, lon, _ = frame.to_geodetic(p[:, 0], p[:, 1], p[:, 2])
-        z = float(dem.height_at(lat, lon)[0])
-        if not np.isfinite(z):
-            raise GeometryError(f"ray through pixel {uv[0].tolist()} leaves the DEM (or hits no-data)")
-        return z - h, p[0]
+def _inpaint(heights_m: np.ndarray, holes: np.ndarray) -> np.ndarray:
+    """No-data cells filled from the surrounding heights (OpenCV Navier-Stokes inpainting)."""
+    import cv2
 
-    below = float(dem.height_at(pose.lat, pose.lon)[()])
-    h_prev = min(below if np.isfinite(below) else dem.alt_m, pose.alt_m - 1.0)
-    f_prev, p = residual(h_prev)
-    h = min(h_prev + f_prev, pose.alt_m - 0.5)
-    for _ in range(max_iter):
-        f, p = residual(h)
-        if abs(f) < tol_m:
-            return p, h
-        slope = (f - f_prev) / (h - h_prev) if h != h_prev else 0.0
-        # Secant on g(h) = DEM(P(h)) - h; fall back to a damped fixed-point step.
-        step = -f / slope if abs(slope) > 1e-6 else f
-        if not np.isfinite(step) or abs(step) > 10 * (abs(f) + 1.0):
-            step = 0.5 * f
-        h_prev, f_prev = h, f
-        h = min(h + step, pose.alt_m - 0.5)
-    raise GeometryError(f"ray-terrain intersection for pixel {uv[0].tolist()} did not converge")
+    base = float(np.nanmedian(heights_m))
+    img = np.where(holes, 0.0, heights_m - base).astype(np.float32)
+    filled = cv2.inpaint(img, holes.astype(np.uint8), 3, cv2.INPAINT_NS).astype(np.float64) + base
+    return np.where(holes, filled, heights_m)
+
+
+def _cell_undulations_m(shape: tuple[int, int], transform: tuple, crs: str) -> np.ndarray:
+    """EGM96 undulation (m) at every cell centre of a grid; the geoid varies over tens of
+    kilometres, so it is evaluated on a coarse lattice and interpolated."""
+    from skyfix.geoid import geoid_undulation_m
+
+    x0, dx, _, y0, _, dy = transform
+    h, w = shape
+    rows = np.linspace(0, h - 1, min(h, 17))
+    cols = np.linspace(0, w - 1, min(w, 17))
+    cc, rr = np.meshgrid(cols, rows)
+    lon, lat = pyproj.Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(
+        x0 + (cc + 0.5) * dx, y0 + (rr + 0.5) * dy)
+    coarse = geoid_undulation_m(lat, lon)
+    from scipy.interpolate import RegularGridInterpolator
+
+    interp = RegularGridInterpolator((rows, cols), coarse)
+    r_all, c_all = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    return interp(np.stack((r_all.ravel(), c_all.ravel()), axis=1)).reshape(h, w)

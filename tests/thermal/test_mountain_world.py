@@ -107,3 +107,38 @@ def test_lines_and_orbit_logs_refuse_paths_into_the_ground(terrain):
     assert log.time_s[-1] > 2 * 600.0 / 8.0
     with pytest.raises(GeometryError):
         orbit_log(scene, (0.0, 0.0), radius_m=2000.0, height_m=80.0)
+
+
+def test_dem_ray_cast_first_hit_holes_and_coverage(terrain, tmp_path):
+    from skyfix.errors import DataError
+    from skyfix.thermal.ground import intersect
+
+    dem = terrain.dem_ground(metres_per_px=2.0, sigma_m=0.3)
+    cam = CAM
+    # Camera low on one side looking across the ridge: first hits must match the true terrain's.
+    origin = np.array([-350.0, -350.0, terrain.max_up_m + 40.0])
+    lat, lon, alt = FRAME.to_geodetic(*origin)
+    from skyfix.camera import CameraPose as Pose
+
+    pose = Pose(float(lat), float(lon), float(alt), 0.0, 0.0, 45.0, -35.0, 0.0, 0.0, True)
+    uv = np.stack(np.meshgrid(np.linspace(20, 620, 9), np.linspace(250, 500, 6)), -1).reshape(-1, 2)
+    pts, heights = intersect(cam, pose, uv, dem, FRAME)
+    c, r = pose.in_frame(FRAME)
+    d = cam.pixel_to_ray(uv) @ r.T
+    t_true = terrain.cast(c, d)
+    t_dem = np.linalg.norm(pts - c, axis=1)
+    # A 2 m DEM of the 0.4 m-rough terrain: heights within ~0.5 m, so slant ranges within
+    # a few metres at 25-40 deg incidence; a skipped ridge would be off by hundreds.
+    ok = np.isfinite(t_true)
+    assert ok.mean() > 0.9
+    assert np.median(np.abs(t_dem[ok] - t_true[ok])) < 1.0 and np.max(np.abs(t_dem[ok] - t_true[ok])) < 8.0
+    # Hole: filled from its neighbours by default, refused when not filled.
+    path = terrain.write_dem(tmp_path / "holes.tif", metres_per_px=5.0, holes=30, seed=4)
+    filled = DemGround.from_geotiff(path, datum="ellipsoid")
+    raw = DemGround.from_geotiff(path, datum="ellipsoid", fill_holes=False)
+    assert filled.hole_fraction > 0.005 and np.all(np.isfinite(filled.heights_m))
+    assert np.isnan(raw.heights_m).any()
+    # Coverage: a flight 3 km away is refused with the position named.
+    far_lat, far_lon, _ = FRAME.to_geodetic(3000.0, 0.0, 0.0)
+    with pytest.raises(DataError, match="does not cover the flight"):
+        filled.check_covers([lat, far_lat], [lon, far_lon])

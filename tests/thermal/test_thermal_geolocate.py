@@ -165,8 +165,14 @@ def test_dem_ground_iterates_to_the_terrain(tmp_path):
     flat = geolocate(uv, CAM, pose, 30.0)
     assert float(inverse(fix.lat_deg, fix.lon_deg, flat.lat_deg, flat.lon_deg)[1]) > 3.0
     assert fix.sigma_up_m == pytest.approx(0.5, rel=1e-4)  # axes of the fix vs the frame
-    with pytest.raises(InputError, match="geoid_undulation_m"):
-        DemGround.from_geotiff(tmp_path / "dem.tif", datum="amsl")
+    # The same file read as AMSL: every cell raised by the EGM96 undulation there (about
+    # -32 m near Montreal), interpolated from a coarse lattice (the geoid is smooth).
+    from skyfix.geoid import geoid_undulation_m
+
+    amsl = DemGround.from_geotiff(tmp_path / "dem.tif", datum="amsl")
+    lat, lon = fix.lat_deg, fix.lon_deg
+    assert float(amsl.height_at(lat, lon) - dem.height_at(lat, lon)) == pytest.approx(
+        float(geoid_undulation_m(lat, lon)), abs=0.02)
 
 
 @pytest.mark.parametrize(("call", "error", "message"), [
