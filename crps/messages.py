@@ -180,10 +180,14 @@ class SwarmCodec:
 
     def encode(self, body: Body) -> bytes:
         """Sign ``body`` into one datagram (next sequence number, stamped now)."""
+        return self.seal(body)[1]
+
+    def seal(self, body: Body) -> tuple[Envelope, bytes]:
+        """The envelope of ``body`` (next sequence number, stamped now) and its signed datagram."""
         env = Envelope(WIRE_VERSION, self.sender_id, self.boot_id, next(self._seq), self.clock(), body)
         payload = self._encoder.encode(env)
         signed = len(payload).to_bytes(2, "big") + payload
-        return signed + hmac.digest(self._key, signed, hashlib.sha256)
+        return env, signed + hmac.digest(self._key, signed, hashlib.sha256)
 
     def decode(self, data: bytes) -> Envelope | None:
         """The checked envelope of datagram ``data``, or None (dropped and counted)."""

@@ -178,7 +178,7 @@ class Service:
                           event.time_s)
 
     def _publish(self, body) -> None:
-        data = self.codec.encode(body)
+        env, data = self.codec.seal(body)
         topic = M.TOPIC_OF[type(body)]
         try:
             self.transport.publish(topic, data)
@@ -186,8 +186,7 @@ class Service:
             log.warning("swarm publish on %s failed: %s", topic, exc)
             return
         self.counters["sent"] += 1
-        self.outputs.json(f"/swarm/out/{type(body).__name__}", {"type": type(body).__name__,
-                                                                "body": M.msgspec.to_builtins(body)})
+        self.outputs.json(f"/swarm/out/{type(body).__name__}", M.to_builtins(env), env.time_s)
 
     def _heartbeat(self) -> None:
         for event in self.peers.check():

@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -31,10 +33,28 @@ IDS = ("d1", "d2", "d3")
 KEY = os.urandom(32)
 
 
+def start_sim(n: int) -> tuple[subprocess.Popen, list[int]]:
+    """``skyfix sim --vehicles n``; the UDP port each vehicle answers on (its printed 'listens on')."""
+    sim = subprocess.Popen([sys.executable, "-m", "skyfix", "sim", "--vehicles", str(n), "--base-port",
+                            str(free_ports(1)[0])], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    ports = []
+    for line in sim.stdout:
+        m = re.search(r"vehicle \d+: .* listens on 127\.0\.0\.1:(\d+)", line)
+        if m:
+            ports.append(int(m.group(1)))
+        if len(ports) == n:
+            break
+    # keep reading what it prints later, so that its writes never meet a closed pipe
+    threading.Thread(target=lambda: sim.stdout.read(), daemon=True).start()
+    return sim, ports
+
+
 def serve_cmd(i: int, ports: list[int], mav_port: int, key_file: Path, log: Path) -> list[str]:
+    """``skyfix serve`` for drone i, its autopilot reached with udpout (a restarted service is a new
+    peer to the simulator, as to a real autopilot's GCS port)."""
     own = f"listen:tcp/127.0.0.1:{ports[i]}"
     peers = [f"tcp/127.0.0.1:{p}" for j, p in enumerate(ports) if j != i]
-    return [sys.executable, "-m", "skyfix", "serve", "--id", IDS[i], "--mavlink", f"udpin:127.0.0.1:{mav_port}",
+    return [sys.executable, "-m", "skyfix", "serve", "--id", IDS[i], "--mavlink", f"udpout:127.0.0.1:{mav_port}",
             "--swarm", ",".join([own, *peers]), "--swarm-key-file", str(key_file), "--roster", ",".join(IDS),
             "--log", str(log)]
 
@@ -98,14 +118,12 @@ def test_three_services_hear_each_other_lose_rejoin_and_survive_attacks(tmp_path
     key_file = tmp_path / "swarm.key"
     key_file.write_bytes(KEY)
     ports = free_ports(3)
-    mav_base = free_ports(1)[0]
-    sim = subprocess.Popen([sys.executable, "-m", "skyfix", "sim", "--vehicles", "3", "--base-port", str(mav_base)],
-                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    sim, mav = start_sim(3)
     logs = [tmp_path / f"{d}.mcap" for d in IDS]
     procs: list[subprocess.Popen] = []
     try:
         for i in range(3):
-            procs.append(subprocess.Popen(serve_cmd(i, ports, mav_base + i, key_file, logs[i]),
+            procs.append(subprocess.Popen(serve_cmd(i, ports, mav[i], key_file, logs[i]),
                                           stderr=open(tmp_path / f"{IDS[i]}.err", "w")))  # noqa: SIM115
         assert wait_for(lambda: all(np.isfinite(peer_event_s(logs[i], "joined", IDS[j]))
                                     for i in range(3) for j in range(3) if i != j), 60.0), "not all peers heard"
@@ -125,7 +143,7 @@ def test_three_services_hear_each_other_lose_rejoin_and_survive_attacks(tmp_path
 
         # restarted (new log): it rejoins
         log3b = tmp_path / "d3b.mcap"
-        procs[2] = subprocess.Popen(serve_cmd(2, ports, mav_base + 2, key_file, log3b),
+        procs[2] = subprocess.Popen(serve_cmd(2, ports, mav[2], key_file, log3b),
                                     stderr=open(tmp_path / "d3b.err", "w"))  # noqa: SIM115
         assert wait_for(lambda: all(np.isfinite(peer_event_s(logs[i], "rejoined", "d3", t_kill)) for i in (0, 1)),
                         30.0)
