@@ -218,7 +218,7 @@ class Vehicle:
         if msg.get_srcComponent() != self.component_id:
             return
         self._hb_mono = t_mono
-        if t_mono - self._position_mono > 2.0 and t_mono - self._streams_mono > 2.0:
+        if self.link is not None and t_mono - self._position_mono > 2.0 and t_mono - self._streams_mono > 2.0:
             self.request_streams()  # heartbeats but no positions: rates forgotten (reboot)
         old = self._state
         mode = mode_name(self.autopilot, msg.custom_mode)
@@ -232,7 +232,7 @@ class Vehicle:
         if old.armed != armed:
             self._emit("armed" if armed else "disarmed")
         self._update(mode=mode, armed=armed, heartbeat_time_s=now, link_ok=True)
-        if not old.link_ok:
+        if not old.link_ok and self.link is not None:
             self.request_streams()  # an autopilot that rebooted forgot our rates
         if old.armed and not armed:
             self._stop_setpoints()
@@ -423,12 +423,23 @@ class Vehicle:
                 self.safety.check_position_setpoint(pos.lat_deg, pos.lon_deg, alt_m)
         if self.autopilot == "px4":
             home = self._state.home or self.wait_until(lambda s: s.home is not None, 3.0, what="home").home
-            self.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan,
-                         home.alt_amsl_m + alt_m)
+            params = [0, 0, 0, math.nan, math.nan, math.nan, home.alt_amsl_m + alt_m]
         else:
             if self._state.mode != "GUIDED":
                 self.set_mode("GUIDED")
-            self.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, alt_m)
+            params = [0, 0, 0, 0, 0, 0, alt_m]
+        t0 = time.monotonic()
+        try:
+            self.command(M.MAV_CMD_NAV_TAKEOFF, *params)
+        except CommandRejected:
+            # a re-sent takeoff whose first copy was accepted (its ACK lost) is refused as
+            # "already flying": not an error when the vehicle did leave the ground just now
+            with contextlib.suppress(SkyfixTimeout):
+                self.wait_until(lambda s: s.landed_state in ("IN_AIR", "TAKEOFF") and s.position
+                                is not None and s.position.time_s > time.time() - 0.5, 1.5,
+                                what="lift-off")
+            if self._state.landed_state not in ("IN_AIR", "TAKEOFF") or time.monotonic() - t0 > 10.0:
+                raise
         if wait:
             self.wait_until(lambda s: s.position is not None and s.position.alt_rel_m >= alt_m - 0.5,
                             timeout_s or alt_m / 0.5 + 10.0, what=f"takeoff to {alt_m:.1f} m")

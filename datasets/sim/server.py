@@ -1,9 +1,10 @@
 """The MAVLink face of one simulated vehicle: parses what ground stations send, answers
 like ArduPilot Copter or PX4, and emits telemetry streams at the requested rates.
 
-Telemetry intervals run on simulated time (as SITL's do), so a simulator running at
-``speed`` x real time also streams ``speed`` x faster. Mission-protocol retries run on
-wall time, because they recover lost packets, not simulated events.
+Telemetry intervals and mission-protocol timings run on simulated time, as SITL's do,
+so a simulator running at ``speed`` x real time also streams ``speed`` x faster. Every
+COMMAND_LONG/COMMAND_INT gets exactly one COMMAND_ACK (FAILED when handling it raised).
+Each sender has its own parser, so a truncated datagram cannot swallow another's.
 """
 
 from __future__ import annotations
@@ -49,8 +50,11 @@ DATA_STREAMS: dict[int, tuple[str, ...]] = {
     M.MAV_DATA_STREAM_EXTRA2: ("VFR_HUD",),
 }
 _MSG_NAME_BY_ID = {cls.id: cls.msgname for cls in M.mavlink_map.values()}
-_MISSION_RETRY_S = 0.01  # re-request a missing item after this much silence (loopback RTT << 1 ms)
-_MISSION_GIVE_UP = 200
+#: Mission upload timings, simulated seconds, as the firmware's: (re-request a missing item
+#: after, abandon the upload after no item for). ArduPilot MissionItemProtocol: 1 s / 8 s;
+#: PX4 MavlinkMissionManager: 0.25 s / 5 s.
+MISSION_TIMINGS_S = {"ardupilot": (1.0, 8.0), "px4": (0.25, 5.0)}
+_MAX_PEERS = 64
 
 
 class VehicleServer:
@@ -69,8 +73,8 @@ class VehicleServer:
         self.gcs_address = gcs_address
         self.loss_rate = float(loss_rate)
         self._rng = rng or np.random.default_rng(vehicle.config.seed + 7)
-        self.mav = M.MAVLink(None, srcSystem=vehicle.config.system_id, srcComponent=1)
-        self.mav.robust_parsing = True
+        self.mav = M.MAVLink(None, srcSystem=vehicle.config.system_id, srcComponent=1)  # encoder
+        self._parsers: dict[tuple[str, int], M.MAVLink] = {}  # one per sender: no shared buffer
         self.peers: dict[tuple[str, int], float] = {}
         self.intervals_s = dict(DEFAULT_INTERVALS_S)
         self._next_due_s: dict[str, float] = {}
@@ -125,8 +129,14 @@ class VehicleServer:
         """Parse one datagram and act on every message addressed to this vehicle."""
         if self.loss_rate and self._rng.random() < self.loss_rate:
             return
+        parser = self._parsers.get(addr)
+        if parser is None:
+            if len(self._parsers) >= _MAX_PEERS:  # forget the oldest sender
+                self._parsers.pop(next(iter(self._parsers)))
+            parser = self._parsers[addr] = M.MAVLink(None)
+            parser.robust_parsing = True
         try:
-            msgs = self.mav.parse_buffer(data) or []
+            msgs = parser.parse_buffer(data) or []
         except Exception as exc:  # malformed input must never stop the autopilot
             self.bad_packets += 1
             log.debug("sim %d: unparsable datagram from %s: %s", self.system_id, addr, exc)
@@ -355,6 +365,10 @@ class VehicleServer:
         except Refusal as refusal:
             self.statustext(refusal.text, M.MAV_SEVERITY_WARNING)
             result = refusal.result
+        except Exception as exc:  # a bug or a value it cannot use: FAILED, never silence
+            log.exception("sim %d: %s failed", self.system_id, cmd)
+            self.statustext(f"Command {cmd} failed: {exc}"[:100], M.MAV_SEVERITY_ERROR)
+            result = M.MAV_RESULT_FAILED
         if result is not None:
             self._ack(msg, cmd, result, addr)
         while v.events:  # mode changes etc. go out right behind the ACK
@@ -363,7 +377,7 @@ class VehicleServer:
     def _execute(self, cmd: int, p: list[float], msg, addr) -> int | None:
         v = self.vehicle
         if cmd == M.MAV_CMD_COMPONENT_ARM_DISARM:
-            force = int(round(p[1])) == FORCE_MAGIC
+            force = math.isfinite(p[1]) and int(round(p[1])) == FORCE_MAGIC  # MAVSDK sends NaN
             v.arm(force) if p[0] >= 0.5 else v.disarm(force)
             return ACCEPTED
         if cmd == M.MAV_CMD_DO_SET_MODE:
@@ -411,10 +425,15 @@ class VehicleServer:
                       M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: M.MAVLINK_MSG_ID_AUTOPILOT_VERSION
                       }.get(cmd, int(p[0]))
             name = _MSG_NAME_BY_ID.get(msg_id, "")
+            if not hasattr(self, "_msg_" + name.lower()):
+                return UNSUPPORTED  # once, before anything else
             if name == "HOME_POSITION" and not v.home_set:
                 raise Refusal(M.MAV_RESULT_FAILED, "Home position not set")
             self._ack(msg, cmd, ACCEPTED, addr)
-            return None if self.send_message_named(name, addr) else UNSUPPORTED
+            self.send_message_named(name, addr)
+            return None
+        if cmd == M.MAV_CMD_DO_REPOSITION:
+            return self._reposition(p, msg)
         if cmd == M.MAV_CMD_DO_SET_CAM_TRIGG_DIST:
             v.cam_trigger_dist_m = max(0.0, p[0])
             v._cam_dist_acc_m = 0.0
@@ -436,6 +455,35 @@ class VehicleServer:
             v.events.append(("home",))
             return ACCEPTED
         return UNSUPPORTED
+
+    def _reposition(self, p: list[float], msg) -> int:
+        """MAV_CMD_DO_REPOSITION (MAVSDK's goto_location): fly to (lat, lon, alt) and hold there.
+        NaN or 0 lat/lon and NaN alt keep the current value; param2 bit 0 allows the mode change
+        (PX4 holds in AUTO.LOITER, ArduPilot flies it in GUIDED)."""
+        v = self.vehicle
+        if not v.armed or v.landed:
+            raise Refusal(MAV_RESULT_DENIED, "Reposition: not flying")
+        frame = msg.frame if msg.get_type() == "COMMAND_INT" else M.MAV_FRAME_GLOBAL
+        lat, lon, alt_amsl = v.geodetic_amsl(v.est_pos_enu_m)
+        if math.isfinite(p[4]) and math.isfinite(p[5]) and (p[4] or p[5]):
+            lat, lon = p[4], p[5]
+        if math.isfinite(p[6]):
+            target = v.global_target_enu(frame, lat, lon, p[6])
+        else:
+            target = v.enu_amsl(lat, lon, alt_amsl)
+        if math.isfinite(p[0]) and p[0] > 0:
+            v.speed_override_mps = p[0]
+        change_mode = math.isfinite(p[1]) and int(p[1]) & 1
+        if v.flavour == "px4":
+            v.set_mode("AUTO.LOITER")
+            v._hold_enu_m = target
+            return ACCEPTED
+        if v.mode != "GUIDED":
+            if not change_mode:
+                raise Refusal(MAV_RESULT_DENIED, "Reposition: not in GUIDED")
+            v.set_mode("GUIDED")
+        v.position_target(target, None)
+        return ACCEPTED
 
     def _on_set_mode(self, msg, addr) -> None:
         v = self.vehicle
@@ -556,7 +604,7 @@ class VehicleServer:
 
     def _request_item(self) -> None:
         up = self._upload
-        up["last_tx"] = time.monotonic()
+        up["last_tx"] = self.vehicle.t_s
         self.send(M.MAVLink_mission_request_int_message(up["sys"], up["comp"], up["next"], 0), up["addr"])
 
     def _on_mission_count(self, msg, addr) -> None:
@@ -569,7 +617,8 @@ class VehicleServer:
             self._mission_ack(addr, M.MAV_MISSION_ACCEPTED, msg)
             return
         self._upload = {"count": msg.count, "items": [None] * msg.count, "next": 0, "addr": addr,
-                        "sys": msg.get_srcSystem(), "comp": msg.get_srcComponent(), "tries": 0}
+                        "sys": msg.get_srcSystem(), "comp": msg.get_srcComponent(),
+                        "last_rx": self.vehicle.t_s}
         self._request_item()
 
     def _on_mission_item(self, msg, addr) -> None:
@@ -589,7 +638,7 @@ class VehicleServer:
         up["items"][msg.seq] = MissionItem(msg.seq, msg.frame, msg.command, msg.param1, msg.param2,
                                            msg.param3, msg.param4, x, y, msg.z, msg.autocontinue)
         up["next"] += 1
-        up["tries"] = 0
+        up["last_rx"] = self.vehicle.t_s
         if up["next"] == up["count"]:
             self.vehicle.set_mission(up["items"])
             self._last_upload_count = up["count"]
@@ -604,12 +653,14 @@ class VehicleServer:
         return self._upload is not None
 
     def service_upload(self) -> None:
-        """Re-request the missing mission item after silence; called often by the loop."""
+        """Re-request the missing mission item after silence, abandon the upload after a longer
+        one (the firmware's timings, on the autopilot's simulated clock); called every step."""
         up = self._upload
-        if up is None or time.monotonic() - up["last_tx"] < _MISSION_RETRY_S:
+        retry_s, give_up_s = MISSION_TIMINGS_S[self.vehicle.flavour]
+        t = self.vehicle.t_s
+        if up is None or t - up["last_tx"] < retry_s:
             return
-        up["tries"] += 1
-        if up["tries"] > _MISSION_GIVE_UP:
+        if t - up["last_rx"] > give_up_s:
             self._upload = None
             self._mission_ack(up["addr"], M.MAV_MISSION_OPERATION_CANCELLED)
             self.statustext("Mission upload timed out", M.MAV_SEVERITY_WARNING)

@@ -71,6 +71,7 @@ def test_simulator_reports_like_an_autopilot_and_skyfix_reads_it():
 def test_sitl_telemetry_log_parses_with_real_units():
     """Replays a log recorded from ArduPilot Copter 4.7.0-dev SITL (arm, climb to 5 m)
     through the Vehicle's telemetry handlers."""
+    # no link: the recorded messages are fed to the telemetry handlers directly
     vehicle = Vehicle(link=None, system_id=1, component_id=1, autopilot=mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
     log = mavutil.mavlink_connection(str(SITL_TLOG), dialect="ardupilotmega")
     n_raw = 0

@@ -1,0 +1,103 @@
+"""skyfix's simulator answers like the firmware where clients rely on it, checked with
+plain pymavlink clients on real UDP sockets: one COMMAND_ACK per command (FAILED when it
+cannot be handled, UNSUPPORTED once), NaN for unused params, one parser per sender, and
+the mission protocol's re-request and give-up timings (ArduPilot: 1 s and 8 s)."""
+
+from __future__ import annotations
+
+import math
+import os
+import socket
+import time
+
+os.environ.setdefault("MAVLINK20", "1")
+
+import pytest
+from pymavlink import mavutil
+
+from skyfix.datasets.sim import Simulator, SimulatorConfig
+
+M = mavutil.mavlink
+
+
+def _client(sim, source_system: int = 255):
+    master = mavutil.mavlink_connection(sim.url(0), source_system=source_system)
+    master.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+    assert master.wait_heartbeat(timeout=5) is not None
+    return master
+
+
+def _collect(master, mtype: str, seconds: float, cond=lambda m: True) -> list:
+    out, end = [], time.monotonic() + seconds
+    while time.monotonic() < end:
+        m = master.recv_match(type=mtype, blocking=True, timeout=0.05)
+        if m is not None and cond(m):
+            out.append(m)
+    return out
+
+
+@pytest.fixture
+def sim():
+    with Simulator(SimulatorConfig(vehicles=1, speed=5.0, seed=9)) as s:
+        yield s
+
+
+def test_every_command_gets_exactly_one_ack(sim):
+    master = _client(sim)
+    try:
+        def acks_for(command: int, *params: float) -> list[int]:
+            p = list(params) + [0.0] * (7 - len(params))
+            master.mav.command_long_send(1, 1, command, 0, *p)
+            return [a.result for a in _collect(master, "COMMAND_ACK", 0.6, lambda a: a.command == command)]
+
+        # a message the simulator does not produce: UNSUPPORTED, once (no ACCEPTED first)
+        assert acks_for(M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_WIND_COV) == [M.MAV_RESULT_UNSUPPORTED]
+        assert acks_for(M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_AUTOPILOT_VERSION) == [M.MAV_RESULT_ACCEPTED]
+        # a value the handler cannot use (NaN mode number) is FAILED, not silence
+        assert acks_for(M.MAV_CMD_DO_SET_MODE, 1, math.nan) == [M.MAV_RESULT_FAILED]
+        assert sim.servers[0].vehicle.mode == "STABILIZE"
+        # NaN in an unused param (MAVSDK's habit) is accepted
+        assert acks_for(M.MAV_CMD_COMPONENT_ARM_DISARM, 0, math.nan, math.nan) == [M.MAV_RESULT_ACCEPTED]
+        assert acks_for(M.MAV_CMD_DO_FLIGHTTERMINATION + 5000) == [M.MAV_RESULT_UNSUPPORTED]
+    finally:
+        master.close()
+
+
+def test_a_truncated_frame_from_one_sender_does_not_swallow_anothers(sim):
+    good = _client(sim, source_system=250)
+    try:
+        frame = M.MAVLink_param_request_read_message(1, 1, b"GPS1_TYPE", -1).pack(M.MAVLink(None, 251, 190))
+        noisy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        noisy.sendto(frame[: len(frame) // 2], sim.addresses[0])  # half a frame from another sender
+        noisy.close()
+        good.mav.param_request_read_send(1, 1, b"GPS1_TYPE", -1)
+        got = _collect(good, "PARAM_VALUE", 1.0, lambda m: m.param_id == "GPS1_TYPE")
+        assert len(got) == 1 and got[0].param_value == 1.0
+    finally:
+        good.close()
+
+
+def test_mission_upload_timings_follow_the_firmware(sim):
+    master = _client(sim)
+    try:
+        master.mav.mission_count_send(1, 1, 3, M.MAV_MISSION_TYPE_MISSION)
+        t_req: list[float] = []
+        ack = None
+        end = time.monotonic() + 5.0
+        while time.monotonic() < end and ack is None:
+            m = master.recv_match(type=["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"],
+                                  blocking=True, timeout=0.05)
+            if m is None:
+                continue
+            if m.get_type() == "MISSION_ACK":
+                ack = (m, sim.time_s)
+            else:
+                assert m.seq == 0
+                t_req.append(sim.time_s)
+        assert ack is not None and ack[0].type == M.MAV_MISSION_OPERATION_CANCELLED
+        gaps = [b - a for a, b in zip(t_req, t_req[1:])]
+        # re-requested every 1 s of autopilot time (one 20 ms step of slack + loop jitter)
+        assert gaps and all(0.95 <= g <= 1.2 for g in gaps), gaps
+        assert ack[1] - t_req[0] == pytest.approx(8.0, abs=0.3)  # abandoned after 8 s of silence
+    finally:
+        master.close()
