@@ -1,15 +1,19 @@
-"""MAVLink driver benchmark against the built-in simulator on loopback.
+"""MAVLink driver benchmark: skyfix's simulator and the real ArduPilot Copter SITL firmware.
 
 Measures, with a plain pymavlink client as the peer where one exists:
-  1. command round trip (COMMAND_LONG -> COMMAND_ACK), median and p95 (goal: median <= 20 ms);
-  2. 500-item mission upload time (goal: <= 2 s), and completion with 10 % packet loss
-     injected in both directions;
-  3. safety-violation latency: from the simulator sending the first telemetry message that
-     is outside the fence to it receiving the driver's mode change (goal: <= 50 ms, worst case),
-     plus the driver-internal time from receipt to action sent.
+  1. command round trip (COMMAND_LONG -> COMMAND_ACK), median and p95 (goal: median <= 20 ms),
+     on the simulator and on ArduPilot SITL at speed-up 1 (TCP);
+  2. 500-item mission upload time (goal: <= 2 s) on both, and on the simulator completion
+     with 10 % packet loss injected in both directions;
+  3. safety-violation latency on the simulator: from it sending the first telemetry message
+     outside the fence to it receiving the driver's mode change (goal: <= 50 ms, worst case);
+  4. ArduPilot SITL: the simulated receiver switched off (SIM_GPS1_ENABLE 0) -> skyfix's
+     GpsStatus flags no fix (goal: <= 1 s, worst case).
 
-Wall-clock times (time.perf_counter / monotonic) on a shared 2-core machine. Exit 1 when a
-goal is missed. The last line is the headline.
+The SITL column is skipped (said so) where ../shared/sitl / $SKYFIX_SITL_DIR is absent.
+``--soak N`` runs two copies of the quick benchmark at once, N times in a row, and fails
+if any copy fails (the loaded-machine check). Wall-clock times (perf_counter / monotonic)
+on a shared 2-core machine. Exit 1 when a goal is missed. The last line is the headline.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import subprocess
 import sys
 import time
 
@@ -25,6 +30,7 @@ os.environ.setdefault("MAVLINK20", "1")
 import numpy as np
 from pymavlink import mavutil
 
+from skyfix.datasets import sitl
 from skyfix.datasets.sim import Simulator, SimulatorConfig
 from skyfix.drivers.mav import mavlink
 from skyfix.drivers.mission import MissionItem
@@ -38,30 +44,42 @@ def _pct(values, q):
     return float(np.percentile(np.asarray(values), q))
 
 
+def _command_round_trips(v: Vehicle, n: int) -> list[float]:
+    args = (M.MAVLINK_MSG_ID_ATTITUDE, 100_000)
+    for _ in range(10):
+        v.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, *args)
+    out = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        v.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, *args)
+        out.append(time.perf_counter() - t0)
+    return out
+
+
+def _peer_round_trips(url: str, n: int, target_system: int = 1) -> list[float]:
+    """A plain pymavlink send + recv_match loop."""
+    master = mavutil.mavlink_connection(url, source_system=254)
+    master.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+    master.wait_heartbeat(timeout=10)
+    args = (M.MAVLINK_MSG_ID_ATTITUDE, 100_000)
+    peer = []
+    for i in range(n + 10):
+        t0 = time.perf_counter()
+        master.mav.command_long_send(target_system, 1, M.MAV_CMD_SET_MESSAGE_INTERVAL, 0, *args, 0, 0, 0, 0, 0)
+        ack = master.recv_match(type="COMMAND_ACK", blocking=True, timeout=1.0)
+        if ack is not None and i >= 10:
+            peer.append(time.perf_counter() - t0)
+    master.close()
+    return peer
+
+
 def round_trip(n: int) -> tuple[list[float], list[float]]:
-    """skyfix Vehicle.command vs a plain pymavlink send + recv_match loop, same simulator."""
+    """skyfix Vehicle.command vs a plain pymavlink loop, same simulator (speed 1)."""
     with Simulator(SimulatorConfig(vehicles=1, speed=1.0)) as sim:
         v = Vehicle.connect(sim.url(0), timeout_s=5.0)
-        args = (M.MAVLINK_MSG_ID_ATTITUDE, 100_000)
-        for _ in range(10):
-            v.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, *args)
-        ours = []
-        for _ in range(n):
-            t0 = time.perf_counter()
-            v.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, *args)
-            ours.append(time.perf_counter() - t0)
+        ours = _command_round_trips(v, n)
         v.close()
-        master = mavutil.mavlink_connection(sim.url(0), source_system=254)
-        master.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-        master.wait_heartbeat(timeout=5)
-        peer = []
-        for i in range(n + 10):
-            t0 = time.perf_counter()
-            master.mav.command_long_send(1, 1, M.MAV_CMD_SET_MESSAGE_INTERVAL, 0, *args, 0, 0, 0, 0, 0)
-            ack = master.recv_match(type="COMMAND_ACK", blocking=True, timeout=1.0)
-            if ack is not None and i >= 10:
-                peer.append(time.perf_counter() - t0)
-        master.close()
+        peer = _peer_round_trips(sim.url(0), n)
     return ours, peer
 
 
@@ -85,25 +103,33 @@ def mission_upload(n: int, loss: float, runs: int) -> list[tuple[float, int]]:
     return out
 
 
-def mission_upload_peer(n: int, runs: int) -> list[float]:
-    """A plain pymavlink upload loop (answer each MISSION_REQUEST_INT) for comparison."""
+def _peer_upload(url: str, lat0: float, lon0: float, n: int, runs: int) -> list[float]:
+    """A plain pymavlink upload loop (answer each MISSION_REQUEST(_INT) at once), seconds per run."""
     out = []
-    with Simulator(SimulatorConfig(vehicles=1, speed=1.0)) as sim:
-        master = mavutil.mavlink_connection(sim.url(0), source_system=254)
-        master.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-        pos = master.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=5)
-        wire = [MissionItem.waypoint(pos.lat / 1e7, pos.lon / 1e7, 0.0)] + _items(pos.lat / 1e7, pos.lon / 1e7, n)
-        for _ in range(runs):
-            t0 = time.perf_counter()
-            master.mav.mission_count_send(1, 1, len(wire), 0)
-            while True:
-                m = master.recv_match(type=["MISSION_REQUEST_INT", "MISSION_ACK"], blocking=True, timeout=2)
-                if m is None or m.get_type() == "MISSION_ACK":
-                    break
-                master.mav.send(wire[m.seq].to_message(m.seq, 1, 1))
-            out.append(time.perf_counter() - t0)
-        master.close()
+    master = mavutil.mavlink_connection(url, source_system=254)
+    master.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+    master.wait_heartbeat(timeout=10)
+    target = master.target_system
+    wire = [MissionItem.waypoint(lat0, lon0, 0.0)] + _items(lat0, lon0, n)
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        master.mav.mission_count_send(target, 1, len(wire), 0)
+        while True:
+            m = master.recv_match(type=["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"],
+                                  blocking=True, timeout=2)
+            if m is None or m.get_type() == "MISSION_ACK":
+                break
+            master.mav.send(wire[m.seq].to_message(m.seq, target, 1))
+        out.append(time.perf_counter() - t0)
+    master.close()
     return out
+
+
+def mission_upload_peer(n: int, runs: int) -> list[float]:
+    """The plain pymavlink upload against the simulator, for comparison."""
+    with Simulator(SimulatorConfig(vehicles=1, speed=1.0)) as sim:
+        t = sim.truth(0)
+        return _peer_upload(sim.url(0), t["lat_deg"], t["lon_deg"], n, runs)
 
 
 def violation_latency(trials: int) -> tuple[list[float], list[float]]:
@@ -135,10 +161,93 @@ def violation_latency(trials: int) -> tuple[list[float], list[float]]:
     return end_to_end, internal
 
 
+def sitl_column(n_rt: int, runs: int, trials: int) -> dict[str, list[float]] | None:
+    """The same measurements on ArduPilot Copter SITL at speed-up 1 (None when it is absent):
+    round trips (skyfix on SERIAL0, plain pymavlink on SERIAL1), 500-item uploads, and the
+    receiver switched off -> skyfix's GpsStatus shows no fix."""
+    reason = sitl.missing_reason()
+    if reason:
+        print(f"ArduPilot SITL column skipped: {reason}")
+        return None
+    out: dict[str, list[float]] = {}
+    with sitl.SitlFleet(1, speedup=1.0) as fleet:
+        inst = fleet[0]
+        v = Vehicle.connect(inst.url, timeout_s=30.0)
+        try:
+            # measured once the firmware has settled (its first ~20 s after boot are busy)
+            v.wait_until(lambda s: s.gps is not None and s.gps.fix_type >= 3 and s.home is not None, 90.0,
+                         what="GPS fix and home")
+            out["rt"] = _command_round_trips(v, n_rt)
+            out["rt_peer"] = _peer_round_trips(inst.url_secondary, n_rt)
+            lat0, lon0 = fleet.homes[0][:2]
+            items = _items(lat0, lon0, 500)
+            out["upload"] = []
+            for _ in range(runs):
+                out["upload"].append(v.upload_mission(items).elapsed_s)
+            assert len(v.download_mission()) == 500, "ArduPilot did not store the whole mission"
+            out["upload_peer"] = _peer_upload(inst.url_secondary, lat0, lon0, 500, runs)
+            out["gps_off"] = []
+            for _ in range(trials):
+                t0 = time.monotonic()
+                v.set_param("SIM_GPS1_ENABLE", 0)
+                v.wait_until(lambda s: s.gps.fix_type <= 1, 10.0, what="receiver off flagged")
+                out["gps_off"].append(time.monotonic() - t0)
+                v.set_param("SIM_GPS1_ENABLE", 1)
+                v.wait_until(lambda s: s.gps.fix_type >= 3, 30.0, what="fix back")
+        finally:
+            v.close()
+    return out
+
+
+def _report_sitl(col: dict[str, list[float]] | None) -> tuple[bool, str]:
+    if col is None:
+        return True, "ArduPilot SITL: skipped"
+    med, p95 = statistics.median(col["rt"]) * 1e3, _pct(col["rt"], 95) * 1e3
+    pmed = statistics.median(col["rt_peer"]) * 1e3
+    print(f"ArduPilot SITL (speed-up 1, TCP) command round trip (n={len(col['rt'])}): skyfix median "
+          f"{med:.2f} ms, p95 {p95:.2f} ms; plain pymavlink median {pmed:.2f} ms; ratio {med / pmed:.2f}")
+    print(f"  goal median <= 20 ms: {'met' if med <= 20.0 else 'NOT met'}")
+    up = statistics.median(col["upload"])
+    pup = statistics.median(col["upload_peer"])
+    print(f"ArduPilot SITL mission upload, 500 items ({len(col['upload'])} runs): skyfix median {up:.3f} s, "
+          f"max {max(col['upload']):.3f} s (downloaded back: 500 items); plain pymavlink loop {pup:.3f} s; "
+          f"ratio {up / pup:.2f}")
+    print(f"  goal <= 2 s: {'met' if up <= 2.0 else 'NOT met'}")
+    off = max(col["gps_off"])
+    print(f"ArduPilot SITL receiver off (SIM_GPS1_ENABLE 0) -> flagged by skyfix ({len(col['gps_off'])} "
+          f"trials): median {statistics.median(col['gps_off']) * 1e3:.0f} ms, max {off * 1e3:.0f} ms "
+          f"(GPS_RAW_INT at 5 Hz)")
+    print(f"  goal <= 1 s: {'met' if off <= 1.0 else 'NOT met'}")
+    ok = med <= 20.0 and up <= 2.0 and off <= 1.0
+    return ok, f"ArduPilot SITL round trip {med:.2f} ms / upload {up:.2f} s / GPS off flagged {off * 1e3:.0f} ms"
+
+
+def soak(rounds: int) -> int:
+    """Two copies of ``--quick`` at once, ``rounds`` times: the loaded-machine check."""
+    failures = 0
+    for r in range(rounds):
+        procs = [subprocess.Popen([sys.executable, __file__, "--quick"], stdout=subprocess.PIPE,
+                                  stderr=subprocess.STDOUT, text=True) for _ in range(2)]
+        for i, p in enumerate(procs):
+            text, _ = p.communicate()
+            lines = text.strip().splitlines()
+            print(f"round {r + 1} copy {i + 1}: exit {p.returncode}: {lines[-1] if lines else '(no output)'}")
+            failures += p.returncode != 0
+        sys.stdout.flush()
+    print(f"HEADLINE: soak {rounds} rounds x 2 concurrent copies: {2 * rounds - failures}/{2 * rounds} "
+          f"passed: {'all goals met' if not failures else 'GOAL MISSED'}")
+    return 0 if not failures else 1
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="fewer repetitions")
+    ap.add_argument("--soak", type=int, metavar="N", default=0,
+                    help="run two --quick copies at once, N times in a row (the loaded-machine check)")
+    ap.add_argument("--no-sitl", action="store_true", help="skip the ArduPilot SITL column")
     args = ap.parse_args(argv)
+    if args.soak:
+        return soak(args.soak)
     n_rt, runs, trials = (100, 2, 8) if args.quick else (300, 5, 20)
     ok = True
 
@@ -162,7 +271,7 @@ def main(argv=None) -> int:
     resent = statistics.median(r for _, r in lossy)
     print(f"mission upload, 500 items, 10 % loss each way ({runs} runs): all completed, median "
           f"{lossy_s:.3f} s, median {resent:.0f} packets resent by skyfix "
-          f"(item timeout 20 ms, simulated autopilot re-requests after 10 ms)")
+          f"(skyfix item timeout 20 ms; the simulated ArduPilot re-requests after 1 s)")
     print(f"  goal completes with 10 % loss: met ({len(lossy)}/{runs}); also <= 2 s: "
           f"{'yes' if lossy_s <= 2.0 else 'no'}")
 
@@ -174,8 +283,10 @@ def main(argv=None) -> int:
           f"median {i_med:.3f} ms, max {i_max:.3f} ms")
     ok &= e_max <= 50.0
     print(f"  goal <= 50 ms: {'met' if e_max <= 50.0 else 'NOT met'}")
-    print(f"HEADLINE: round trip median {med:.2f} ms (<= 20), 500-item upload {up_s:.2f} s (<= 2) / "
-          f"{lossy_s:.2f} s at 10 % loss, violation->action max {e_max:.1f} ms (<= 50): "
+    sitl_ok, sitl_head = _report_sitl(None if args.no_sitl else sitl_column(n_rt, runs, 3 if args.quick else 5))
+    ok &= sitl_ok
+    print(f"HEADLINE: sim round trip median {med:.2f} ms (<= 20), 500-item upload {up_s:.2f} s (<= 2) / "
+          f"{lossy_s:.2f} s at 10 % loss, violation->action max {e_max:.1f} ms (<= 50); {sitl_head}: "
           f"{'all goals met' if ok else 'GOAL MISSED'}")
     return 0 if ok else 1
 

@@ -99,6 +99,19 @@ def free_instances(count: int, *, start: int = 0, limit: int = 60) -> list[int]:
     raise ConfigurationError(f"no {count} free SITL instance numbers between {start} and {limit}")
 
 
+@contextlib.contextmanager
+def _instance_lock():
+    """A machine-wide lock (flock on a file in the temp folder) around choosing ports."""
+    import fcntl
+
+    with open(Path(tempfile.gettempdir()) / "skyfix-sitl-ports.lock", "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
 @dataclass
 class SitlInstance:
     """One running firmware: ``url`` for skyfix, ``system_id``, ``workdir``, ``process``."""
@@ -183,22 +196,26 @@ class SitlFleet:
         if self.workdir is None:
             self.workdir = Path(tempfile.mkdtemp(prefix="skyfix-sitl-"))
         try:
-            for i, n in enumerate(free_instances(self.count)):
-                self.instances.append(self._start_one(folder, n, self.first_system_id + i, self.homes[i]))
-            deadline = time.monotonic() + self.start_timeout_s
-            for inst in self.instances:
-                while not _listening(inst.port):
-                    if not inst.alive():
-                        raise LinkError(f"SITL instance {inst.instance} exited at start "
-                                        f"(code {inst.process.returncode}); see {inst.log_path}")
-                    if time.monotonic() > deadline:
-                        raise LinkError(f"SITL instance {inst.instance} did not open {inst.url} "
-                                        f"within {self.start_timeout_s:.0f} s; see {inst.log_path}")
-                    time.sleep(0.05)
+            with _instance_lock():  # two fleets starting at once must not pick the same ports
+                for i, n in enumerate(free_instances(self.count)):
+                    self.instances.append(self._start_one(folder, n, self.first_system_id + i, self.homes[i]))
+                self._wait_listening()
         except BaseException:
             self.stop()
             raise
         return self
+
+    def _wait_listening(self) -> None:
+        deadline = time.monotonic() + self.start_timeout_s
+        for inst in self.instances:
+            while not _listening(inst.port):
+                if not inst.alive():
+                    raise LinkError(f"SITL instance {inst.instance} exited at start "
+                                    f"(code {inst.process.returncode}); see {inst.log_path}")
+                if time.monotonic() > deadline:
+                    raise LinkError(f"SITL instance {inst.instance} did not open {inst.url} "
+                                    f"within {self.start_timeout_s:.0f} s; see {inst.log_path}")
+                time.sleep(0.05)
 
     def _start_one(self, folder: Path, n: int, sysid: int, home: tuple) -> SitlInstance:
         wd = self.workdir / f"sitl{n}"
