@@ -20,8 +20,9 @@ a coherent spoof.
 
 from __future__ import annotations
 
+import bisect
 import math
-from collections import deque
+import statistics
 
 import numpy as np
 
@@ -40,81 +41,90 @@ class GnssDriftTest:
         self.gm_tau_s = gm_tau_s
         self.walk_var = bias_walk_mps_per_sqrt_s**2
         self.max_gap_s = max_gap_s
-        self._odo: deque[tuple[float, np.ndarray]] = deque()   # (t, integral of velocity so far)
-        self._v_last: tuple[float, np.ndarray] | None = None
-        self._r: deque[tuple[float, np.ndarray, float]] = deque()  # (t, z - odometer, white variance per axis)
+        self._odo_t: list[float] = []          # velocity sample times and the odometer there (E, N)
+        self._odo_e: list[float] = []
+        self._odo_n: list[float] = []
+        self._v_last: tuple[float, float, float] | None = None
+        self._r_t: list[float] = []            # fixes in the history: time, residual (E, N), white variance
+        self._r: list[tuple[float, float, float]] = []
         self.reference: tuple | None = None  # t, r, its white variance, b, P_b
-        self._bias: deque[tuple[float, np.ndarray, np.ndarray]] = deque()  # (t, b (2,), P_b (2, 2)) estimates
+        self._bias_t: list[float] = []
+        self._bias: list[tuple[np.ndarray, np.ndarray]] = []  # (b (2,), P_b (2, 2)) estimates
 
     def velocity(self, t_s: float, vel_mps: np.ndarray) -> None:
         """A raw velocity sample (frame axes); late samples are ignored, a gap restarts the odometer."""
-        v = np.asarray(vel_mps[:2], float)
-        if self._v_last is not None and t_s <= self._v_last[0]:
+        ve, vn = float(vel_mps[0]), float(vel_mps[1])
+        last = self._v_last
+        if last is not None and t_s <= last[0]:
             return
-        if self._v_last is None or t_s - self._v_last[0] > self.max_gap_s:
-            self._odo.clear()
-            self._r.clear()
+        if last is None or t_s - last[0] > self.max_gap_s:
+            self._odo_t, self._odo_e, self._odo_n = [t_s], [0.0], [0.0]
+            self.forget()
             self.reference = None
-            self._odo.append((t_s, np.zeros(2)))
         else:
-            t0, v0 = self._v_last
-            self._odo.append((t_s, self._odo[-1][1] + 0.5 * (v0 + v) * (t_s - t0)))
-        self._v_last = (t_s, v)
-        horizon = t_s - 3.0 * self.window_s - 4.0 * _EDGE_S
-        while len(self._odo) > 2 and self._odo[1][0] < horizon:
-            self._odo.popleft()
+            dt = t_s - last[0]
+            self._odo_t.append(t_s)
+            self._odo_e.append(self._odo_e[-1] + 0.5 * (last[1] + ve) * dt)
+            self._odo_n.append(self._odo_n[-1] + 0.5 * (last[2] + vn) * dt)
+        self._v_last = (t_s, ve, vn)
+        _trim(self._odo_t, t_s - 3.0 * self.window_s - 4.0 * _EDGE_S, self._odo_e, self._odo_n)
 
-    def residual(self, t_s: float, enu_m: np.ndarray) -> np.ndarray | None:
-        """A GNSS fix's residual against the odometer (2,), or None if the odometer does not cover t."""
-        odo = self._odometer(t_s)
-        return None if odo is None else np.asarray(enu_m[:2], float) - odo
+    def residual(self, t_s: float, enu_m: np.ndarray) -> tuple[float, float] | None:
+        """A GNSS fix's horizontal residual against the odometer, or None if the odometer does not cover t."""
+        ts = self._odo_t
+        if len(ts) < 2 or not ts[0] <= t_s <= ts[-1] + 0.3:
+            return None
+        i = bisect.bisect_right(ts, t_s) - 1
+        if i >= len(ts) - 1:  # just after the newest sample: carry on with its velocity
+            dt = t_s - ts[-1]
+            e, n = self._odo_e[-1] + self._v_last[1] * dt, self._odo_n[-1] + self._v_last[2] * dt
+        else:
+            w = (t_s - ts[i]) / (ts[i + 1] - ts[i])
+            e = self._odo_e[i] + w * (self._odo_e[i + 1] - self._odo_e[i])
+            n = self._odo_n[i] + w * (self._odo_n[i + 1] - self._odo_n[i])
+        return float(enu_m[0]) - e, float(enu_m[1]) - n
 
-    def record(self, t_s: float, r: np.ndarray | None, white_var_m2: float) -> None:
+    def record(self, t_s: float, r: tuple[float, float] | None, white_var_m2: float) -> None:
         """Keep a residual (and the fix's white variance per axis) in the history the tests use
         (only fixes that count as GNSS's own track)."""
-        if r is None:
+        if r is None or (self._r_t and t_s <= self._r_t[-1]):
             return
-        if not self._r or t_s > self._r[-1][0]:
-            self._r.append((t_s, r, white_var_m2))
-        while self._r and self._r[0][0] < t_s - 3.0 * self.window_s - 2.0 * _EDGE_S:
-            self._r.popleft()
+        self._r_t.append(t_s)
+        self._r.append((r[0], r[1], white_var_m2))
+        _trim(self._r_t, t_s - 3.0 * self.window_s - 2.0 * _EDGE_S, self._r)
 
     def bias(self, t_s: float, b: np.ndarray, p_b: np.ndarray) -> None:
         """Record the fused velocity-bias estimate (2,) and its covariance (2, 2) at ``t_s``.
 
         The tests use the estimate from before their window: a drift under way pulls the
         newest bias estimate along (the estimate then explains the drift away)."""
-        if not self._bias or t_s > self._bias[-1][0]:
-            self._bias.append((t_s, np.array(b[:2], float), np.array(p_b[:2, :2], float)))
-        while len(self._bias) > 1 and self._bias[1][0] < t_s - 3.0 * self.window_s - 4.0 * _EDGE_S:
-            self._bias.popleft()
+        if self._bias_t and t_s <= self._bias_t[-1]:
+            return
+        self._bias_t.append(t_s)
+        self._bias.append((np.array(b[:2], float), np.array(p_b[:2, :2], float)))
+        _trim(self._bias_t, t_s - 3.0 * self.window_s - 4.0 * _EDGE_S, self._bias)
 
     def _bias_before(self, t_s: float) -> tuple[np.ndarray, np.ndarray] | None:
         """The newest bias estimate at or before ``t_s``, its covariance grown by the walk since."""
-        old = [(t, b, p) for t, b, p in self._bias if t <= t_s]
-        if not old:
+        i = bisect.bisect_right(self._bias_t, t_s) - 1
+        if i < 0:
             return None
-        t, b, p = old[-1]
-        return b, p + np.eye(2) * self.walk_var * (self._bias[-1][0] - t)
+        b, p = self._bias[i]
+        return b, p + np.eye(2) * self.walk_var * (self._bias_t[-1] - self._bias_t[i])
 
     def forget(self) -> None:
         """Drop the residual history (GNSS was out of use; its old track says nothing now)."""
-        self._r.clear()
-
-    def _odometer(self, t_s: float) -> np.ndarray | None:
-        if len(self._odo) < 2 or not self._odo[0][0] <= t_s <= self._odo[-1][0] + 0.2:
-            return None
-        ts = np.array([o[0] for o in self._odo])
-        ps = np.array([o[1] for o in self._odo])
-        return np.array([np.interp(t_s, ts, ps[:, 0]), np.interp(t_s, ts, ps[:, 1])])
+        self._r_t, self._r = [], []
 
     def _median(self, t0: float, t1: float) -> tuple[float, np.ndarray, float] | None:
         """Median time, residual and the residual median's white variance over [t0, t1]."""
-        sel = [x for x in self._r if t0 <= x[0] <= t1]
-        if len(sel) < _MIN_SAMPLES:
+        i, j = bisect.bisect_left(self._r_t, t0), bisect.bisect_right(self._r_t, t1)
+        if j - i < _MIN_SAMPLES:
             return None
-        white = np.mean([w for *_, w in sel]) * (np.pi / 2) / len(sel)  # a median's variance ~ pi/2 x the mean's
-        return float(np.median([x[0] for x in sel])), np.median(np.array([x[1] for x in sel]), axis=0), float(white)
+        sel = self._r[i:j]
+        white = sum(x[2] for x in sel) / len(sel) * (math.pi / 2) / len(sel)  # a median's variance ~ pi/2 x the mean's
+        r = np.array([statistics.median(x[0] for x in sel), statistics.median(x[1] for x in sel)])
+        return statistics.median(self._r_t[i:j]), r, white
 
     def _nis(self, dr: np.ndarray, dt: float, b: np.ndarray, p_b: np.ndarray, white_var: float) -> float:
         cov = np.eye(2) * (2.0 * self.gm_var * (1.0 - math.exp(-dt / self.gm_tau_s))
@@ -122,13 +132,14 @@ class GnssDriftTest:
         innovation = dr + b * dt
         return float(innovation @ np.linalg.solve(cov, innovation))
 
-    def window_nis(self, t_s: float, window_s: float | None = None) -> float | None:
+    def window_nis(self, t_s: float, window_s: float | None = None,
+                   bias: tuple[np.ndarray, np.ndarray] | None = None) -> float | None:
         """NIS (2 dof) of the residual's change over the last ``window_s`` (default the test's),
-        with the bias estimate from before the window; None if not covered."""
+        with the bias estimate from before the window (or ``bias``); None if not covered."""
         window_s = self.window_s if window_s is None else window_s
         late = self._median(t_s - _EDGE_S, t_s)
         early = self._median(t_s - window_s - _EDGE_S, t_s - window_s)
-        bias = self._bias_before(t_s - window_s - 2.0 * _EDGE_S)
+        bias = self._bias_before(t_s - window_s - 2.0 * _EDGE_S) if bias is None else bias
         if late is None or early is None or bias is None:
             return None
         b, p_b = bias
@@ -142,13 +153,31 @@ class GnssDriftTest:
         self.reference = None if ref is None or bias is None else (ref[0], ref[1], ref[2], *bias)
         return self.reference is not None
 
-    def agrees_with_reference(self, t_s: float, r: np.ndarray | None, white_var_m2: float, chi2_gate: float) -> bool:
+    def agrees_with_reference(self, t_s: float, r: tuple[float, float] | None, white_var_m2: float,
+                              chi2_gate: float) -> bool:
         """Does the fix with residual ``r`` agree with the velocity since the reference, and has
         GNSS moved with the velocity over the last few seconds (a drift still under way fails)?"""
         if self.reference is None or r is None:
             return False
         t_ref, r_ref, ref_var, b, p_b = self.reference
-        if self._nis(r - r_ref, t_s - t_ref, b, p_b, ref_var + white_var_m2) > chi2_gate:
+        if self._nis(np.asarray(r) - r_ref, t_s - t_ref, b, p_b, ref_var + white_var_m2) > chi2_gate:
             return False
-        short = self.window_nis(t_s, _SHORT_S)
+        # the newer bias estimates absorbed part of the drift: use the reference's, grown by the walk
+        short = self.window_nis(t_s, _SHORT_S, (b, p_b + np.eye(2) * self.walk_var * (t_s - t_ref)))
         return short is not None and short <= chi2_gate
+
+    def reference_bias(self, t_s: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """The horizontal bias (2,) and covariance (2, 2) held with the reference, grown to ``t_s``."""
+        if self.reference is None:
+            return None
+        t_ref, _, _, b, p_b = self.reference
+        return b, p_b + np.eye(2) * self.walk_var * max(0.0, t_s - t_ref)
+
+
+def _trim(times: list[float], before_s: float, *columns: list) -> None:
+    """Drop entries older than ``before_s`` (keeping one) from ``times`` and its parallel columns."""
+    k = bisect.bisect_left(times, before_s) - 1
+    if k > 0:
+        del times[:k]
+        for col in columns:
+            del col[:k]

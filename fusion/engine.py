@@ -102,7 +102,7 @@ class FusionEngine:
         cfg = self.config
         self._gate = {dof: cfg.gate_chi2(dof) for dof in (1, 2, 3)}
         self._drift_gate = cfg.gate_chi2(2, cfg.drift_gate_probability)
-        self._readmit_gate = cfg.gate_chi2(2, 0.99)  # after a drift: agreement with the velocity, both tests
+        self._readmit_gate = cfg.gate_chi2(2, 0.95)  # after a drift: agreement with the velocity, both tests
         self._gm_sigma = np.array([cfg.gnss_gm_h_sigma_m, cfg.gnss_gm_h_sigma_m, cfg.gnss_gm_v_sigma_m])
         self._next_index = 0
         self._unknown_observers = 0
@@ -522,7 +522,7 @@ class FusionEngine:
             drift.forget()
             if after_drift:
                 log.warning("GNSS re-admitted after a drift: re-anchoring the drone on it")
-                self._reanchor(drone, k)
+                self._reanchor(drone, k, drift.reference_bias(t))
         else:
             drift.record(t, residual, white_var)
             if self._drifting(drone, monitor, t):
@@ -549,14 +549,19 @@ class FusionEngine:
         monitor.reject(t, f"drifting against the velocity over {self.config.drift_window_s:g} s (NIS {nis:.0f})")
         return True
 
-    def _reanchor(self, drone: _Drone, k: int) -> None:
+    def _reanchor(self, drone: _Drone, k: int, horizontal_bias: tuple[np.ndarray, np.ndarray] | None) -> None:
         """Start a new state chain for the drone at step k (its history was corrupted); the
-        velocity bias carries over with its covariance, the position comes from what follows."""
+        velocity bias carries over with its covariance (horizontally the one from before the
+        drift, ``horizontal_bias``, if given), the position comes from what follows."""
         old, last = drone.index, drone.last_k
         b, b_cov = np.zeros(3), _EYE3 * self.config.bias_initial_sigma_mps**2
         cached = self._latest_cov(drone) if drone.anchored else None
         if cached is not None:
-            b, b_cov = self._window.value(old, 1, cached[0]), cached[1][3:6, 3:6]
+            b, b_cov = self._window.value(old, 1, cached[0]).copy(), cached[1][3:6, 3:6].copy()
+        if horizontal_bias is not None:
+            b[:2] = horizontal_bias[0]
+            b_cov[:2, :] = b_cov[:, :2] = 0.0
+            b_cov[:2, :2] = horizontal_bias[1]
         p0 = self._window.value(old, 0, last) if last is not None else None
         drone.index = self._new_index()
         drone.first_k = drone.last_k = None
