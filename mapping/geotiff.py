@@ -12,44 +12,43 @@ from skyfix.mapping.grid import Grid
 
 __all__ = ["write_cameras_geojson", "write_dsm_tif", "write_orthophoto_tif", "write_ply", "write_preview_png"]
 
-_OVERVIEWS = (2, 4, 8, 16, 32)
+def _write_cog(path: str | os.PathLike, data: np.ndarray, profile: dict, band_tags: dict | None = None) -> None:
+    """Write ``data`` (bands, H, W) as a Cloud-Optimized GeoTIFF: 512 px tiles, deflate,
+    overviews inside the file before the full-resolution image (GDAL's COG driver, through
+    a temporary tiled GeoTIFF since the driver only copies)."""
+    import rasterio
+    from rasterio.shutil import copy as rio_copy
 
-
-def _overview_levels(grid: Grid) -> list[int]:
-    return [f for f in _OVERVIEWS if min(grid.width, grid.height) // f >= 64] or [2]
+    tmp = Path(f"{path}.part.tif")
+    try:
+        with rasterio.open(tmp, "w", driver="GTiff", tiled=True, blockxsize=512, blockysize=512,
+                           compress="deflate", BIGTIFF="IF_SAFER", **profile) as dst:
+            dst.write(data)
+            if band_tags:
+                dst.update_tags(1, **band_tags)
+        rio_copy(tmp, path, driver="COG", compress="DEFLATE", blocksize=512, overview_resampling="average",
+                 BIGTIFF="IF_SAFER")
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def write_orthophoto_tif(path: str | os.PathLike, rgba: np.ndarray, grid: Grid) -> None:
-    """RGBA uint8 ``(H, W, 4)`` as a tiled, deflate-compressed GeoTIFF with overviews
-    (alpha band marks nodata)."""
-    import rasterio
-    from rasterio.enums import Resampling
-
-    profile = {"driver": "GTiff", "width": grid.width, "height": grid.height, "count": 4, "dtype": "uint8",
-               "crs": f"EPSG:{grid.epsg}", "transform": grid.affine(), "tiled": True, "blockxsize": 256,
-               "blockysize": 256, "compress": "deflate", "photometric": "RGB",
-               # GTiff creation option: band 4 is alpha. Setting colorinterp after the pixels are
-               # written makes GDAL fail to modify the TIFF ExtraSamples tag.
-               "alpha": "YES"}
-    with rasterio.open(path, "w", **profile) as dst:
-        dst.write(np.moveaxis(rgba, 2, 0))
-        dst.build_overviews(_overview_levels(grid), Resampling.average)
-        dst.update_tags(ns="rio_overview", resampling="average")
+    """RGBA uint8 ``(H, W, 4)`` at full resolution as a tiled Cloud-Optimized GeoTIFF with
+    overviews (alpha band marks nodata)."""
+    _write_cog(path, np.moveaxis(rgba, 2, 0), {
+        "width": grid.width, "height": grid.height, "count": 4, "dtype": "uint8", "crs": f"EPSG:{grid.epsg}",
+        "transform": grid.affine(), "photometric": "RGB",
+        # GTiff creation option: band 4 is alpha (colorinterp set afterwards fails on ExtraSamples).
+        "alpha": "YES"})
 
 
 def write_dsm_tif(path: str | os.PathLike, surface_m: np.ndarray, grid: Grid, nodata: float = -9999.0) -> None:
-    """Float32 heights (metres, AMSL for the photo pipeline) with NaN written as ``nodata``."""
-    import rasterio
-    from rasterio.enums import Resampling
-
+    """Float32 heights (metres, AMSL for the photo pipeline) with NaN written as ``nodata``,
+    as a tiled Cloud-Optimized GeoTIFF."""
     data = np.where(np.isfinite(surface_m), surface_m, nodata).astype(np.float32)
-    profile = {"driver": "GTiff", "width": grid.width, "height": grid.height, "count": 1, "dtype": "float32",
-               "crs": f"EPSG:{grid.epsg}", "transform": grid.affine(), "nodata": nodata, "compress": "deflate",
-               "tiled": grid.width >= 256 and grid.height >= 256}
-    with rasterio.open(path, "w", **profile) as dst:
-        dst.write(data, 1)
-        dst.update_tags(1, units="metre", vertical_datum="as recorded by the photos' GPS (usually AMSL)")
-        dst.build_overviews(_overview_levels(grid), Resampling.average)
+    _write_cog(path, data[None], {"width": grid.width, "height": grid.height, "count": 1, "dtype": "float32",
+                                  "crs": f"EPSG:{grid.epsg}", "transform": grid.affine(), "nodata": nodata},
+               {"units": "metre", "vertical_datum": "as recorded by the photos' GPS (usually AMSL)"})
 
 
 def write_preview_png(path: str | os.PathLike, rgba: np.ndarray, max_side_px: int = 2000) -> None:

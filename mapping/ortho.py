@@ -27,7 +27,7 @@ from skyfix.mapping.dsm import Dsm
 from skyfix.mapping.grid import Grid, UtmToEnu, enu_to_utm
 from skyfix.progress import progress
 
-__all__ = ["Orthomosaic", "View", "load_views", "orthomosaic", "rectify"]
+__all__ = ["Orthomosaic", "View", "footprint_window", "load_views", "orthomosaic", "project_window", "rectify"]
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +52,7 @@ class Orthomosaic:
     photos_used: list[str]
 
 
-def _footprint_window(view: View, grid: Grid, to_enu: UtmToEnu, heights_m: tuple[float, float]
+def footprint_window(view: View, grid: Grid, to_enu: UtmToEnu, heights_m: tuple[float, float]
                       ) -> tuple[int, int, int, int] | None:
     """(row0, row1, col0, col1) of the grid part the photo can see, or None."""
     cam = view.camera
@@ -90,9 +90,10 @@ def _sample_dsm(dsm: Dsm, east_m: np.ndarray, north_m: np.ndarray) -> np.ndarray
                      borderMode=cv2.BORDER_REPLICATE)
 
 
-def _project_window(view: View, grid: Grid, dsm: Dsm, to_enu: UtmToEnu, window: tuple[int, int, int, int],
-                    lattice_px: int) -> tuple[np.ndarray, np.ndarray]:
-    """Photo pixel coordinates (OpenCV convention) of every grid cell in ``window``."""
+def project_window(view: View, grid: Grid, dsm: Dsm, to_enu: UtmToEnu, window: tuple[int, int, int, int],
+                    lattice_px: int, with_depth: bool = False) -> tuple[np.ndarray, ...]:
+    """Photo pixel coordinates (OpenCV convention) of every grid cell in ``window``, and
+    with ``with_depth`` the cell's depth along the optical axis (m)."""
     r0, r1, c0, c1 = window
     rows = np.arange(r0, r1 + lattice_px, lattice_px, dtype=np.float64)
     cols = np.arange(c0, c1 + lattice_px, lattice_px, dtype=np.float64)
@@ -106,8 +107,8 @@ def _project_window(view: View, grid: Grid, dsm: Dsm, to_enu: UtmToEnu, window: 
     u = (uv[:, 0] - 0.5).reshape(rr.shape).astype(np.float32)
     v = (uv[:, 1] - 0.5).reshape(rr.shape).astype(np.float32)
     yy, xx = np.mgrid[0:r1 - r0, 0:c1 - c0].astype(np.float32) / np.float32(lattice_px)
-    return (cv2.remap(u, xx, yy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE),
-            cv2.remap(v, xx, yy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+    lattices = [u, v] + ([cam_pts[:, 2].reshape(rr.shape).astype(np.float32)] if with_depth else [])
+    return tuple(cv2.remap(a, xx, yy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for a in lattices)
 
 
 def rectify(view: View, grid: Grid, dsm: Dsm, to_enu: UtmToEnu, *, blend_power: float = 2.0,
@@ -115,13 +116,13 @@ def rectify(view: View, grid: Grid, dsm: Dsm, to_enu: UtmToEnu, *, blend_power: 
     """One photo on ``grid``: (window (row0, row1, col0, col1), BGR float32 (h, w, 3),
     weight (h, w)), or None when it does not reach the grid."""
     finite = dsm.filled_m[np.isfinite(dsm.filled_m)]
-    window = _footprint_window(view, grid, to_enu, (float(finite.min()), float(finite.max())))
+    window = footprint_window(view, grid, to_enu, (float(finite.min()), float(finite.max())))
     if window is None:
         return None
     image = cv2.imread(view.path, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if image is None:
         raise DataError(f"{view.path}: photo could not be decoded for the orthophoto")
-    u, v = _project_window(view, grid, dsm, to_enu, window, lattice_px)
+    u, v = project_window(view, grid, dsm, to_enu, window, lattice_px)
     h, w = image.shape[:2]
     edge = np.minimum(np.minimum(u + 0.5, w - 0.5 - u), np.minimum(v + 0.5, h - 0.5 - v))
     weight = np.clip(edge / (min(w, h) / 2.0), 0.0, 1.0) ** blend_power

@@ -50,7 +50,7 @@ class PipelineConfig:
     calibration: Camera | None = None     # pre-calibrated lens, passed to pycolmap (held fixed)
     resolution_cm: float | None = None    # orthophoto pixel; None: the photos' median GSD
     dsm_resolution_m: float | None = None  # DSM cell; None: twice the mean sparse-point spacing
-    max_ortho_mpx: float = 40.0           # raise the pixel size if the orthophoto would be larger
+    max_ortho_mpx: float | None = None    # only if asked: raise the pixel size if the orthophoto would be larger
     max_image_size_px: int = 1600         # photos are downscaled to this for features
     max_features: int = 4000              # SIFT features per photo
     exhaustive_max_photos: int = 40       # more photos than this: spatial (GPS neighbour) matching
@@ -58,7 +58,9 @@ class PipelineConfig:
     max_agl_m: float = 120.0              # upper bound of height above ground for the overlap check
     georef_max_error_m: float = 10.0      # RANSAC inlier distance camera centre <-> GPS
     two_view_max_offset_m: float = 5.0    # a photo placed by a two-view model must be this close to its GPS
-    blend_power: float = 2.0              # seam feathering exponent of the edge-distance weight
+    ortho_seams: bool = True              # one photo per pixel, graph-cut seams, gains (False: feathered mean)
+    seam_band_px: float = 6.0             # blending band across a seam, orthophoto pixels
+    blend_power: float = 2.0              # feathered mean only: exponent of the edge-distance weight
     refine_focal: bool = False            # let bundle adjustment move the focal length (see sfm.reconstruct)
     gps_sigma_m: tuple[float, float] = (2.0, 4.0)  # GPS pose prior std dev (horizontal, vertical); () = no priors
     seed: int = 0                         # pycolmap's random seed: the same photos give the same model
@@ -513,14 +515,19 @@ def _ortho_run(config, project, state, report) -> dict:
     west, south = min(west, centres_utm[:, 0].min() - margin), min(south, centres_utm[:, 1].min() - margin)
     east, north = max(east, centres_utm[:, 0].max() + margin), max(north, centres_utm[:, 1].max() + margin)
     area = (east - west) * (north - south)
-    if area / res_m ** 2 > config.max_ortho_mpx * 1e6:
+    if config.max_ortho_mpx is not None and area / res_m ** 2 > config.max_ortho_mpx * 1e6:
         res_m = math.sqrt(area / (config.max_ortho_mpx * 1e6))
-        report.warnings.append(f"orthophoto pixel raised to {res_m * 100:.1f} cm to stay within "
-                               f"{config.max_ortho_mpx:g} Mpx")
+        report.warnings.append(f"orthophoto pixel raised to {res_m * 100:.1f} cm (GSD {gsd_m * 100:.1f} cm) "
+                               f"because max_ortho_mpx={config.max_ortho_mpx:g} was asked for")
     grid = Grid.covering(dsm.grid.epsg, west, south, east, north, res_m)
     to_enu = UtmToEnu(frame, grid.epsg, grid.bounds_m)
     views = load_views(models, state["image_dir"])
-    mosaic = orthomosaic(views, grid, dsm, to_enu, blend_power=config.blend_power)
+    if config.ortho_seams:
+        from skyfix.mapping.mosaic import seamed_mosaic
+
+        mosaic = seamed_mosaic(views, grid, dsm, to_enu, band_px=config.seam_band_px)
+    else:
+        mosaic = orthomosaic(views, grid, dsm, to_enu, blend_power=config.blend_power)
     # Crop to the covered part.
     alpha = mosaic.rgba[..., 3] > 0
     rows, cols = np.flatnonzero(alpha.any(axis=1)), np.flatnonzero(alpha.any(axis=0))
