@@ -30,6 +30,7 @@ from skyfix.datasets.render import _pixel_rays
 from skyfix.datasets.terrain import Terrain
 from skyfix.datasets.thermal_scene import FireSpec, ThermalSensor, forest_texture
 from skyfix.errors import GeometryError, InputError
+from skyfix.geo import LocalFrame
 from skyfix.thermal.detect import Hotspot
 from skyfix.thermal.poselog import PoseLog
 
@@ -131,6 +132,24 @@ class MountainScene:
             img = np.maximum(img, np.where(cover > 0, self.ambient_c + (f.peak_c - self.ambient_c) * cover * core, -1e9))
         img = np.where(np.isfinite(img) & ok, img, SKY_C)
         return img.astype(np.float32)
+
+
+def mountain_scene(seed: int, *, n_fires: int = 5, spread_m: float = 70.0, origin=(42.15, 9.05, 850.0),
+                   size_m: float = 2100.0) -> MountainScene:
+    """A seeded mountain (:meth:`Terrain.mountain`) around ``origin`` (lat, lon deg,
+    ellipsoidal height m of the valley floor; default: central Corsica) with ``n_fires``
+    fires of 0.8-2 m radius and 350-700 deg C within ``spread_m`` of the centre, at
+    least 15 m apart."""
+    rng = np.random.default_rng(seed)
+    terrain = Terrain.mountain(LocalFrame(*origin), seed=seed, size_m=size_m)
+    centres: list[np.ndarray] = []
+    while len(centres) < n_fires:
+        c = rng.uniform(-spread_m, spread_m, 2)
+        if all(np.hypot(*(c - o)) >= 15.0 for o in centres):
+            centres.append(c)
+    fires = [FireSpec(float(c[0]), float(c[1]), float(rng.uniform(0.8, 2.0)), float(rng.uniform(350.0, 700.0)))
+             for c in centres]
+    return MountainScene(terrain, fires, seed=seed)
 
 
 def _log_from_track(scene: MountainScene, t_s: np.ndarray, enu: np.ndarray, yaw_deg: np.ndarray, roll_deg: np.ndarray,

@@ -105,7 +105,9 @@ class _Problem:
         lo, hi = float(s.pool[:, 0].min()), float(s.pool[:, 0].max())
         n_knots = max(int(math.ceil((hi - lo) / prior.knot_spacing_s)) + 1, 2)
         self.knots = np.linspace(lo, hi + 1e-9, n_knots)
+        self.smooth = log.smoothed(8.0)
         self.rows = self.bind(s.time_s, s.fire_index)
+        self._own_poses = self._poses_at(s.time_s)
         self.fixed_boresight = None if boresight_deg is None else np.radians(
             validate.finite_array("boresight_deg", boresight_deg).reshape(3))
         nf = 3 * self.n_fires
@@ -123,6 +125,18 @@ class _Problem:
         return time_s, fire_index, idx, w
 
     # --- model -------------------------------------------------------------------
+    def _poses_at(self, time_s: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Logged camera (ENU, rotation) at the stamps, and the smoothed log's there."""
+        t = np.clip(time_s, *self.log.span_s)
+        return (*self.log.camera_in_frame(self.frame, t), *self.smooth.camera_in_frame(self.frame, t))
+
+    def _cameras(self, rows: tuple, dt_s: float, own: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Cameras at stamp + ``dt_s``: the logged pose at the stamp moved by the smoothed
+        log's motion over ``dt_s`` (the log's per-sample noise is not motion)."""
+        cam0, r0, s_cam0, s_r0 = self._own_poses if own else self._poses_at(rows[0])
+        s_cam1, s_r1 = self.smooth.camera_in_frame(self.frame, np.clip(rows[0] + dt_s, *self.log.span_s))
+        return cam0 + (s_cam1 - s_cam0), s_r1 @ np.transpose(s_r0, (0, 2, 1)) @ r0
+
     def fire_points(self, x: np.ndarray) -> np.ndarray:
         """Fire points ``(F, 3)`` in the frame: (east, north) and the ground height + dh."""
         f = x[self.sl_fire].reshape(-1, 3)
@@ -147,8 +161,7 @@ class _Problem:
         ``d_pos`` m or rotated by ``d_rot`` rad about the frame's axes."""
         own = rows is None
         rows = self.rows if own else rows
-        t = np.clip(rows[0] + x[self.i_dt], *self.log.span_s)
-        cam, r = self.log.camera_in_frame(self.frame, t)
+        cam, r = self._cameras(rows, float(x[self.i_dt]), own)
         cam = cam - self._interp(x, self.sl_gnss, rows)  # logged = true + error
         rot = -self._interp(x, self.sl_att, rows)
         if d_pos is not None:

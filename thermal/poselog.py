@@ -89,6 +89,19 @@ class PoseLog:
                              f"({lo:.3f}..{hi:.3f} s)")
         return {name: np.interp(t, self.time_s, getattr(self, name)) for name in _SERIES}
 
+    def smoothed(self, window_s: float = 2.0) -> PoseLog:
+        """The log low-passed by a Savitzky-Golay filter (quadratic over ``window_s``): its
+        motion without the per-sample noise, for time derivatives (a 10 Hz log with 0.3 deg
+        noise has an apparent angular rate noise of several deg/s)."""
+        from scipy.signal import savgol_filter
+
+        rate_hz = 1.0 / float(np.median(np.diff(self.time_s)))
+        n = int(round(validate.positive_scalar("window_s", window_s) * rate_hz)) | 1
+        if n < 5 or n > self.time_s.size:
+            return self
+        cols = {name: savgol_filter(getattr(self, name), n, 2, mode="interp") for name in _SERIES}
+        return PoseLog(self.time_s, **cols, stabilized=self.stabilized)
+
     def pose_at(self, time_s: float) -> CameraPose:
         """The interpolated :class:`CameraPose` at one log time."""
         v = {k: float(a[0]) for k, a in self.interpolate([validate.finite_scalar("time_s", time_s)]).items()}
