@@ -157,5 +157,6 @@ class Node:
                 getattr(self.engine, f"add_{op}")(**args)
             except SkyfixError as exc:
                 self.n_refused += 1
-                log.warning("node %s: %s input refused: %s", self.drone_id, op, exc)
+                if self.n_refused <= 5 or self.n_refused % 1000 == 0:  # counted always, logged sparingly
+                    log.warning("node %s: %s input refused (%d so far): %s", self.drone_id, op, self.n_refused, exc)
 

@@ -31,7 +31,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "skyfix.fusion.cli",
     "skyfix.drivers.cli",
     "skyfix.datasets.cli",
-    "skyfix.crps.service",
+    "skyfix.crps.serve_cli",
 )
 
 

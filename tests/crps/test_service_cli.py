@@ -1,0 +1,125 @@
+"""``skyfix serve`` refuses bad arguments with one line (exit 2); ``skyfix swarm status`` lists the
+drones it hears; the live Foxglove WebSocket view advertises the log's topics."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import threading
+import time
+
+import pytest
+from test_swarm_transport import free_ports
+
+from skyfix.cli import main
+from skyfix.crps.messages import FusedEstimate, Heartbeat, SwarmCodec
+from skyfix.crps.transport import Endpoints, ZenohTransport
+
+KEY = b"0123456789abcdef0123456789abcdef"
+
+
+@pytest.fixture
+def key_file(tmp_path):
+    path = tmp_path / "swarm.key"
+    path.write_bytes(KEY)
+    return path
+
+
+def serve(*extra: str, key_file, url="udpin:127.0.0.1:14999", swarm=None) -> list[str]:
+    swarm = swarm or f"listen:tcp/127.0.0.1:{free_ports(1)[0]}"
+    return ["serve", "--id", "d1", "--mavlink", url, "--swarm", swarm, "--swarm-key-file", str(key_file), *extra]
+
+
+@pytest.mark.parametrize("change, expected", [
+    ({"url": "bogus://x"}, "MAVLink url"),
+    ({"swarm": "127.0.0.1:7451"}, "--swarm: '127.0.0.1:7451' is not an endpoint"),
+    ({"key": "missing"}, "--swarm-key-file"),
+    ({"key": "short"}, "at least 16 bytes"),
+    ({"extra": ("--roster", "d2,d3")}, "must include this drone's --id"),
+    ({"extra": ("--log", "out.txt")}, "--log must name an .mcap file"),
+    ({"extra": ("--id", "bad id!")}, "--id must be 1-32 letters"),
+])
+def test_bad_arguments_one_line_exit_2(tmp_path, key_file, capsys, change, expected):
+    if change.get("key") == "missing":
+        key_file = tmp_path / "nope.key"
+    elif change.get("key") == "short":
+        key_file.write_bytes(b"short")
+    argv = serve(*change.get("extra", ()), key_file=key_file, url=change.get("url", "udpin:127.0.0.1:14999"),
+                 swarm=change.get("swarm"))
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("skyfix serve: error:") and expected in err[0], err
+
+
+def test_busy_swarm_endpoint_is_one_line(key_file, capsys):
+    (port,) = free_ports(1)
+    holder = socket.socket()
+    holder.bind(("127.0.0.1", port))
+    holder.listen()
+    try:
+        assert main(serve(key_file=key_file, swarm=f"listen:tcp/127.0.0.1:{port}")) == 2
+    finally:
+        holder.close()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "zenoh cannot open" in err[0]
+
+
+def test_swarm_status_lists_the_drones_heard(key_file, capsys):
+    (port,) = free_ports(1)
+    drone = ZenohTransport("skyfix", "d7", Endpoints.parse(f"listen:tcp/127.0.0.1:{port}"))
+    codec = SwarmCodec("d7", KEY)
+    stop = threading.Event()
+
+    def talk() -> None:
+        while not stop.wait(0.1):
+            drone.publish("heartbeat", codec.encode(Heartbeat("ok", "gnss", 0.9, True, 2)))
+            drone.publish("estimate", codec.encode(FusedEstimate(time.time(), 46.5, 6.6, 420.0,
+                                                                 (1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0), (0.0, 0.0, 0.0))))
+    talker = threading.Thread(target=talk, daemon=True)
+    talker.start()
+    try:
+        assert main(["swarm", "status", "--swarm", f"tcp/127.0.0.1:{port}", "--swarm-key-file", str(key_file),
+                     "--listen-s", "2.5"]) == 0
+        table = capsys.readouterr().out.splitlines()
+        assert table[0].split()[:5] == ["id", "state", "fix", "health", "sigma_m"]
+        row = table[1].split()
+        assert row[:5] == ["d7", "ok", "gnss", "ok", "0.90"] and row[7] == "46.5000000"
+        key_file.write_bytes(b"another key of at least 16 bytes")
+        assert main(["swarm", "status", "--swarm", f"tcp/127.0.0.1:{port}", "--swarm-key-file", str(key_file),
+                     "--listen-s", "1.5"]) == 1  # wrong key: nothing is believed
+        out = capsys.readouterr().out
+        assert "no drone heard" in out and "forged" in out
+    finally:
+        stop.set()
+        talker.join()
+        drone.close()
+
+
+def test_live_view_advertises_the_topics():
+    """A Foxglove WebSocket client (websockets, subprotocol foxglove.sdk.v1) sees the LocationFix
+    and JSON channels the service writes."""
+    websockets = pytest.importorskip("websockets")
+    from skyfix.crps.outputs import Outputs
+
+    (port,) = free_ports(1)
+    outputs = Outputs(None, live=f"127.0.0.1:{port}")
+    try:
+        outputs.location_fix("d1", time.time(), 46.5, 6.6, 420.0, [1.0, 0, 0, 0, 1.0, 0, 0, 0, 2.0])
+        outputs.json("/swarm/peers", {"event": "joined", "drone": "d2", "time_s": time.time()})
+
+        async def advertised() -> dict[str, str]:
+            async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"]) as ws:
+                channels: dict[str, str] = {}
+                deadline = time.monotonic() + 5.0
+                while len(channels) < 2 and time.monotonic() < deadline:
+                    msg = await asyncio.wait_for(ws.recv(), timeout=5.0)
+                    if isinstance(msg, str) and json.loads(msg).get("op") == "advertise":
+                        channels.update({c["topic"]: c["schemaName"] for c in json.loads(msg)["channels"]})
+                return channels
+
+        channels = asyncio.run(advertised())
+    finally:
+        outputs.close()
+    assert channels["/fix/d1"] == "foxglove.LocationFix"
+    assert "/swarm/peers" in channels
