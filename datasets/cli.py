@@ -41,6 +41,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="during the outage the receiver is silent, or reports fix type 1 (default silent)")
     f.set_defaults(func=run_fusion_log)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
+    from skyfix.datasets.sim import cli as sim_cli  # `skyfix sim`: the MAVLink simulator harness
+
+    sim_cli.register(subparsers)
 
 
 def run_fusion_log(args: argparse.Namespace) -> int:

@@ -1,136 +1,73 @@
-"""``skyfix sim`` (the built-in MAVLink simulator) and ``skyfix vehicle`` (talk to an autopilot)."""
+"""``skyfix vehicle ...``: what a person checking a drone does over MAVLink.
+
+status (bounded wait for GPS and home), arm, disarm, takeoff, goto, rtl, land, mission
+upload/download, param get/set. A refusal prints the autopilot's own reason (its
+STATUSTEXT and COMMAND_ACK result) and exits non-zero. The simulator command
+(``skyfix sim``) lives in :mod:`skyfix.datasets.sim.cli`.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
-import time
 from dataclasses import asdict
+from pathlib import Path
 
-from skyfix.errors import InputError
+from skyfix.errors import InputError, SkyfixTimeout
 
-
-def _floats(text: str, n: int, name: str) -> tuple[float, ...]:
-    try:
-        vals = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        raise InputError(f"{name} must be {n} comma-separated numbers, got {text!r}") from None
-    if len(vals) != n or not all(math.isfinite(v) for v in vals):
-        raise InputError(f"{name} must be {n} comma-separated finite numbers, got {text!r}")
-    return vals
+URL_HELP = "MAVLink URL: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or a serial device /dev/ttyACM0:115200"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser(
-        "sim", help="run the multi-vehicle MAVLink simulator on 127.0.0.1",
-        description="Run N simulated multirotors (ArduPilot Copter or PX4 flavour), each speaking "
-                    "MAVLink over UDP on loopback. Vehicle i has system id i+1 and, like ArduPilot "
-                    "SITL, sends to 127.0.0.1:BASE_PORT+i and answers whoever talks to it: connect a "
-                    "ground station with udpin:127.0.0.1:BASE_PORT+i. Ctrl-C stops it.")
-    p.add_argument("--vehicles", type=int, default=1, help="number of vehicles (default 1)")
-    p.add_argument("--base-port", type=int, default=14550,
-                   help="vehicle i sends to 127.0.0.1:BASE_PORT+i (default 14550)")
-    p.add_argument("--flavour", choices=("ardupilot", "px4"), default="ardupilot",
-                   help="autopilot to emulate (default ardupilot)")
-    p.add_argument("--speed", type=float, default=1.0, help="simulated seconds per wall second")
-    p.add_argument("--home", default=None, metavar="LAT,LON,ALT",
-                   help="home of vehicle 1, degrees and metres AMSL (default: SITL's default site)")
-    p.add_argument("--wind", default="0,0", metavar="SPEED,FROM_DEG",
-                   help="mean wind speed m/s and the direction it blows from, degrees (default 0,0)")
-    p.add_argument("--gusts", type=float, default=0.0, help="gust standard deviation, m/s")
-    p.add_argument("--loss", type=float, default=0.0, help="fraction of packets to drop (0..1)")
-    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                   help="override an autopilot parameter on every vehicle (repeatable)")
-    p.add_argument("--gps-fault", action="append", default=[], metavar="VEHICLE:KIND:START[:DURATION]",
-                   help="schedule a GPS fault on vehicle VEHICLE (system id), KIND one of loss, "
-                        "degraded, jump, spoof, START/DURATION in simulated seconds (repeatable), "
-                        "e.g. 2:loss:30:20")
-    p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
-    p.set_defaults(func=run_sim)
-
-    v = subparsers.add_parser("vehicle", help="talk to a MAVLink autopilot (status, params, mission)",
-                              description="Inspect a vehicle over MAVLink. URL: udpin:HOST:PORT, "
-                                          "udpout:HOST:PORT, tcp:HOST:PORT or /dev/ttyACM0:115200.")
+    v = subparsers.add_parser(
+        "vehicle", help="talk to a MAVLink autopilot: status, arm, takeoff, goto, rtl, mission, params",
+        description="Check and fly a vehicle over MAVLink (ArduPilot or PX4). " + URL_HELP + ". "
+                    "Altitudes of takeoff/goto are metres above home. Refusals print the autopilot's reason.")
     vsub = v.add_subparsers(dest="vehicle_command", metavar="ACTION", title="actions")
-    s = vsub.add_parser("status", help="connect and print the vehicle state",
-                        description="Connect, wait for telemetry and print the state.")
-    _common(s)
+    s = _action(vsub, "status", "connect, wait (bounded) for GPS and home, print the state", run_status)
     s.add_argument("--json", action="store_true", help="print the state as JSON")
-    s.set_defaults(func=run_status)
-    pa = vsub.add_parser("params", help="read autopilot parameters",
-                         description="Read parameters by name and print NAME VALUE lines.")
-    _common(pa)
-    pa.add_argument("names", nargs="+", help="parameter names, e.g. GPS_TYPE")
-    pa.set_defaults(func=run_params)
-    m = vsub.add_parser("mission", help="download the vehicle's mission to JSON",
-                        description="Download the mission (MISSION_ITEM_INT) and write it as JSON.")
-    _common(m)
-    m.add_argument("-o", "--output", default="-", help="JSON file (default: stdout)")
-    m.set_defaults(func=run_mission_download)
+    s.add_argument("--wait", type=float, default=10.0, help="seconds to wait for GPS fix and home (default 10)")
+    _action(vsub, "arm", "arm the motors (in the current mode)", run_arm)
+    _action(vsub, "disarm", "disarm (refused in flight by the autopilot)", run_disarm)
+    t = _action(vsub, "takeoff", "arm if needed and take off (ArduPilot: GUIDED; PX4: AUTO.TAKEOFF)", run_takeoff)
+    t.add_argument("alt_m", type=float, help="altitude above home, metres")
+    g = _action(vsub, "goto", "fly to a position (GUIDED / OFFBOARD) and wait for arrival", run_goto)
+    g.add_argument("lat_deg", type=float, help="latitude, degrees WGS84")
+    g.add_argument("lon_deg", type=float, help="longitude, degrees WGS84")
+    g.add_argument("alt_m", type=float, help="altitude above home, metres")
+    g.add_argument("--no-wait", action="store_true", help="return once the target is sent")
+    for name, helptext in (("rtl", "return to launch"), ("land", "land where it is")):
+        r = _action(vsub, name, f"{helptext}; with --wait until disarmed", run_rtl_land)
+        r.add_argument("--wait", action="store_true", help="wait until landed and disarmed")
+    m = vsub.add_parser("mission", help="upload or download the mission (JSON)",
+                        description="Missions as JSON: {\"items\": [MissionItem fields...]}, the format "
+                                    "'mission download' writes.")
+    msub = m.add_subparsers(dest="mission_command", metavar="ACTION", title="actions")
+    up = _action(msub, "upload", "upload a mission JSON file", run_mission_upload)
+    up.add_argument("file", type=Path, help="mission JSON (as written by 'mission download')")
+    down = _action(msub, "download", "download the mission to JSON", run_mission_download)
+    down.add_argument("-o", "--output", default="-", help="JSON file (default: stdout)")
+    m.set_defaults(func=lambda args: (m.print_help(), 2)[1])
+    p = vsub.add_parser("param", help="read or write parameters", description="Read or write autopilot "
+                        "parameters; integers are printed as integers.")
+    psub = p.add_subparsers(dest="param_command", metavar="ACTION", title="actions")
+    pg = _action(psub, "get", "print NAME VALUE for each parameter", run_param_get)
+    pg.add_argument("names", nargs="+", help="parameter names, e.g. GPS1_TYPE EK3_SRC1_POSXY")
+    ps = _action(psub, "set", "write one parameter and print what the autopilot holds", run_param_set)
+    ps.add_argument("name", help="parameter name")
+    ps.add_argument("value", type=float, help="new value")
+    p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
     v.set_defaults(func=lambda args: (v.print_help(), 2)[1])
 
 
-def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("url", help="MAVLink URL, e.g. udpin:127.0.0.1:14550")
-    p.add_argument("--system-id", type=int, default=None, help="vehicle system id (default: first heard)")
-    p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the vehicle")
-
-
-def run_sim(args: argparse.Namespace) -> int:
-    from skyfix.datasets.sim import Simulator, SimulatorConfig, WindField
-
-    speed, from_deg = _floats(args.wind, 2, "--wind")
-    to_rad = math.radians(from_deg + 180.0)
-    wind = WindField((speed * math.sin(to_rad), speed * math.cos(to_rad), 0.0), gust_sigma_mps=args.gusts)
-    params = {}
-    for item in args.param:
-        name, _, value = item.partition("=")
-        params[name.strip().upper()] = _floats(value, 1, f"--param {name}")[0]
-    cfg = SimulatorConfig(vehicles=args.vehicles, flavour=args.flavour, base_port=args.base_port,
-                          home=_floats(args.home, 3, "--home") if args.home else None, speed=args.speed,
-                          loss_rate=args.loss, wind=wind, params=params)
-    faults = [_gps_fault(spec, cfg.vehicles) for spec in args.gps_fault]
-    sim = Simulator(cfg)
-    for index, fault in faults:
-        sim.add_gps_fault(index, fault)
-    out = sys.stdout
-    out.write(f"skyfix sim: {cfg.vehicles} {cfg.flavour} vehicle(s) on 127.0.0.1 at {cfg.speed:g}x "
-              f"real time\n")
-    for i, (host, port) in enumerate(sim.addresses):
-        gcs = args.base_port + i
-        out.write(f"  vehicle {i + 1}: sends to 127.0.0.1:{gcs} (connect udpin:127.0.0.1:{gcs}), "
-                  f"listens on {host}:{port} (or connect udpout:{host}:{port})\n")
-    out.write("Ctrl-C to stop.\n")
-    out.flush()
-    sim.start()
-    try:
-        t_end = time.monotonic() + args.duration if args.duration else math.inf
-        while time.monotonic() < t_end:
-            time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
-    except KeyboardInterrupt:
-        out.write("stopping\n")
-    finally:
-        sim.stop()
-    return 0
-
-
-def _gps_fault(spec: str, vehicles: int):
-    """Parse VEHICLE:KIND:START[:DURATION] into (vehicle index, GpsFault)."""
-    from skyfix.datasets.sim import GpsFault
-
-    parts = spec.split(":")
-    if len(parts) not in (3, 4):
-        raise InputError(f"--gps-fault must be VEHICLE:KIND:START[:DURATION], got {spec!r}")
-    try:
-        sysid, start = int(parts[0]), float(parts[2])
-        duration = float(parts[3]) if len(parts) == 4 else math.inf
-    except ValueError:
-        raise InputError(f"--gps-fault numbers are malformed in {spec!r}") from None
-    if not 1 <= sysid <= vehicles:
-        raise InputError(f"--gps-fault vehicle must be a system id 1..{vehicles}, got {sysid}")
-    return sysid - 1, GpsFault(parts[1], start, duration)
+def _action(sub, name: str, helptext: str, func) -> argparse.ArgumentParser:
+    a = sub.add_parser(name, help=helptext, description=helptext[0].upper() + helptext[1:] + ".")
+    a.add_argument("url", help=URL_HELP)
+    a.add_argument("--system-id", type=int, default=None, help="vehicle system id (default: first heard)")
+    a.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the vehicle (default 10)")
+    a.set_defaults(func=func)
+    return a
 
 
 def _connect(args: argparse.Namespace):
@@ -142,26 +79,82 @@ def _connect(args: argparse.Namespace):
 def run_status(args: argparse.Namespace) -> int:
     with _connect(args) as vehicle:
         try:
-            st = vehicle.wait_until(lambda s: None not in (s.position, s.gps, s.home),
-                                    min(args.timeout, 5.0), what="position, GPS and home reports")
-        except TimeoutError:
-            st = vehicle.state
+            st = vehicle.wait_until(lambda s: s.position is not None and s.home is not None and s.gps
+                                    is not None and s.gps.fix_type >= 3, args.wait, what="GPS fix and home")
+        except SkyfixTimeout:
+            st = vehicle.state  # report what there is: a vehicle without GPS is worth seeing too
         if args.json:
             sys.stdout.write(json.dumps(asdict(st), indent=2, default=str) + "\n")
+            return 0
+        sys.stdout.write(st.summary() + "\n")
+        if st.gps:
+            g = st.gps
+            sys.stdout.write(f"gps fix {g.fix_type}, {g.satellites} sats, h_acc {g.h_acc_m:.2f} m, v_acc "
+                             f"{g.v_acc_m:.2f} m, HDOP {g.hdop:.2f}, {g.alt_amsl_m:.1f} m AMSL = "
+                             f"{g.alt_ellipsoid_m:.1f} m ellipsoidal ({g.alt_ellipsoid_source})\n")
+        if st.battery:
+            sys.stdout.write(f"battery {st.battery.voltage_v:.2f} V {st.battery.remaining_pct:.0f} %\n")
+        if st.home:
+            sys.stdout.write(f"home {st.home.lat_deg:.7f},{st.home.lon_deg:.7f} {st.home.alt_amsl_m:.1f} m AMSL\n")
         else:
-            sys.stdout.write(st.summary() + "\n")
-            if st.battery:
-                sys.stdout.write(f"battery {st.battery.voltage_v:.2f} V {st.battery.remaining_pct:.0f} %\n")
-            if st.home:
-                sys.stdout.write(f"home {st.home.lat_deg:.7f},{st.home.lon_deg:.7f} "
-                                 f"{st.home.alt_amsl_m:.1f} m AMSL\n")
+            sys.stdout.write("home not set (no GPS fix yet?)\n")
     return 0
 
 
-def run_params(args: argparse.Namespace) -> int:
+def run_arm(args: argparse.Namespace) -> int:
     with _connect(args) as vehicle:
-        for name in args.names:
-            sys.stdout.write(f"{name} {vehicle.get_param(name):g}\n")
+        vehicle.arm()
+        sys.stdout.write(f"armed in {vehicle.state.mode}\n")
+    return 0
+
+
+def run_disarm(args: argparse.Namespace) -> int:
+    with _connect(args) as vehicle:
+        vehicle.disarm()
+        sys.stdout.write("disarmed\n")
+    return 0
+
+
+def run_takeoff(args: argparse.Namespace) -> int:
+    from skyfix.drivers.modes import role_mode
+
+    with _connect(args) as vehicle:
+        vehicle.wait_until(lambda s: s.home is not None, args.timeout, what="home (GPS fix)")
+        if vehicle.autopilot == "ardupilot":
+            vehicle.set_mode(role_mode("ardupilot", "takeoff"))
+        if not vehicle.state.armed:
+            vehicle.arm()
+        vehicle.takeoff(args.alt_m)
+        sys.stdout.write(f"at {vehicle.state.position.alt_rel_m:.1f} m above home\n")
+    return 0
+
+
+def run_goto(args: argparse.Namespace) -> int:
+    with _connect(args) as vehicle:
+        vehicle.goto(args.lat_deg, args.lon_deg, args.alt_m, wait=not args.no_wait)
+        sys.stdout.write(vehicle.state.summary() + "\n")
+    return 0
+
+
+def run_rtl_land(args: argparse.Namespace) -> int:
+    with _connect(args) as vehicle:
+        (vehicle.rtl if args.vehicle_command == "rtl" else vehicle.land)(wait=args.wait)
+        sys.stdout.write(vehicle.state.summary() + "\n")
+    return 0
+
+
+def run_mission_upload(args: argparse.Namespace) -> int:
+    from skyfix.drivers.mission import MissionItem
+
+    try:
+        doc = json.loads(args.file.read_text())
+        items = [MissionItem(**it) for it in doc["items"]]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{args.file}: not a skyfix mission JSON ({exc})") from None
+    with _connect(args) as vehicle:
+        stats = vehicle.upload_mission(items)
+    sys.stdout.write(f"uploaded {stats.items} items in {stats.elapsed_s:.2f} s "
+                     f"({stats.retransmissions} retransmissions)\n")
     return 0
 
 
@@ -172,6 +165,18 @@ def run_mission_download(args: argparse.Namespace) -> int:
     if args.output == "-":
         sys.stdout.write(text + "\n")
     else:
-        with open(args.output, "w") as f:
-            f.write(text + "\n")
+        Path(args.output).write_text(text + "\n")
+    return 0
+
+
+def run_param_get(args: argparse.Namespace) -> int:
+    with _connect(args) as vehicle:
+        for name in args.names:
+            sys.stdout.write(f"{name} {vehicle.get_param(name):g}\n")
+    return 0
+
+
+def run_param_set(args: argparse.Namespace) -> int:
+    with _connect(args) as vehicle:
+        sys.stdout.write(f"{args.name} {vehicle.set_param(args.name, args.value):g}\n")
     return 0

@@ -218,7 +218,8 @@ class Vehicle:
         if msg.get_srcComponent() != self.component_id:
             return
         self._hb_mono = t_mono
-        if self.link is not None and t_mono - self._position_mono > 2.0 and t_mono - self._streams_mono > 2.0:
+        if self.link is not None and not self.link.closed and t_mono - self._position_mono > 2.0 \
+                and t_mono - self._streams_mono > 2.0:
             self.request_streams()  # heartbeats but no positions: rates forgotten (reboot)
         old = self._state
         mode = mode_name(self.autopilot, msg.custom_mode)

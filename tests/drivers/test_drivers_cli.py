@@ -1,13 +1,16 @@
 """``skyfix sim`` prints its ports, serves ground stations and stops cleanly on Ctrl-C;
-``skyfix vehicle status|params|mission`` talk to it."""
+``skyfix vehicle status|arm|takeoff|goto|rtl|mission|param`` fly and inspect it."""
 
 from __future__ import annotations
 
 import json
+import math
 import signal
 import subprocess
 import sys
 import time
+
+import pytest
 
 from skyfix.cli import main
 
@@ -26,7 +29,7 @@ def test_sim_cli_serves_and_stops_on_ctrl_c(udp_port, capsys):
         state = json.loads(capsys.readouterr().out)
         assert state["system_id"] == 2 and state["autopilot"] == "ardupilot" and state["link_ok"]
         assert abs(state["position"]["lat_deg"] + 35.363) < 0.01  # SITL's default site
-        assert main(["-q", "vehicle", "params", f"udpin:127.0.0.1:{udp_port}", "GPS2_TYPE"]) == 0
+        assert main(["-q", "vehicle", "param", "get", f"udpin:127.0.0.1:{udp_port}", "GPS2_TYPE"]) == 0
         assert capsys.readouterr().out.strip() == "GPS2_TYPE 14"
         # vehicle 1 has lost GPS from the start (--gps-fault 1:loss:0), vehicle 2 has not
         assert main(["-q", "vehicle", "status", f"udpin:127.0.0.1:{udp_port}", "--json"]) == 0
@@ -48,3 +51,39 @@ def test_sim_cli_rejects_bad_fault(capsys):
 
 def test_vehicle_cli_unreachable_exits_1(udp_port, capsys):
     assert main(["-q", "vehicle", "status", f"udpout:127.0.0.1:{udp_port}", "--timeout", "0.5"]) == 1
+
+
+def test_vehicle_cli_flies_a_mission_and_reports_refusals(tmp_path, capsys, caplog):
+    from skyfix.datasets.sim import Simulator, SimulatorConfig
+    from skyfix.drivers.mission import MissionItem
+
+    with Simulator(SimulatorConfig(vehicles=1, speed=5.0, seed=12)) as sim:
+        url = sim.url(0)
+        assert main(["-q", "vehicle", "status", url]) == 0
+        out = capsys.readouterr().out
+        assert "h_acc 0.80 m" in out and "HDOP 1.20" in out and "home " in out
+        # a refusal carries the autopilot's reason
+        assert main(["-q", "vehicle", "disarm", url]) == 0
+        assert main(["-q", "vehicle", "takeoff", url, "8"]) == 0
+        assert abs(sim.truth(0)["alt_rel_m"] - 8.0) < 1.0
+        assert main(["vehicle", "disarm", url]) == 1
+        assert "Disarm: vehicle is flying" in caplog.text  # the one-line error skyfix logs
+        t = sim.truth(0)
+        lat, lon = t["lat_deg"] + 1.5e-4, t["lon_deg"]
+        assert main(["-q", "vehicle", "goto", url, str(lat), str(lon), "10"]) == 0
+        t = sim.truth(0)
+        assert math.hypot((t["lat_deg"] - lat) * 111_320, (t["lon_deg"] - lon) * 78_000) < 2.0
+        plan = tmp_path / "mission.json"
+        items = [MissionItem.waypoint(lat + 1e-4 * i, lon, 10.0 + i) for i in range(4)]
+        plan.write_text(json.dumps({"items": [dict(vars(it)) for it in items]}))
+        assert main(["-q", "vehicle", "mission", "upload", url, str(plan)]) == 0
+        assert "uploaded 4 items" in capsys.readouterr().out
+        back = tmp_path / "back.json"
+        assert main(["-q", "vehicle", "mission", "download", url, "-o", str(back)]) == 0
+        assert [it["lat_deg"] for it in json.loads(back.read_text())["items"]] == \
+            pytest.approx([it.lat_deg for it in items], abs=1e-7)
+        assert main(["-q", "vehicle", "param", "set", url, "RTL_ALT", "2000"]) == 0
+        assert capsys.readouterr().out.strip() == "RTL_ALT 2000"
+        assert main(["-q", "vehicle", "rtl", url, "--wait"]) == 0
+        assert not sim.vehicle(0).armed and sim.truth(0)["alt_rel_m"] < 0.5
+        assert main(["-q", "vehicle", "mission", "upload", url, str(tmp_path / "missing.json")]) == 1

@@ -5,6 +5,7 @@ the mission protocol's re-request and give-up timings (ArduPilot: 1 s and 8 s)."
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import socket
@@ -95,7 +96,7 @@ def test_mission_upload_timings_follow_the_firmware(sim):
                 assert m.seq == 0
                 t_req.append(sim.time_s)
         assert ack is not None and ack[0].type == M.MAV_MISSION_OPERATION_CANCELLED
-        gaps = [b - a for a, b in zip(t_req, t_req[1:])]
+        gaps = [b - a for a, b in itertools.pairwise(t_req)]
         # re-requested every 1 s of autopilot time (one 20 ms step of slack + loop jitter)
         assert gaps and all(0.95 <= g <= 1.2 for g in gaps), gaps
         assert ack[1] - t_req[0] == pytest.approx(8.0, abs=0.3)  # abandoned after 8 s of silence
