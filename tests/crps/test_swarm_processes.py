@@ -1,7 +1,9 @@
 """Real processes on loopback: ``skyfix sim --vehicles 3`` and three ``skyfix serve``.
 
 Each service hears the other two within 2 s of their first message; one killed (SIGKILL) is
-marked lost by the others within 2 s and rejoins when restarted; forged, replayed,
+marked lost by the others within 2 s, its log holds every estimate it sent more than 100 ms
+before the kill (the others witness what it sent) and replays to the estimates it logged, and
+it rejoins when restarted; forged, replayed,
 truncated and random-byte datagrams sent by an attacker on the swarm network are dropped
 and counted; nothing crashes; SIGTERM stops each cleanly (exit 0) with a finished MCAP log
 that the mcap reader opens, LocationFix topics included. The services' own MCAP logs
@@ -28,6 +30,7 @@ from test_swarm_transport import free_ports, wait_for
 from skyfix.crps.messages import Heartbeat, SwarmCodec
 from skyfix.crps.transport import Endpoints, ZenohTransport
 from skyfix.fusion.log_mcap import iter_messages
+from skyfix.fusion.replay import replay
 
 IDS = ("d1", "d2", "d3")
 KEY = os.urandom(32)
@@ -85,6 +88,23 @@ def state_at(log: Path, drone: str, t_s: float) -> str:
     return "lost" if last and last[-1] == "lost" else "ok"
 
 
+def check_killed_log(log: Path, witnesses: list[Path], t_kill: float) -> None:
+    """kill -9: every estimate the killed drone sent more than 100 ms before the kill, as its peers
+    received it, is in its log; the cut log replays to the estimates it logged."""
+    sent = {(e["boot_id"], e["seq"]) for _, e in events(log, "/swarm/out/FusedEstimate")}
+    for w in witnesses:
+        heard = [(e["boot_id"], e["seq"]) for _, e in events(w, "/swarm/in/FusedEstimate")
+                 if e["sender"] == "d3" and e["time_s"] < t_kill - 0.1]
+        assert len(heard) > 20 and not [h for h in heard if h not in sent], "records lost by kill -9"
+    replayed = {(e.drone_id, e.time_s): e for e in replay(log, show_progress=False).estimates}
+    own = [e for _, e in events(log, "/estimate/d3")]
+    assert len(own) > 30
+    for est in own:
+        r = replayed[("d3", est["time_s"])]
+        assert abs(r.lat_deg - est["lat_deg"]) < 1e-9 and abs(r.lon_deg - est["lon_deg"]) < 1e-9
+        np.testing.assert_allclose(r.cov_enu_m2, est["cov_enu_m2"], rtol=1e-9, atol=1e-12)
+
+
 def attack(ports: list[int]) -> str:
     """Forged, truncated and random datagrams from a peer without the key, and real messages replayed
     under their sender's key expression; returns the sender whose message was replayed."""
@@ -132,7 +152,8 @@ def test_three_services_hear_each_other_lose_rejoin_and_survive_attacks(tmp_path
                 if i != j:  # heard within 2 s of the peer's first message
                     assert peer_event_s(logs[i], "joined", IDS[j]) - first_sent_s(logs[j]) < 2.0, (IDS[i], IDS[j])
 
-        # kill -9 d3: the others mark it lost within 2 s
+        # kill -9 d3 (once it has estimated for a while): the others mark it lost within 2 s
+        assert wait_for(lambda: len(events(logs[2], "/estimate/d3")) > 30, 30.0)
         procs[2].send_signal(signal.SIGKILL)
         t_kill = time.time()
         procs[2].wait()
@@ -140,6 +161,8 @@ def test_three_services_hear_each_other_lose_rejoin_and_survive_attacks(tmp_path
         # (on a loaded machine a stalled peer may already be marked lost just before the kill: what counts
         # is that it is lost 2 s after)
         assert [state_at(logs[i], "d3", t_kill + 2.0) for i in (0, 1)] == ["lost", "lost"]
+
+        check_killed_log(logs[2], [logs[0], logs[1]], t_kill)
 
         # restarted (new log): it rejoins
         log3b = tmp_path / "d3b.mcap"
