@@ -39,6 +39,7 @@ TAG_BYTES = 32  # HMAC-SHA256
 MAX_MESSAGE_BYTES = 2048  # every body fits in ~400 bytes; anything far larger is refused unread
 MIN_KEY_BYTES = 16
 REPLAY_WINDOW = 64  # sequence numbers older than the newest by less than this are accepted once
+MAX_SENDERS = 64  # senders tracked without a roster: a key holder cannot grow the tables without bound
 DROP_REASONS = ("oversized", "truncated", "forged", "malformed", "version", "unknown_sender", "self",
                 "stale", "replayed")
 
@@ -210,6 +211,8 @@ class SwarmCodec:
             return self._drop("version", f"wire version {env.version}, expected {WIRE_VERSION}")
         if self.roster is not None and env.sender not in self.roster:
             return self._drop("unknown_sender", f"sender {env.sender!r} is not on the roster")
+        if env.sender not in self._windows and len(self._windows) >= MAX_SENDERS:
+            return self._drop("unknown_sender", f"sender {env.sender!r}: already {MAX_SENDERS} senders tracked")
         if env.sender == self.sender_id:
             return self._drop("self", "own message echoed back")
         if not math.isfinite(env.time_s) or abs(self.clock() - env.time_s) > self.max_age_s:

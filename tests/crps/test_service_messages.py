@@ -121,3 +121,13 @@ def test_key_file(tmp_path):
         read_key(tmp_path / "short")
     with pytest.raises(InputError, match="cannot read"):
         read_key(tmp_path / "missing")
+
+
+def test_without_a_roster_the_sender_table_is_bounded():
+    from skyfix.crps.messages import MAX_SENDERS
+
+    clock = Clock()
+    rx = SwarmCodec("rx", KEY, clock=clock)
+    results = [rx.decode(SwarmCodec(f"s{i}", KEY, clock=clock).encode(Heartbeat("ok", "gnss", 1.0, True))) is not None
+               for i in range(MAX_SENDERS + 3)]
+    assert results == [True] * MAX_SENDERS + [False] * 3 and rx.dropped["unknown_sender"] == 3
