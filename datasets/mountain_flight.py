@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -289,3 +290,34 @@ def fly(scene: MountainScene, camera: Camera, truth_log: PoseLog, errors: PoseEr
     sensor = sensor or ThermalSensor(camera.width, camera.height, noise_sigma_c=0.05, dead_pixel_fraction=2e-4,
                                      seed=seed)
     return MountainFlight(scene, camera, truth_log, log, errors, tau - errors.time_offset_s, sensor, seed)
+
+
+def write_mountain_flight(out_dir, flight: MountainFlight, *, dem_metres_per_px: float = 10.0,
+                          dem_datum: str = "amsl", progress=iter) -> Path:
+    """Write ``flight`` for ``skyfix thermal locate``: ``frames/NNNNN.png`` (16-bit counts),
+    ``poses.csv`` (the drone's log read at each frame's camera stamp, as a user joins them),
+    ``camera.json``, ``dem.tif`` (a DEM of the terrain, ``dem_datum``) and ``truth.json``
+    (fires, boresight, time offset: for scoring only)."""
+    import json
+
+    from skyfix.camera_io import save_camera
+    from skyfix.datasets.thermal_flight import write_poses_csv
+
+    out = Path(out_dir)
+    (out / "frames").mkdir(parents=True, exist_ok=True)
+    rows = []
+    for k, (stamp, counts) in enumerate(progress(flight.frames())):
+        name = f"frames/{k:05d}.png"
+        cv2.imwrite(str(out / name), counts)
+        rows.append((name, stamp, flight.log.pose_at(stamp)))
+    write_poses_csv(out / "poses.csv", rows)
+    save_camera(out / "camera.json", flight.camera)
+    flight.scene.terrain.write_dem(out / "dem.tif", metres_per_px=dem_metres_per_px, datum=dem_datum)
+    lat, lon, alt = flight.scene.frame.to_geodetic(*flight.scene.fire_enu().T)
+    truth = {"dem": "dem.tif", "dem_datum": dem_datum, "kelvin_per_count": flight.sensor.kelvin_per_count,
+             "boresight_deg": list(flight.errors.boresight_deg), "time_offset_s": flight.errors.time_offset_s,
+             "fires": [{"index": i, "lat_deg": float(a), "lon_deg": float(b), "alt_m": float(c),
+                        "radius_m": f.radius_m} for i, (a, b, c, f) in enumerate(zip(lat, lon, alt, flight.scene.fires,
+                                                                                       strict=True))]}
+    (out / "truth.json").write_text(json.dumps(truth, indent=2))
+    return out

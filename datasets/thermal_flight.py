@@ -75,6 +75,18 @@ def orbit(scene: ThermalScene, camera: Camera, centre_en_m: tuple[float, float],
     return out
 
 
+def write_poses_csv(path: str | Path, rows: list[tuple[str, float, CameraPose]]) -> Path:
+    """A pose CSV (:data:`POSE_COLUMNS`, ellipsoidal altitude, gimbal yaw relative to the
+    nose) from (frame name, time s, pose) rows; floats at full precision."""
+    with open(path, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(POSE_COLUMNS)
+        for name, t, p in rows:
+            writer.writerow([name, t, p.lat, p.lon, p.alt_m, p.roll_deg, p.pitch_deg, p.yaw_deg,
+                             p.gimbal_pitch_deg, p.gimbal_roll_deg, p.gimbal_yaw_deg, int(p.stabilized)])
+    return Path(path)
+
+
 def write_flight(out_dir: str | Path, scene: ThermalScene, camera: Camera, flight: list[FlightFrame],
                  sensor: ThermalSensor, *, output: str = "counts", palette: str = "white-hot",
                  span_c: tuple[float, float] | None = (0.0, 150.0), seed: int = 0, progress=iter) -> Path:
@@ -96,13 +108,8 @@ def write_flight(out_dir: str | Path, scene: ThermalScene, camera: Camera, fligh
         if img.ndim == 3:
             img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
         cv2.imwrite(str(out / name), img)
-        p = ff.pose
-        rows.append([name, ff.time_s, p.lat, p.lon, p.alt_m, p.roll_deg, p.pitch_deg, p.yaw_deg,
-                     p.gimbal_pitch_deg, p.gimbal_roll_deg, p.gimbal_yaw_deg, int(p.stabilized)])
-    with open(out / "poses.csv", "w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(POSE_COLUMNS)
-        writer.writerows(rows)  # floats at full precision (shortest round-trip repr)
+        rows.append((name, ff.time_s, ff.pose))
+    write_poses_csv(out / "poses.csv", rows)
     save_camera(out / "camera.json", camera)
     truth = {"ground_alt_m": scene.ground_alt_m, "kelvin_per_count": sensor.kelvin_per_count,
              "output": output, "palette": palette, "fires": []}

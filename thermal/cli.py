@@ -90,6 +90,25 @@ def _add_frame_args(p: argparse.ArgumentParser) -> None:
     u.add_argument("--pixel-sigma", type=float, default=0.5, help="centroid, px (default 0.5)")
 
 
+def _add_joint_args(p: argparse.ArgumentParser) -> None:
+    j = p.add_argument_group("joint estimate (--joint): every fire from all its frames at once, with the pose "
+                             "errors drones have")
+    j.add_argument("--joint", action="store_true",
+                   help="estimate the fires jointly over the flight: GNSS error shared between frames "
+                        "(Gauss-Markov), attitude drift, the camera's boresight misalignment and its clock "
+                        "offset to the pose log estimated; writes OUT.csv, OUT_calibration.json too")
+    j.add_argument("--gnss-sigma", type=float, default=1.5, help="GNSS horizontal wander, m (default 1.5)")
+    j.add_argument("--gnss-vertical-sigma", type=float, default=2.5, help="GNSS vertical wander, m (default 2.5)")
+    j.add_argument("--gnss-tau", type=float, default=60.0, help="GNSS correlation time, s (default 60)")
+    j.add_argument("--boresight-sigma", type=float, default=1.5,
+                   help="prior on the camera's misalignment, deg per axis (default 1.5)")
+    j.add_argument("--time-offset-sigma", type=float, default=0.3,
+                   help="prior on the camera clock offset to the pose log, s (default 0.3)")
+    j.add_argument("--calibration", type=Path, metavar="JSON",
+                   help="boresight and clock offset from an earlier --joint run of the same camera "
+                        "(its OUT_calibration.json), used as the prior")
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``skyfix thermal`` and its subcommands."""
     top = subparsers.add_parser("thermal", help="fire hotspots: detect, geolocate, track, simulate",
@@ -121,6 +140,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--min-observations", type=int, default=2, help="frames before a fire is reported (default 2)")
     _add_frame_args(p)
     _add_ground_args(p)
+    _add_joint_args(p)
     p.set_defaults(func=run_locate)
 
     p = sub.add_parser("simulate", help="write a synthetic thermal flight that 'locate' can read",
@@ -144,6 +164,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--lon", type=float, default=-73.9191, help="scene longitude, deg")
     p.add_argument("--ground-alt", type=float, default=30.0, help="scene ground ellipsoidal height, m")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--mountain", choices=("orbit", "pass"), default=None,
+                   help="instead: a flight over a seeded mountain (2 km, central Corsica) with a consumer "
+                        "drone's pose errors (correlated GNSS, attitude drift, boresight, clock offset); writes "
+                        "dem.tif (10 m, AMSL) too: locate with --dem dem.tif --dem-datum amsl --joint. "
+                        "--frames, --fires, --seed apply")
     p.set_defaults(func=run_simulate)
 
 
@@ -262,10 +287,12 @@ def run_locate(args: argparse.Namespace) -> int:
     import warnings
 
     from skyfix.camera_io import load_camera
-    from skyfix.errors import DataError
+    from skyfix.errors import SkyfixError
     from skyfix.progress import progress
-    from skyfix.thermal.detect import RelativeTemperatureWarning
-    from skyfix.thermal.io import fires_geojson, frame_path, read_frame
+    from skyfix.thermal.detect import RelativeTemperatureWarning, detect_hotspots
+    from skyfix.thermal.ground import DemGround
+    from skyfix.thermal.io import fires_geojson, frame_path, read_frame, write_fires_csv
+    from skyfix.thermal.report import fires_map_png
     from skyfix.thermal.tracker import FireTracker, TrackerSettings
 
     camera = load_camera(args.camera)
@@ -275,39 +302,84 @@ def run_locate(args: argparse.Namespace) -> int:
                                palette=args.palette, min_area_px=args.min_area,
                                kelvin_per_count=args.kelvin_per_count)
     tracker = FireTracker(camera, ground, uncertainty=_uncertainty(args), settings=settings)
-    last = None
-    track = []
+    if isinstance(ground, DemGround):
+        ground.check_covers([p.lat for _, _, p in rows], [p.lon for _, _, p in rows], f"the flight in {args.poses}")
+    last, track, detections = None, [], []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RelativeTemperatureWarning)
         for name, t, pose in progress(rows, desc="thermal locate", unit="frame"):
             path = frame_path(args.frames_dir, name)
             try:
-                frame = read_frame(path)
-            except DataError as exc:
-                log.warning("%s", exc)
+                spots = detect_hotspots(read_frame(path), threshold=args.threshold, palette=args.palette,
+                                        min_area_px=args.min_area, kelvin_per_count=args.kelvin_per_count)
+                seen = tracker.update_hotspots(spots, pose, t)
+            except SkyfixError as exc:
+                log.warning("frame %s dropped: %s", path.name, exc)
                 tracker.frames_dropped += 1
                 continue
-            seen = tracker.update(frame, pose, t)
+            detections.append((t, spots))
             track.append((pose.lat, pose.lon))
-            if tracker.last_hotspots:
-                last = (path, frame, list(tracker.last_hotspots), seen)
+            if spots:
+                last = (path, spots, seen)
     if caught:
         log.warning("%s", caught[0].message)
-    fires = tracker.fires
     args.output.parent.mkdir(parents=True, exist_ok=True)
+    fires = _joint_fires(args, camera, rows, detections, ground) if args.joint else tracker.fires
     args.output.write_text(json.dumps(fires_geojson(fires, track=np.array(track)), indent=1))
     stem = args.output.with_suffix("")
-    frame_png, map_png = Path(f"{stem}_last_frame.png"), Path(f"{stem}_map.png")
+    frame_png, map_png, csv_path = Path(f"{stem}_last_frame.png"), Path(f"{stem}_map.png"), write_fires_csv(
+        Path(f"{stem}.csv"), fires)
     if last is not None:
-        _annotate(frame_png, last[1], last[2], [f"fire {i}" for i in last[3]], args.kelvin_per_count)
-    _map_png(map_png, tracker, np.array(track))
+        _annotate(frame_png, read_frame(last[0]), last[1], [f"fire {i}" for i in last[2]], args.kelvin_per_count)
+    if isinstance(ground, DemGround):
+        fires_map_png(map_png, fires, ground, track_latlon=np.array(track))
+    else:
+        _map_png(map_png, tracker, np.array(track))
     print(f"{len(fires)} fire(s) from {tracker.frames_used} frame(s) ({tracker.frames_dropped} dropped) -> "
-          f"{args.output}, {map_png}" + (f", {frame_png}" if last is not None else ""))
+          f"{args.output}, {csv_path}, {map_png}" + (f", {frame_png}" if last is not None else ""))
     for f in fires:
         print(f"  fire {f.fire_id}: {f.lat_deg:.7f}, {f.lon_deg:.7f}  sigma {f.sigma_m:.2f} m  "
               f"{f.n_observations} obs  {f.first_seen_s:.1f}-{f.last_seen_s:.1f} s  "
               f"{'burning' if f.burning else 'out'}")
     return 0
+
+
+def _joint_fires(args: argparse.Namespace, camera, rows, detections, ground) -> list:
+    """``--joint``: the flight's fires from :func:`locate_jointly`; writes the calibration JSON."""
+    from skyfix.errors import DataError
+    from skyfix.thermal.joint import JointSolution, PoseErrorPrior, locate_jointly
+    from skyfix.thermal.poselog import PoseLog
+    from skyfix.thermal.sightings import associate
+
+    times = np.array([t for _, t, _ in rows])
+    if np.any(np.diff(times) <= 0):
+        raise DataError(f"{args.poses}: --joint needs strictly increasing time_s")
+    pose_log = PoseLog.from_poses(times, [p for _, _, p in rows])
+    prior = PoseErrorPrior(gnss_h_sigma_m=args.gnss_sigma, gnss_v_sigma_m=args.gnss_vertical_sigma,
+                           gnss_tau_s=args.gnss_tau, boresight_sigma_deg=args.boresight_sigma,
+                           time_offset_sigma_s=args.time_offset_sigma, pixel_sigma_px=args.pixel_sigma)
+    calibration = None
+    if args.calibration is not None:
+        try:
+            c = json.loads(args.calibration.read_text())
+            calibration = JointSolution([], np.zeros((0, 3)), np.array(c["boresight_deg"], float),
+                                        np.array(c["boresight_cov_deg2"], float), float(c["time_offset_s"]),
+                                        float(c["time_offset_sigma_s"]), np.zeros(0), np.zeros((0, 3)), 0.0, 0)
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise DataError(f"cannot read calibration {args.calibration}: {exc}") from None
+    sol = locate_jointly(camera, pose_log, associate(camera, pose_log, detections, ground), ground, prior=prior,
+                         calibration=calibration)
+    out = Path(f"{args.output.with_suffix('')}_calibration.json")
+    out.write_text(json.dumps({
+        "boresight_deg": sol.boresight_deg.round(4).tolist(),
+        "boresight_cov_deg2": sol.boresight_cov_deg2.round(6).tolist(),
+        "boresight_axes": "rotation vector in the camera frame (x right, y down, z forward), gimbal -> sensor",
+        "time_offset_s": round(sol.time_offset_s, 4), "time_offset_sigma_s": round(sol.time_offset_sigma_s, 4),
+        "time_offset_meaning": "pose-log time minus camera stamp", "chi2": round(sol.chi2, 2), "dof": sol.dof},
+        indent=1))
+    print(f"joint estimate: boresight {np.round(sol.boresight_deg, 3).tolist()} deg, clock offset "
+          f"{sol.time_offset_s:+.3f} +- {sol.time_offset_sigma_s:.3f} s -> {out}")
+    return sol.fires
 
 
 def _map_png(path: Path, tracker, track_latlon: np.ndarray) -> None:
@@ -357,6 +429,8 @@ def run_simulate(args: argparse.Namespace) -> int:
         raise InputError(f"--size must look like 640x512, got {args.size!r}") from None
     if args.fires < 0 or args.frames < 1:
         raise InputError("--fires must be >= 0 and --frames >= 1")
+    if args.mountain:
+        return _simulate_mountain(args, Camera.from_fov(width, height, args.hfov))
     rng = np.random.default_rng(args.seed)
     frame = LocalFrame(args.lat, args.lon, args.ground_alt)
     fires = random_fires(args.fires, rng, half_extent_m=15.0, growth_m_per_s=args.growth,
@@ -371,4 +445,36 @@ def run_simulate(args: argparse.Namespace) -> int:
     print(f"wrote {args.frames} frame(s) with {args.fires} fire(s) to {args.out_dir} "
           f"(locate with: skyfix thermal locate {args.out_dir / 'frames'} --poses {args.out_dir / 'poses.csv'} "
           f"--camera {args.out_dir / 'camera.json'} --ground-alt {args.ground_alt} -o fires.geojson)")
+    return 0
+
+
+def _simulate_mountain(args: argparse.Namespace, camera) -> int:
+    """``skyfix thermal simulate --mountain orbit|pass``."""
+    from skyfix.datasets.mountain_flight import (
+        fly,
+        lines_log,
+        mountain_scene,
+        orbit_log,
+        write_mountain_flight,
+    )
+    from skyfix.datasets.pose_errors import PoseErrorModel
+    from skyfix.progress import progress
+
+    scene = mountain_scene(args.seed, n_fires=max(args.fires, 1))
+    speed = 8.0
+    if args.mountain == "orbit":
+        laps = args.frames * speed / (2 * math.pi * 180.0)
+        log_ = orbit_log(scene, (0.0, 0.0), radius_m=180.0, height_m=100.0, laps=laps, speed_mps=speed)
+    else:
+        half = args.frames * speed / 2.0
+        up = float(np.nanmax(scene.terrain.up_at(np.linspace(-half, half, 100), np.zeros(100)))) + 110.0
+        log_ = lines_log(scene, [(-half, 0.0), (half, 0.0)], up_m=up, gimbal_pitch_deg=-60.0)
+    errors = PoseErrorModel.draw(np.random.default_rng(1000 + args.seed))
+    flight = fly(scene, camera, log_, errors, frame_rate_hz=1.0, seed=args.seed)
+    write_mountain_flight(args.out_dir, flight, progress=lambda it: progress(it, desc="render", total=len(
+        flight.stamps_s), unit="frame"))
+    d = args.out_dir
+    print(f"wrote {len(flight.stamps_s)} frame(s) over a mountain with {len(scene.fires)} fire(s) to {d} "
+          f"(locate with: skyfix thermal locate {d / 'frames'} --poses {d / 'poses.csv'} --camera "
+          f"{d / 'camera.json'} --dem {d / 'dem.tif'} --dem-datum amsl --joint -o fires.geojson)")
     return 0

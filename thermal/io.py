@@ -85,11 +85,45 @@ def read_frame(path: str | Path) -> np.ndarray:
     return img
 
 
+#: Scale of a 2-dof covariance ellipse holding 95 % of the probability (chi-square 2 dof).
+ELLIPSE_95_CHI2 = 5.991
+
+
+def ellipse_axes(cov_en_m2: np.ndarray, chi2: float = ELLIPSE_95_CHI2) -> tuple[float, float, float]:
+    """(semi-major m, semi-minor m, azimuth of the major axis deg clockwise from north) of
+    the ellipse x^T C^-1 x = ``chi2`` of a 2x2 (east, north) covariance."""
+    vals, vecs = np.linalg.eigh(np.asarray(cov_en_m2, float))
+    major = vecs[:, 1]
+    azimuth = float(np.degrees(np.arctan2(major[0], major[1])) % 180.0)
+    return float(np.sqrt(chi2 * vals[1])), float(np.sqrt(chi2 * max(vals[0], 0.0))), azimuth
+
+
+def _ellipse_ring(f, n: int = 36) -> list[list[float]]:
+    """The 95 % ellipse of a fire as a closed lon/lat ring (geodesic offsets from the fire)."""
+    from skyfix.geo import destination
+
+    a, b, az = ellipse_axes(f.cov_en_m2)
+    th = np.linspace(0.0, 2 * np.pi, n + 1)
+    along, across = a * np.cos(th), b * np.sin(th)
+    dist = np.hypot(along, across)
+    bearing = az + np.degrees(np.arctan2(across, along))
+    lat, lon = destination(np.full(th.size, f.lat_deg), np.full(th.size, f.lon_deg), bearing, dist)
+    ring = [[round(float(x), 9), round(float(y), 9)] for x, y in zip(lon, lat, strict=True)]
+    ring[-1] = ring[0]
+    return ring
+
+
 def fires_geojson(fires, *, track: np.ndarray | None = None) -> dict:
     """GeoJSON FeatureCollection: a Point per :class:`~skyfix.thermal.Fire` with its
-    sigma and history, and optionally the camera track (``(N, 2)`` lat, lon) as a line."""
+    sigma, 95 % ellipse axes and first/last-seen times, a Polygon per fire with that
+    ellipse, and optionally the camera track (``(N, 2)`` lat, lon) as a line."""
     feats = []
     for f in fires:
+        a, b, az = ellipse_axes(f.cov_en_m2)
+        feats.append({"type": "Feature", "geometry": {"type": "Polygon", "coordinates": [_ellipse_ring(f)]},
+                      "properties": {"fire_id": f.fire_id, "kind": "95 % uncertainty ellipse",
+                                     "semi_major_m": round(a, 3), "semi_minor_m": round(b, 3),
+                                     "azimuth_deg": round(az, 2)}})
         feats.append({"type": "Feature", "geometry": {"type": "Point", "coordinates": [f.lon_deg, f.lat_deg, f.alt_m]},
                       "properties": {"fire_id": f.fire_id, "sigma_m": round(f.sigma_m, 3),
                                      "sigma_major_m": round(f.sigma_major_m, 3),
@@ -97,12 +131,35 @@ def fires_geojson(fires, *, track: np.ndarray | None = None) -> dict:
                                      "n_observations": f.n_observations, "first_seen_s": f.first_seen_s,
                                      "last_seen_s": f.last_seen_s, "area_m2": round(f.area_m2, 2),
                                      "peak": round(f.peak, 1), "burning": f.burning,
-                                     "alt_datum": "WGS84 ellipsoid"}})
+                                     "ellipse95_semi_major_m": round(a, 3), "ellipse95_semi_minor_m": round(b, 3),
+                                     "ellipse95_azimuth_deg": round(az, 2), "alt_datum": "WGS84 ellipsoid"}})
     if track is not None and len(track) >= 2:
         feats.append({"type": "Feature", "geometry": {"type": "LineString",
                                                       "coordinates": [[float(lon), float(lat)] for lat, lon in track]},
                       "properties": {"kind": "camera track"}})
     return {"type": "FeatureCollection", "features": feats}
+
+
+CSV_COLUMNS = ("fire_id", "lat_deg", "lon_deg", "alt_ellipsoid_m", "sigma_east_m", "sigma_north_m",
+               "cov_en_m2", "ellipse95_semi_major_m", "ellipse95_semi_minor_m", "ellipse95_azimuth_deg",
+               "first_seen_s", "last_seen_s", "n_observations", "area_m2", "peak", "burning")
+
+
+def write_fires_csv(path: str | Path, fires) -> Path:
+    """One row per fire (columns :data:`CSV_COLUMNS`; ``cov_en_m2`` the east-north
+    covariance element, m^2); positions at full precision."""
+    path = Path(path)
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(CSV_COLUMNS)
+        for f in fires:
+            a, b, az = ellipse_axes(f.cov_en_m2)
+            c = f.cov_en_m2
+            w.writerow([f.fire_id, f.lat_deg, f.lon_deg, round(f.alt_m, 3), round(float(np.sqrt(c[0, 0])), 3),
+                        round(float(np.sqrt(c[1, 1])), 3), round(float(c[0, 1]), 4), round(a, 3), round(b, 3),
+                        round(az, 2), f.first_seen_s, f.last_seen_s, f.n_observations, round(f.area_m2, 2),
+                        round(f.peak, 1), int(f.burning)])
+    return path
 
 
 def frame_path(frames_dir: str | Path, name: str) -> Path:
