@@ -1,0 +1,159 @@
+"""Issue 15: observer trust, evidence-based re-admission, GNSS drift, Gauss-Markov GNSS honesty."""
+
+import numpy as np
+import pytest
+from fusion_sim import FRAME, ORIGIN, WHITE_GNSS, Line, fly, relative
+from scipy.stats import chi2
+
+from skyfix.errors import InputError
+from skyfix.fusion import FusionConfig, FusionEngine, HealthState, SourceMonitor
+from skyfix.fusion.drift import GnssDriftTest
+from skyfix.types import RelativeObservation
+
+EAST = Line((0.0, 0.0, 80.0), (8.0, 0.0, 0.0))
+NORTH = Line((0.0, -60.0, 90.0), (8.0, 0.0, 0.0))
+
+
+def _forged(t_s: float) -> RelativeObservation:
+    """An observation by an id nobody registered, with a made-up observer position 30 m off."""
+    lat, lon, alt = (float(c) for c in FRAME.to_geodetic(*(EAST.at(t_s) + [30.0, 0.0, 0.0])))
+    return RelativeObservation("X", "A", t_s, np.array([0.0, 1.0, 0.0]), 40.0, np.eye(3) * 0.01,
+                               observer_lat_deg=lat, observer_lon_deg=lon, observer_alt_m=alt,
+                               observer_cov_enu_m2=np.eye(3) * 0.01)
+
+
+def test_forged_observer_raises_moves_nothing_and_is_counted():
+    rng = np.random.default_rng(11)
+    engine = FusionEngine(ORIGIN, config=WHITE_GNSS)
+    fly(engine, rng, {"A": EAST, "B": NORTH}, 20.0, observers=("B",), target="A")
+    before = engine.estimate("A")
+    with pytest.raises(InputError, match="unknown observer 'X'"):
+        engine.add_relative(_forged(19.95))
+    engine.update()
+    after = engine.estimate("A")
+    assert np.array_equal(before.enu_m, after.enu_m)          # nothing moved, bit for bit
+    assert "X" not in engine.drone_ids and engine.unknown_observations == 1
+    assert engine.health("A")["relative:unknown"].state is HealthState.REJECTED
+    assert "relative:unknown" not in after.sources and "relative:B" in after.sources
+
+
+def test_roster_limits_observers_and_targets_and_drone_count():
+    rng = np.random.default_rng(12)
+    cfg = FusionConfig(roster=("A", "B"), max_drones=3, gnss_gm_h_sigma_m=0.05, gnss_gm_v_sigma_m=0.05)
+    engine = FusionEngine(ORIGIN, config=cfg)
+    fly(engine, rng, {"A": EAST, "B": NORTH, "C": NORTH}, 10.0, observers=("B",), target="A")
+    assert "relative:B" in engine.estimate("A").sources       # B is on the roster
+    obs_c = relative(rng, "C", "A", NORTH.at(10.0), EAST.at(10.0), 10.0)
+    with pytest.raises(InputError, match="unknown observer 'C'"):  # reports its sensors, but not on the roster
+        engine.add_relative(obs_c)
+    with pytest.raises(InputError, match="not on the roster"):
+        engine.add_relative(relative(rng, "B", "C", NORTH.at(10.0), NORTH.at(10.0) + 50.0, 10.0))
+    with pytest.raises(InputError, match="max_drones"):          # a fourth id cannot be created
+        engine.add_velocity("D", 10.0, np.zeros(3), 0.1)
+    with pytest.raises(InputError, match="roster"):
+        FusionConfig(roster="AB")
+
+
+def test_an_observer_not_yet_localised_is_ignored_not_listed():
+    """Its message's own position is never used: the target gets no fix from it."""
+    engine = FusionEngine(ORIGIN, config=WHITE_GNSS)
+    engine.add_velocity("X", 0.0, np.zeros(3), 0.1)               # X reports (so it may observe) but has no fix
+    engine.add_velocity("A", 0.0, np.zeros(3), 0.1)
+    obs = _forged(0.05)
+    engine.add_relative(RelativeObservation("X", "A", 0.05, obs.bearing_enu, obs.range_m, obs.cov_enu_m2,
+                                            obs.observer_lat_deg, obs.observer_lon_deg, obs.observer_alt_m,
+                                            obs.observer_cov_enu_m2))
+    assert "relative:X" not in engine.health("A")
+    with pytest.raises(Exception, match="no absolute position"):
+        engine.estimate("A")
+
+
+def test_one_outlier_does_not_restart_the_readmission_clock():
+    m = SourceMonitor(timeout_s=0.7, reject_after=2, readmit_after_s=5.0, now_s=0.0)
+    m.judge(0.0, False)
+    m.judge(0.2, False)
+    assert m.state is HealthState.REJECTED
+    times = np.round(np.arange(0.4, 5.61, 0.2), 6)
+    fused = [m.judge(float(t), bool(abs(t - 3.0) > 1e-9)) for t in times]  # one failure at 3.0 s
+    first = float(times[fused.index(True)])
+    assert first == pytest.approx(5.4)                   # 5 s after probation began, >= 80 % consistent
+    assert m.state is HealthState.OK
+
+
+def test_drift_window_test_flags_a_slow_drift_not_noise():
+    """Residual changes against an odometer: honest fixes pass, a 0.5 m/s drift fails within 12 s."""
+    rng = np.random.default_rng(5)
+    test = GnssDriftTest(window_s=10.0, gm_sigma_m=1.5, gm_tau_s=60.0, bias_walk_mps_per_sqrt_s=0.01,
+                         max_gap_s=1.0)
+    gate = chi2.ppf(0.99999, 2)
+    nis, t_flag = [], None
+    gm = np.zeros(2)
+    for k in range(1, 1000):
+        t = 0.1 * k
+        test.velocity(t, np.array([8.0, 0.0, 0.0]))
+        if k % 2:
+            continue
+        gm = np.exp(-0.2 / 60) * gm + 1.5 * np.sqrt(1 - np.exp(-0.4 / 60)) * rng.normal(0, 1, 2)
+        drift = 0.5 * max(0.0, t - 60.0) * np.array([0.6, 0.8])
+        z = np.array([8.0 * t, 0.0]) + gm + rng.normal(0, 0.3, 2) + drift
+        test.record(t, test.residual(t, z), 0.09)
+        test.bias(t, np.zeros(3), np.eye(3) * 0.03**2)
+        v = test.window_nis(t)
+        if v is not None and t < 60.0:
+            nis.append(v)
+        if v is not None and t >= 60.0 and v > gate and t_flag is None:
+            t_flag = t
+    assert np.percentile(nis, 99) < gate                      # honest: chi-square(2) like, far below the gate
+    assert 0.5 < np.mean(nis) < 4.0
+    assert t_flag is not None and t_flag - 60.0 <= 12.0
+
+
+@pytest.mark.slow
+def test_drift_is_flagged_then_gnss_readmitted_and_estimate_pulled_back():
+    """0.5 m/s drift 30-70 s: rejected within 20 s at < 10 m error; honest again after 70 s,
+    re-admitted and back under 3 m within 15 s."""
+    rng = np.random.default_rng(21)
+    engine = FusionEngine(ORIGIN, config=WHITE_GNSS)
+    trace = []
+
+    def watch(t):
+        if t > 5.0:
+            est = engine.estimate("A")
+            trace.append((t, est.health["gnss"].state, np.hypot(*(est.enu_m - EAST.at(est.time_s))[:2])))
+
+    drift = {"A": lambda t: (0.3 * (t - 30.0), 0.4 * (t - 30.0), 0.0) if 30.0 <= t < 70.0 else (0.0, 0.0, 0.0)}
+    fly(engine, rng, {"A": EAST}, 90.0, spoof=drift, on_tick=watch)
+    t, state, err = (np.array(x) for x in zip(*trace, strict=True))
+    flagged = t[(t >= 30.0) & (state == HealthState.REJECTED)]
+    assert flagged.size and flagged[0] - 30.0 <= 20.0
+    assert err[t == flagged[0]][0] <= 10.0
+    back = t[(t >= 70.0) & (state == HealthState.OK)]
+    assert back.size and back[0] - 70.0 <= 15.0
+    assert err[(t >= 85.0)].max() < 3.0
+
+
+@pytest.mark.slow
+def test_gauss_markov_gnss_stated_covariance_covers_the_truth():
+    """Correlated GNSS (1.5 m, tau 60 s): consecutive fixes are not independent evidence, and
+    the default engine's 3-dof NEES stays in the 95 % band most of the time."""
+    from skyfix.datasets.fusion_scenario import correlated_scenario, feed
+
+    s = correlated_scenario(100.0, seed=7, faults=False)
+    engine = FusionEngine(s.origin)
+    evs = s.events()
+    pending = next(evs)
+    nees = []
+    for tick in np.round(np.arange(1, 1000) * 0.1, 6):
+        while pending is not None and pending.arrival_s <= tick + 1e-9:
+            feed(engine, pending)
+            pending = next(evs, None)
+        engine.update()
+        if tick > 20.0 and round(tick * 10) % 5 == 0:
+            for d in s.drone_ids:
+                est = engine.estimate(d)
+                e = est.enu_m - s.truth_enu(d, est.time_s)[0]
+                nees.append(e @ np.linalg.solve(est.cov_enu_m2, e))
+    nees = np.array(nees)
+    inside = np.mean((nees >= chi2.ppf(0.025, 3)) & (nees <= chi2.ppf(0.975, 3)))
+    # correlated over ~a minute, so 80 s is only a few independent samples: wide bounds
+    assert 1.2 < nees.mean() < 6.0 and inside > 0.75
