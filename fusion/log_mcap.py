@@ -9,11 +9,13 @@ Foxglove's protobuf ``LocationFix``); a log may be opened before the header is k
 (:meth:`McapLog.set_header`). Message ``log_time`` is the UNIX time of writing (ns),
 ``publish_time`` the measurement's own time where it has one.
 
-Durability: chunks are closed and written to the file at least every ``flush_s`` (default
-50 ms) by a background thread, so a killed process loses at most the last ``flush_s`` of
-records; the file is fsync'ed about every second. :func:`read_mcap_log` and
-:func:`iter_messages` read the records in order and stop quietly at a tail cut off by a
-crash (no summary, a half-written chunk).
+Durability: records are written unchunked (each record goes to the file as it is, so the
+writer holds nothing per record and its memory stays flat over hours of flight; the price
+is no compression and no index: ~130 bytes per record, readers scan) and the file buffer is
+flushed at least every ``flush_s`` (default 50 ms) by a background thread, so a killed
+process loses at most the last ``flush_s`` of records; the file is fsync'ed about every
+second. :func:`read_mcap_log` and :func:`iter_messages` read the records in order and stop
+quietly at a tail cut off by a crash (no summary, a half-written record).
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ import msgspec
 from mcap.exceptions import McapError
 from mcap.records import Channel, Message, Metadata
 from mcap.stream_reader import StreamReader
-from mcap.writer import CompressionType, Writer
+from mcap.writer import Writer
 from zstandard import ZstdError
 
 from skyfix.errors import DataError, InputError
@@ -56,15 +58,16 @@ _json = msgspec.json.Encoder(enc_hook=_plain).encode
 class McapLog:
     """An MCAP measurement log (and other topics); thread-safe; use as a context manager or close()."""
 
-    def __init__(self, path: str | Path, header: dict | None, *, flush_s: float = 0.05, fsync_s: float = 1.0,
-                 compression: str = "zstd") -> None:
+    def __init__(self, path: str | Path, header: dict | None, *, flush_s: float = 0.05, fsync_s: float = 1.0
+                 ) -> None:
         self.path = Path(path)
         if self.path.exists() and self.path.stat().st_size > 0:
             raise InputError(f"log {self.path} already exists; choose a new file")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "wb")  # noqa: SIM115 - lives as long as the log
-        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
-        self._writer = Writer(self._file, compression=comp[compression], chunk_size=4 << 20)
+        # unchunked: the mcap writer keeps an index entry per chunk for the summary, which at one chunk
+        # per flush (20 a second) grows by ~30 MB an hour; unchunked records keep nothing
+        self._writer = Writer(self._file, use_chunking=False)
         self._writer.start(profile="", library="skyfix")
         self._lock = threading.Lock()
         self.has_header = False
@@ -134,7 +137,7 @@ class McapLog:
 
     # -- durability ---------------------------------------------------------------------------
     def flush(self) -> None:
-        """Write the open chunk to the file now (fsync about every ``fsync_s``)."""
+        """Write what is buffered to the file now (fsync about every ``fsync_s``)."""
         with self._lock:
             if self._closed.is_set() or not self._dirty:
                 return

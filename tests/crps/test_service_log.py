@@ -91,3 +91,22 @@ def test_not_an_mcap_file(tmp_path):
     bad.write_bytes(b"not an mcap file at all")
     with pytest.raises(DataError):
         read_mcap_log(bad)
+
+
+def test_the_writer_holds_nothing_per_record(tmp_path):
+    """Hours of flight: memory held by the log does not grow with the records written and flushed."""
+    import tracemalloc
+
+    log = McapLog(tmp_path / "long.mcap", {"origin": list(ORIGIN)}, flush_s=10.0)
+    args = {"drone_id": "1", "time_s": 0.0, "vel_enu_mps": [1.0, 2.0, 0.0], "sigma_mps": 0.2}
+    tracemalloc.start()
+    held = []
+    for _block in range(4):
+        for _ in range(2000):
+            log.record("velocity", args)
+            log.flush()  # a flush per record: the worst case (the service flushes every 50 ms)
+        held.append(tracemalloc.get_traced_memory()[0])
+    tracemalloc.stop()
+    log.close()
+    assert held[-1] - held[0] < 20_000, held  # 6000 more records and flushes: no per-record memory
+    assert sum(1 for _ in iter_messages(tmp_path / "long.mcap")) == 8000
