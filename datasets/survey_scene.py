@@ -16,6 +16,7 @@ take-off, with its own noise) and, optionally, the factory-calibrated focal leng
 
 from __future__ import annotations
 
+import datetime
 import io
 import math
 from dataclasses import dataclass, field
@@ -199,7 +200,8 @@ def _xmp_packet(relative_alt_m: float, absolute_alt_m: float, calibrated_focal_p
     return b"\xff\xe1" + (len(payload) + 2).to_bytes(2, "big") + payload
 
 
-def _exif(frame: LocalFrame, gps_enu_m: np.ndarray, width: int, height: int, with_sensor_width: bool) -> bytes:
+def _exif(frame: LocalFrame, gps_enu_m: np.ndarray, width: int, height: int, with_sensor_width: bool,
+          time_s: float) -> bytes:
     lat, lon, alt = frame.to_geodetic_points(gps_enu_m[None, :])[0]
 
     def dms(value: float) -> tuple:
@@ -209,8 +211,11 @@ def _exif(frame: LocalFrame, gps_enu_m: np.ndarray, width: int, height: int, wit
         s = round((value - d - m / 60) * 3600 * 10000)
         return ((d, 1), (m, 1), (s, 10000))
 
+    stamp = datetime.datetime(2026, 5, 1, 10, 0, 0) + datetime.timedelta(seconds=time_s)
     exif = {"0th": {piexif.ImageIFD.Make: b"DJI", piexif.ImageIFD.Model: b"FC6310"},
-            "Exif": {piexif.ExifIFD.FocalLength: (int(FOCAL_MM * 100), 100),
+            "Exif": {piexif.ExifIFD.DateTimeOriginal: stamp.strftime("%Y:%m:%d %H:%M:%S").encode(),
+                     piexif.ExifIFD.SubSecTimeOriginal: f"{stamp.microsecond // 1000:03d}".encode(),
+                     piexif.ExifIFD.FocalLength: (int(FOCAL_MM * 100), 100),
                      piexif.ExifIFD.FocalLengthIn35mmFilm: FOCAL_35MM,
                      piexif.ExifIFD.PixelXDimension: width, piexif.ExifIFD.PixelYDimension: height},
             "GPS": {piexif.GPSIFD.GPSLatitudeRef: b"N" if lat >= 0 else b"S", piexif.GPSIFD.GPSLatitude: dms(lat),
@@ -231,7 +236,8 @@ def survey_camera(width: int = 512, height: int = 288) -> Camera:
 def write_survey(out_dir: str | Path, scene: SurveyScene, *, height_m: float = 30.0, lines: int = 3,
                  per_line: int = 5, line_spacing_m: float = 14.0, photo_spacing_m: float = 8.0,
                  camera: Camera | None = None, calibrated_focal: bool = True, focal_plane: bool = False,
-                 gps_sigma_m: tuple[float, float] = (0.4, 0.2), seed: int = 0) -> list[SurveyPhoto]:
+                 gps_sigma_m: tuple[float, float] = (0.4, 0.2), speed_m_s: float = 5.0, gps_lag_s: float = 0.0,
+                 seed: int = 0) -> list[SurveyPhoto]:
     """Fly a nadir grid (lines along north, alternating direction) ``height_m`` above the
     take-off point and write ``IMG_nnnn.jpg`` with EXIF and DJI XMP into ``out_dir``.
 
@@ -240,7 +246,9 @@ def write_survey(out_dir: str | Path, scene: SurveyScene, *, height_m: float = 3
     DJI's XMP CalibratedFocalLength, ``focal_plane`` the EXIF focal-plane resolution.
     GPS error: a random walk per axis (horizontal, vertical sigmas ``gps_sigma_m`` per
     photo, zero mean over the flight) as consumer GNSS drifts; the barometric relative
-    altitude has 0.1 m noise.
+    altitude has 0.1 m noise. The drone flies at ``speed_m_s`` (10 s per turn); EXIF time
+    stamps have millisecond sub-seconds; ``gps_lag_s`` makes each tag the position that
+    many seconds before the photo (a stale GPS fix), trailing along the line.
     """
     rng = np.random.default_rng(seed + 1)
     camera = camera or survey_camera()
@@ -255,6 +263,8 @@ def write_survey(out_dir: str | Path, scene: SurveyScene, *, height_m: float = 3
         line, k = divmod(i, per_line)
         along = (k - (per_line - 1) / 2.0) * photo_spacing_m * (1 if line % 2 == 0 else -1)
         centre = np.array([(line - (lines - 1) / 2.0) * line_spacing_m, along, height_m])
+        velocity = np.array([0.0, speed_m_s * (1 if line % 2 == 0 else -1), 0.0])
+        time_s = line * (per_line * photo_spacing_m / speed_m_s + 10.0) + k * photo_spacing_m / speed_m_s
         yaw_rad = math.radians(rng.normal(0.0, 1.0))
         tilt = np.radians(rng.normal(0.0, 0.5, 2))
         # camera x = east, y = south, z = down, turned by small yaw and tilts (gimbal jitter)
@@ -265,11 +275,11 @@ def write_survey(out_dir: str | Path, scene: SurveyScene, *, height_m: float = 3
         r_enu_from_cam = rz @ base @ rx
         image, _ = render_view(scene, camera, centre, r_enu_from_cam)
         image = np.clip(image.astype(np.float32) + rng.normal(0, 2.0, image.shape), 0, 255).astype(np.uint8)
-        gps = centre + gps_err[i]
+        gps = centre - gps_lag_s * velocity + gps_err[i]
         rel_alt = float(centre[2] + rng.normal(0.0, 0.1))
         ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 95])
         buf = io.BytesIO()
-        piexif.insert(_exif(scene.frame, gps, camera.width, camera.height, focal_plane), jpeg.tobytes(), buf)
+        piexif.insert(_exif(scene.frame, gps, camera.width, camera.height, focal_plane, time_s), jpeg.tobytes(), buf)
         data = buf.getvalue()
         xmp = _xmp_packet(rel_alt, scene.frame.alt0_m + gps[2],
                           camera.fx if calibrated_focal else None, camera.width, camera.height)

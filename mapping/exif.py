@@ -97,6 +97,7 @@ class PhotoMetadata:
     gps_lon_deg: float | None
     gps_alt_m: float | None
     xmp: dict = field(default_factory=dict)
+    time_s: float | None = None  # DateTimeOriginal (+ sub-seconds) as POSIX seconds of the camera's clock
 
     def focal_length_px(self, width: int, height: int) -> float:
         """Focal length in pixels of a ``width x height`` image; DataError when EXIF lacks it."""
@@ -165,7 +166,28 @@ def read_metadata(data: bytes, source: str = "photo", require_exif: bool = True)
         orientation=zeroth.get(piexif.ImageIFD.Orientation),
         gps_lat_deg=_dms(gps.get(piexif.GPSIFD.GPSLatitude), gps.get(piexif.GPSIFD.GPSLatitudeRef), b"S"),
         gps_lon_deg=_dms(gps.get(piexif.GPSIFD.GPSLongitude), gps.get(piexif.GPSIFD.GPSLongitudeRef), b"W"),
-        gps_alt_m=alt, xmp=read_xmp(data))
+        gps_alt_m=alt, xmp=read_xmp(data), time_s=_time_s(ex))
+
+
+def _time_s(ex: dict) -> float | None:
+    """DateTimeOriginal with SubSecTimeOriginal as seconds (the camera clock, taken as UTC)."""
+    import datetime
+
+    import piexif
+
+    raw = ex.get(piexif.ExifIFD.DateTimeOriginal)
+    if not isinstance(raw, bytes):
+        return None
+    try:
+        stamp = datetime.datetime.strptime(raw.decode("ascii").strip("\x00 "), "%Y:%m:%d %H:%M:%S")
+    except ValueError:
+        return None
+    sub = ex.get(piexif.ExifIFD.SubSecTimeOriginal)
+    fraction = 0.0
+    if isinstance(sub, bytes) and sub.strip(b"\x00 ").isdigit():
+        digits = sub.strip(b"\x00 ").decode()
+        fraction = int(digits) / 10 ** len(digits)
+    return stamp.replace(tzinfo=datetime.timezone.utc).timestamp() + fraction
 
 
 def _segments(data: bytes, source: str) -> list[bytes]:

@@ -53,6 +53,7 @@ class ModelGeoref:
     inliers: list[str] = field(default_factory=list)
     nadir_assumed: bool = False
     two_view: dict = field(default_factory=dict)
+    gps_lag: dict = field(default_factory=dict)
 
     @property
     def rms_m(self) -> float:
@@ -83,7 +84,7 @@ class ModelGeoref:
                 "rms_horizontal_m": self.rms_horizontal_m, "inlier_rms_m": self.inlier_rms_m,
                 "inliers": len(self.inliers), "outliers": sorted(set(self.residuals_enu_m) - set(self.inliers)),
                 "nadir_assumed": self.nadir_assumed, "residuals_enu_m": self.residuals_enu_m,
-                "two_view": self.two_view}
+                "two_view": self.two_view, "gps_lag": self.gps_lag}
 
 
 def _apply(sim, points: np.ndarray) -> np.ndarray:
@@ -100,7 +101,7 @@ def _collinear(points: np.ndarray, ratio: float = 0.25) -> bool:
 
 
 def georeference(rec, photos: list[Photo], frame: LocalFrame, model_index: int = 0, *,
-                 max_error_m: float = 10.0) -> ModelGeoref:
+                 max_error_m: float = 10.0, velocities: dict[str, np.ndarray] | None = None) -> ModelGeoref:
     """Fit the model-to-ENU similarity and apply it to ``rec`` (a ``pycolmap.Reconstruction``,
     transformed in place). Needs 3 registered photos with GPS; otherwise ``rec`` is left
     as it is and the result says why (also when no transform fits 3 photos within
@@ -153,6 +154,9 @@ def georeference(rec, photos: list[Photo], frame: LocalFrame, model_index: int =
         return result
     moved = _apply(sim, src_fit)
     inlier_mask = np.linalg.norm(moved - tgt_fit, axis=1) <= max_error_m
+    if velocities and not result.nadir_assumed:
+        tgt, inlier_mask = _remove_lag(result, names, src, tgt, inlier_mask, velocities)
+        tgt_fit = tgt
     if inlier_mask.sum() >= 3:
         refined = pycolmap.estimate_sim3d(src_fit[inlier_mask], tgt_fit[inlier_mask])
         if refined is not None:
@@ -171,6 +175,21 @@ def georeference(rec, photos: list[Photo], frame: LocalFrame, model_index: int =
     return result
 
 
+def _remove_lag(result: ModelGeoref, names: list[str], src: np.ndarray, tgt: np.ndarray, inliers: np.ndarray,
+                velocities: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Tags moved by the estimated GPS lag (when accepted) and the inlier mask; fills ``gps_lag``."""
+    from skyfix.mapping.gps_lag import estimate_lag
+
+    has_v = np.array([n in velocities for n in names]) & inliers
+    if has_v.sum() < 6:
+        return tgt, inliers
+    vel = np.array([velocities.get(n, np.zeros(3)) for n in names])
+    fit = estimate_lag(src[has_v], tgt[has_v], vel[has_v])
+    result.gps_lag = {"lag_s": fit.lag_s, "rms_without_m": fit.rms_without_m, "rms_with_m": fit.rms_with_m,
+                      "applied": fit.accepted, "photos": int(has_v.sum())}
+    return (tgt + fit.lag_s * vel if fit.accepted else tgt), inliers
+
+
 def _enu(frame: LocalFrame, photo: Photo) -> np.ndarray:
     return frame.to_enu_points(np.array([[photo.gps_lat_deg, photo.gps_lon_deg, photo.gps_alt_amsl_m]]))[0]
 
@@ -186,7 +205,8 @@ def _median_depth(rec, image) -> float:
 
 
 def attach_pair(pair_rec, main_rec, main_georef: ModelGeoref, pair: PairModel, photos: list[Photo],
-                frame: LocalFrame, model_index: int, *, max_offset_m: float = 5.0) -> ModelGeoref:
+                frame: LocalFrame, model_index: int, *, max_offset_m: float = 5.0,
+                gps_shift_enu: dict[str, np.ndarray] | None = None) -> ModelGeoref:
     """Place ``pair.photo`` with its two-photo model ``pair_rec`` anchored on ``pair.partner``.
 
     The similarity takes the partner's rotation and centre from the georeferenced
@@ -195,7 +215,8 @@ def attach_pair(pair_rec, main_rec, main_georef: ModelGeoref, pair: PairModel, p
     (metres) over that in the two-photo model. The photo's own GPS is not used to place it,
     so it is an independent check: the photo counts as placed only when the partner is a
     GPS inlier of the main model and the photo's centre lies within ``max_offset_m`` of
-    its GPS position. ``pair_rec`` is transformed in place and the
+    its GPS position (moved by ``gps_shift_enu``, the GPS lag correction, when given).
+    ``pair_rec`` is transformed in place and the
     partner deregistered from it (it stays in the main model), leaving one posed photo.
     """
     import pycolmap
@@ -215,7 +236,9 @@ def attach_pair(pair_rec, main_rec, main_georef: ModelGeoref, pair: PairModel, p
     if result.reason:
         log.warning("model %d: %s", model_index, result.reason)
         return result
-    gps_new, gps_partner = _enu(frame, new_p), _enu(frame, partner_p)
+    shift = gps_shift_enu or {}
+    gps_new = _enu(frame, new_p) + shift.get(new_p.name, 0.0)
+    gps_partner = _enu(frame, partner_p) + shift.get(partner_p.name, 0.0)
     pair_new, pair_partner = pair_images[pair.photo], pair_images[pair.partner]
     depth_main_m = _median_depth(main_rec, main_images[pair.partner])
     depth_pair = _median_depth(pair_rec, pair_partner)

@@ -37,6 +37,10 @@ def _map(args: argparse.Namespace) -> int:
     if report.georeferenced:
         out.write(f"georeferenced to GPS: RMS {report.georef_rms_m:.2f} m, EPSG:{report.crs_epsg}, "
                   f"GSD {report.gsd_cm:.1f} cm, covered {report.covered_area_m2 / 1e4:.2f} ha\n")
+    lag = report.gps_lag
+    if lag:
+        out.write(f"GPS time lag {lag['lag_s']:+.2f} s {'removed' if lag['applied'] else 'not significant, kept'}: "
+                  f"camera-to-GPS RMS {lag['rms_without_m']:.2f} m without, {lag['rms_with_m']:.2f} m with it\n")
     if report.flying_height:
         out.write(report.flying_height["line"] + "\n")
     for warning in report.warnings:

@@ -44,6 +44,7 @@ class Photo:
     gps_alt_amsl_m: float | None
     focal_source: str = ""
     relative_alt_m: float | None = None
+    time_s: float | None = None
 
     @property
     def has_gps(self) -> bool:
@@ -82,7 +83,7 @@ def _photo(path: Path) -> Photo:
     return Photo(name=path.name, path=str(path), width=width, height=height, make=meta.make, model=meta.model,
                  focal_px=focal.focal_px, orientation=meta.orientation,
                  gps_lat_deg=meta.gps_lat_deg, gps_lon_deg=meta.gps_lon_deg, gps_alt_amsl_m=meta.gps_alt_m,
-                 focal_source=focal.source, relative_alt_m=meta.xmp.get("RelativeAltitude"))
+                 focal_source=focal.source, relative_alt_m=meta.xmp.get("RelativeAltitude"), time_s=meta.time_s)
 
 
 def load_photos(photos_dir: str | os.PathLike) -> tuple[list[Photo], list[Rejected]]:

@@ -61,6 +61,7 @@ class PipelineConfig:
     ortho_seams: bool = True              # one photo per pixel, graph-cut seams, gains (False: feathered mean)
     seam_band_px: float = 6.0             # blending band across a seam, orthophoto pixels
     blend_power: float = 2.0              # feathered mean only: exponent of the edge-distance weight
+    estimate_gps_lag: bool = True         # estimate the GPS time lag from the model and remove it (reported)
     refine_focal: bool = False            # let bundle adjustment move the focal length (see sfm.reconstruct)
     gps_sigma_m: tuple[float, float] = (2.0, 4.0)  # GPS pose prior std dev (horizontal, vertical); () = no priors
     seed: int = 0                         # pycolmap's random seed: the same photos give the same model
@@ -305,8 +306,12 @@ def _georef_run(config, project, state, report) -> dict:
 
     if project.georef.exists():
         shutil.rmtree(project.georef)
+    from skyfix.mapping.gps_lag import gps_velocities
+
     models = state["models"]
     frame = survey_frame(state["photos"])
+    velocities = gps_velocities(state["photos"], frame) if frame is not None and config.estimate_gps_lag else {}
+    state["velocities"] = velocities
     results = []
     for i, rec in enumerate(models):
         if frame is None:
@@ -314,7 +319,8 @@ def _georef_run(config, project, state, report) -> dict:
 
             results.append(ModelGeoref(i, rec.num_reg_images(), False, "no photo has GPS; model left unreferenced"))
         else:
-            results.append(georeference(rec, state["photos"], frame, i, max_error_m=config.georef_max_error_m))
+            results.append(georeference(rec, state["photos"], frame, i, max_error_m=config.georef_max_error_m,
+                                        velocities=velocities))
         path = project.georef / str(i)
         path.mkdir(parents=True, exist_ok=True)
         rec.write(str(path))
@@ -338,8 +344,10 @@ def _attach_pairs(config, project, state, results: list) -> list[str]:
         if frame is None or host is None:
             rejected.append(f"{pair.photo}: partner {pair.partner} is in no georeferenced model; not placed")
             continue
+        lag = results[host].gps_lag
+        shift = {n: lag["lag_s"] * v for n, v in state.get("velocities", {}).items()} if lag.get("applied") else None
         found = attach_pair(pair_rec, models[host], results[host], pair, state["photos"], frame, len(results),
-                            max_offset_m=config.two_view_max_offset_m)
+                            max_offset_m=config.two_view_max_offset_m, gps_shift_enu=shift)
         if not found.georeferenced:
             rejected.append(found.reason)
             continue
@@ -362,6 +370,7 @@ def _georef_load(config, project, state, report, marker) -> None:
     report.warnings.extend(marker.get("two_view_rejected", []))
     referenced = [m for m in marker["models"] if m["georeferenced"]]
     report.georeferenced = bool(referenced)
+    report.gps_lag = next((m["gps_lag"] for m in referenced if m.get("gps_lag")), {})
     for m in marker["models"]:
         if not m["georeferenced"]:
             report.warnings.append(f"model {m['model']} ({m['registered']} photos) not georeferenced: {m['reason']}")

@@ -24,6 +24,8 @@ class Report:
     neighbour (photo, partner, inliers, distance from GPS). ``error``: why the run stopped.
     ``flying_height``: the model's camera height above its ground next to the photos' own
     relative altitude (see :mod:`skyfix.mapping.height_check`), with the readable ``line``.
+    ``gps_lag``: the GPS time lag estimated on the largest model (seconds, RMS without and
+    with it, whether it was removed; see :mod:`skyfix.mapping.gps_lag`).
     """
 
     photos_dir: str
@@ -51,6 +53,7 @@ class Report:
     covered_area_m2: float = 0.0
     height_datum: str = "AMSL (as recorded by the photos' GPS)"
     flying_height: dict = field(default_factory=dict)
+    gps_lag: dict = field(default_factory=dict)
     dsm_valid_share: float = math.nan
     dense_points: int = 0
     dense_pairs: int = 0
