@@ -37,9 +37,40 @@ def config_from_args(args):
     rate = float(args.rate)
     if not 0.5 <= rate <= 50.0:
         raise InputError(f"--rate must be 0.5-50 Hz, got {args.rate}")
+    gate = safety_gate(args.fence, args.max_alt_m, args.max_speed_mps, args.fence_action)
     return ServiceConfig(args.id, args.mavlink, Endpoints.parse(args.swarm), read_key(args.swarm_key_file),
                          swarm=args.swarm_name, roster=roster, origin=origin, log_path=args.log,
-                         live=args.live, estimate_hz=rate, inject=args.inject)
+                         live=args.live, estimate_hz=rate, inject=args.inject, safety=gate)
+
+
+def safety_gate(fence_path: Path | None, max_alt_m: float | None, max_speed_mps: float | None, action: str):
+    """The drivers' :class:`SafetyGate` of ``--fence``/``--max-alt-m``/``--max-speed-mps`` (None: no gate)."""
+    import json
+    import math
+
+    import numpy as np
+    import shapely.geometry
+
+    from skyfix.drivers.safety import Geofence, SafetyGate
+
+    if fence_path is None and max_alt_m is None and max_speed_mps is None:
+        return None
+    polygons = []
+    if fence_path is not None:
+        try:
+            doc = json.loads(Path(fence_path).read_text())
+            features = doc.get("features", [doc]) if doc.get("type") == "FeatureCollection" else [doc]
+            geoms = [shapely.geometry.shape(f.get("geometry", f)) for f in features]
+        except (OSError, ValueError, AttributeError, TypeError, KeyError) as exc:
+            raise InputError(f"--fence {fence_path}: not a readable GeoJSON polygon file ({exc})") from None
+        for g in geoms:
+            for poly in getattr(g, "geoms", [g]):
+                if poly.geom_type != "Polygon":
+                    raise InputError(f"--fence {fence_path}: {poly.geom_type} is not a polygon")
+                polygons.append(np.asarray(poly.exterior.coords)[:-1, ::-1])  # (lon, lat) -> (lat, lon)
+    ceiling = math.inf if max_alt_m is None else max_alt_m
+    return SafetyGate(Geofence(polygons, max_alt_rel_m=ceiling), max_speed_mps=max_speed_mps or math.inf,
+                      max_alt_rel_m=ceiling, action=action)
 
 
 SERVE_DESCRIPTION = (
@@ -90,6 +121,13 @@ def register(subparsers) -> None:
     p.add_argument("--rate", type=float, default=10.0, help="fusion and estimate rate, Hz (default 10)")
     p.add_argument("--inject", action="store_true",
                    help="while the drone's own GNSS is lost, inject the fused position as GPS_INPUT")
+    p.add_argument("--fence", type=Path, default=None, metavar="GEOJSON",
+                   help="safety gate: inclusion polygon(s) (GeoJSON Polygon/MultiPolygon/Feature(Collection), "
+                        "lon,lat); a position outside triggers --fence-action")
+    p.add_argument("--max-alt-m", type=float, default=None, help="safety gate: ceiling above home, m")
+    p.add_argument("--max-speed-mps", type=float, default=None, help="safety gate: speed limit, m/s")
+    p.add_argument("--fence-action", choices=("rtl", "hold", "land"), default="rtl",
+                   help="what the safety gate commands on a violation (default rtl)")
     p.set_defaults(func=run_serve)
 
     from skyfix.crps.swarm import register_status

@@ -59,6 +59,7 @@ class ServiceConfig:
     estimate_hz: float = 10.0
     heartbeat_hz: float = 2.0
     inject: bool = False
+    safety: object | None = None  # a drivers SafetyGate installed on the vehicle at every (re)connection
 
 
 class Service:
@@ -267,6 +268,8 @@ class Service:
                     delay = min(2 * delay, BACKOFF_S[1])
                     continue
                 delay, lost_since = BACKOFF_S[0], None
+                if self.cfg.safety is not None:
+                    self.vehicle.set_safety(self.cfg.safety)
                 self.counters["mavlink_connects"] += 1
                 self._mav_event("connected")
             elif not self.vehicle.state.link_ok:

@@ -15,6 +15,7 @@ from test_swarm_transport import free_ports
 from skyfix.cli import main
 from skyfix.crps.messages import FusedEstimate, Heartbeat, SwarmCodec
 from skyfix.crps.transport import Endpoints, ZenohTransport
+from skyfix.errors import InputError
 
 KEY = b"0123456789abcdef0123456789abcdef"
 
@@ -39,6 +40,7 @@ def serve(*extra: str, key_file, url="udpin:127.0.0.1:14999", swarm=None) -> lis
     ({"extra": ("--roster", "d2,d3")}, "must include this drone's --id"),
     ({"extra": ("--log", "out.txt")}, "--log must name an .mcap file"),
     ({"extra": ("--id", "bad id!")}, "--id must be 1-32 letters"),
+    ({"extra": ("--fence", "missing.geojson")}, "--fence missing.geojson: not a readable GeoJSON"),
 ])
 def test_bad_arguments_one_line_exit_2(tmp_path, key_file, capsys, change, expected):
     if change.get("key") == "missing":
@@ -123,3 +125,19 @@ def test_live_view_advertises_the_topics():
         outputs.close()
     assert channels["/fix/d1"] == "foxglove.LocationFix"
     assert "/swarm/peers" in channels
+
+
+def test_fence_file_becomes_the_safety_gate(tmp_path):
+    from skyfix.crps.serve_cli import safety_gate
+
+    ring = [[149.16, -35.36], [149.17, -35.36], [149.17, -35.37], [149.16, -35.36]]  # GeoJSON: lon, lat
+    path = tmp_path / "fence.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {}, "geometry": {"type": "Polygon", "coordinates": [ring]}}]}))
+    gate = safety_gate(path, 40.0, 12.0, "land")
+    assert gate.fence.polygons[0].tolist() == [[-35.36, 149.16], [-35.36, 149.17], [-35.37, 149.17]]
+    assert gate.max_alt_rel_m == 40.0 and gate.max_speed_mps == 12.0 and gate.action == "land"
+    assert safety_gate(None, None, None, "rtl") is None
+    path.write_text(json.dumps({"type": "Point", "coordinates": [149.16, -35.36]}))
+    with pytest.raises(InputError, match="Point is not a polygon"):
+        safety_gate(path, None, None, "rtl")
