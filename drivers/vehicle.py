@@ -459,6 +459,8 @@ class Vehicle:
             _POSITION_ONLY_MASK, int(round(lat * 1e7)), int(round(lon * 1e7)), alt, 0, 0, 0, 0, 0, 0, 0, 0)
         self._start_setpoints(msg)
         self._ensure_guided()
+        if self._setpoint is not msg:  # the gate stopped the stream while we switched: ours is newer
+            self._start_setpoints(msg)
         if wait:
             from skyfix.geo import inverse
             pos = self._state.position
@@ -489,6 +491,9 @@ class Vehicle:
             _VELOCITY_ONLY_MASK, 0, 0, 0, vn, ve, vd, 0, 0, 0, 0, 0)
         self._start_setpoints(msg)
         self._ensure_guided()
+        if self._setpoint is not msg:  # the gate acted while we switched modes: it wins over a velocity
+            raise SafetyViolation(f"vehicle {self.system_id} left the safety envelope while the velocity "
+                                  "setpoint was being started; it was stopped")
 
     def hold(self) -> None:
         """Stop and hold position (LOITER / AUTO.LOITER)."""

@@ -9,6 +9,7 @@ import itertools
 import math
 import os
 import socket
+import statistics
 import time
 
 os.environ.setdefault("MAVLINK20", "1")
@@ -97,8 +98,9 @@ def test_mission_upload_timings_follow_the_firmware(sim):
                 t_req.append(sim.time_s)
         assert ack is not None and ack[0].type == M.MAV_MISSION_OPERATION_CANCELLED
         gaps = [b - a for a, b in itertools.pairwise(t_req)]
-        # re-requested every 1 s of autopilot time (one 20 ms step of slack + loop jitter)
-        assert gaps and all(0.95 <= g <= 1.2 for g in gaps), gaps
-        assert ack[1] - t_req[0] == pytest.approx(8.0, abs=0.3)  # abandoned after 8 s of silence
+        # re-requested every 1 s of autopilot time; the simulated clock is read when this client
+        # gets the packet, so a loaded machine adds its scheduling delay (up to ~0.3 s seen)
+        assert gaps and all(0.9 <= g <= 1.5 for g in gaps) and abs(statistics.median(gaps) - 1.0) < 0.15, gaps
+        assert 7.6 <= ack[1] - t_req[0] <= 8.8  # abandoned after 8 s of silence
     finally:
         master.close()
