@@ -27,7 +27,8 @@ def _map(args: argparse.Namespace) -> int:
         max_image_size_px=args.max_image_size, max_features=args.max_features,
         exhaustive_max_photos=args.exhaustive_max, max_agl_m=args.max_agl, threads=args.threads,
         refine_focal=args.refine_focal, gps_sigma_m=tuple(args.gps_sigma) if args.gps_sigma[0] > 0 else (),
-        seed=args.seed,
+        seed=args.seed, dense=not args.sparse_dsm, dense_scale=args.dense_scale,
+        ortho_seams=not args.feathered_ortho, max_ortho_mpx=args.max_ortho_mpx,
         force=tuple(args.force or ()))
     report = run_pipeline(config)
     out = sys.stdout
@@ -72,7 +73,17 @@ def register_map(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--resolution-cm", type=float, default=None,
                    help="orthophoto pixel size in cm (default: the photos' median ground sample distance)")
     p.add_argument("--dsm-resolution-m", type=float, default=None,
-                   help="DSM cell size in metres (default: twice the sparse point spacing)")
+                   help="DSM cell size in metres (default: 2 densely matched pixels, i.e. 4x the photos' ground "
+                        "sample distance at --dense-scale 0.5; with --sparse-dsm twice the sparse point spacing)")
+    p.add_argument("--dense-scale", type=float, default=0.5,
+                   help="photos are densely matched at this fraction of their size")
+    p.add_argument("--sparse-dsm", action="store_true",
+                   help="DSM from the sparse structure-from-motion points only (fast, no trees or roofs)")
+    p.add_argument("--feathered-ortho", action="store_true",
+                   help="orthophoto as a feathered mean of all photos instead of one photo per pixel with seams")
+    p.add_argument("--max-ortho-mpx", type=float, default=None,
+                   help="coarsen the orthophoto to stay within this many megapixels (default: full resolution; "
+                        "the report states any coarsening)")
     p.add_argument("--max-image-size", type=int, default=1600, help="photos are downscaled to this for features")
     p.add_argument("--max-features", type=int, default=4000, help="SIFT features per photo")
     p.add_argument("--exhaustive-max", type=int, default=40,

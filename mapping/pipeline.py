@@ -49,7 +49,7 @@ class PipelineConfig:
     barrel: Barrel | None = None          # ImageMagick barrel model: photos are corrected first
     calibration: Camera | None = None     # pre-calibrated lens, passed to pycolmap (held fixed)
     resolution_cm: float | None = None    # orthophoto pixel; None: the photos' median GSD
-    dsm_resolution_m: float | None = None  # DSM cell; None: twice the mean sparse-point spacing
+    dsm_resolution_m: float | None = None  # DSM cell; None: dense_cell_px matched pixels (sparse: 2x point spacing)
     max_ortho_mpx: float | None = None    # only if asked: raise the pixel size if the orthophoto would be larger
     max_image_size_px: int = 1600         # photos are downscaled to this for features
     max_features: int = 4000              # SIFT features per photo
@@ -79,7 +79,9 @@ class PipelineConfig:
         unknown = set(self.force) - set(STAGES)
         if unknown:
             raise ConfigurationError(f"force names unknown stage(s) {sorted(unknown)}; stages are {list(STAGES)}")
-        for name in ("resolution_cm", "dsm_resolution_m"):
+        if not 0.05 <= self.dense_scale <= 1.0:
+            raise InputError(f"dense_scale must be in [0.05, 1], got {self.dense_scale!r}")
+        for name in ("resolution_cm", "dsm_resolution_m", "max_ortho_mpx"):
             v = getattr(self, name)
             if v is not None and not (math.isfinite(v) and v > 0):
                 raise InputError(f"{name} must be a positive number, got {v!r}")
