@@ -99,6 +99,8 @@ class Service:
             while not self.stop.is_set():
                 try:
                     self._drain_inbox()
+                    for event in self.peers.check():  # every tick: lost at most 1.5 s + one period after
+                        self._peer_event(event)
                     self._tick()
                     now = time.monotonic()
                     if now >= next_hb:
@@ -191,8 +193,6 @@ class Service:
         self.outputs.json(f"/swarm/out/{type(body).__name__}", M.to_builtins(env), env.time_s)
 
     def _heartbeat(self) -> None:
-        for event in self.peers.check():
-            self._peer_event(event)
         est = self.node.latest.get(self.cfg.drone_id) if self.node is not None else None
         mav_ok = self.vehicle is not None and self.vehicle.state.link_ok
         if est is None:
