@@ -8,7 +8,7 @@
   2. Log writer throughput: typical engine records (GNSS, velocity, relative observation,
      update) through the MCAP log (chunks flushed every 50 ms by its thread) against the
      JSON-lines measurement log of skyfix.fusion on the same records. Goal: >= 20 000 records/s.
-  3. CPU per service: ``skyfix sim --vehicles 3``, three ``skyfix serve`` (10 Hz estimates,
+  3. CPU per service: the simulator (3 vehicles, in this process), three ``skyfix serve`` (10 Hz estimates,
      heartbeats, MCAP log) and a helper drone publishing 10 Hz estimates and 30 Hz signed
      camera observations of each of the three (built from their broadcast estimates with 3 %
      range / 0.2 deg noise), which every service verifies, decodes and fuses. CPU time from
@@ -24,7 +24,6 @@ import argparse
 import json
 import multiprocessing as mp
 import os
-import re
 import signal
 import socket
 import subprocess
@@ -38,6 +37,7 @@ import numpy as np
 
 from skyfix.crps import messages as M
 from skyfix.crps.transport import Endpoints, ZenohTransport
+from skyfix.datasets.sim import Simulator, SimulatorConfig
 from skyfix.fusion.log import MeasurementLog
 from skyfix.fusion.log_mcap import McapLog
 from skyfix.types import RelativeObservation
@@ -242,16 +242,8 @@ def cpu_per_service(warm_s: float, window_s: float) -> list[float]:
     tmp = Path(tempfile.mkdtemp())
     (tmp / "key").write_bytes(KEY)
     ports = free_ports(3)
-    sim = subprocess.Popen([sys.executable, "-m", "skyfix", "sim", "--vehicles", "3", "--base-port",
-                            str(free_ports(1)[0])], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    mav = []
-    for line in sim.stdout:
-        m = re.search(r"listens on 127\.0\.0\.1:(\d+)", line)
-        if m:
-            mav.append(int(m.group(1)))
-        if len(mav) == 3:
-            break
-    threading.Thread(target=lambda: sim.stdout.read(), daemon=True).start()
+    sim = Simulator(SimulatorConfig(vehicles=3)).start()  # the autopilots, in this process
+    mav = [port for _, port in sim.addresses]
     procs = []
     for i in range(3):
         swarm = ",".join([f"listen:tcp/127.0.0.1:{ports[i]}"] + [f"tcp/127.0.0.1:{p}" for j, p in enumerate(ports)
@@ -276,9 +268,10 @@ def cpu_per_service(warm_s: float, window_s: float) -> list[float]:
         stop.set()
         helper.join(timeout=5)
     finally:
-        for p in [*procs, sim]:
+        for p in procs:
             p.send_signal(signal.SIGTERM)
             p.wait(timeout=20)
+        sim.stop()
     for i in range(3):
         log = tmp / f"d{i + 1}.mcap"
         print(f"  d{i + 1}: {_count(log, '/fusion/relative')} observations and {_count(log, '/fusion/update')} "
