@@ -8,10 +8,13 @@ orientation, XMP, ICC profile). The EXIF copy is updated for the corrected camer
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 from dataclasses import dataclass, field
 from fractions import Fraction
+
+import numpy as np
 
 from skyfix.errors import DataError
 
@@ -262,6 +265,14 @@ _IJG_LUMA = (16, 11, 10, 16, 24, 40, 51, 61, 12, 12, 14, 19, 26, 58, 60, 55, 14,
              49, 64, 78, 87, 103, 121, 120, 101, 72, 92, 95, 98, 112, 100, 103, 99)
 
 
+@functools.lru_cache(maxsize=1)
+def _ijg_sums() -> np.ndarray:
+    """Sum of the IJG luminance table scaled for each quality 1..100 (libjpeg's rounding)."""
+    q = np.arange(1, 101)[:, None]
+    scale = np.where(q < 50, 5000 / q, 200 - 2 * q)
+    return np.clip((np.array(_IJG_LUMA)[None, :] * scale + 50) // 100, 1, 255).sum(axis=1)
+
+
 def jpeg_quality(data: bytes) -> int | None:
     """Estimated IJG quality (1-100) of a JPEG from its luminance quantisation table, or None.
 
@@ -287,14 +298,7 @@ def jpeg_quality(data: bytes) -> int | None:
                 values = ([int.from_bytes(raw[k:k + 2], "big") for k in range(0, 128, 2)] if precision
                           else list(raw))
                 if table_id == 0:
-                    total = sum(values)
-                    best, best_err = None, math.inf
-                    for q in range(1, 101):
-                        scale = 5000 / q if q < 50 else 200 - 2 * q
-                        err = abs(sum(min(max((v * scale + 50) // 100, 1), 255) for v in _IJG_LUMA) - total)
-                        if err < best_err:
-                            best, best_err = q, err
-                    return best
+                    return int(1 + np.argmin(np.abs(_ijg_sums() - sum(values))))
                 i += 1 + size
         pos += 2 + length
     return None
