@@ -82,6 +82,21 @@ class GpsStatus:
 
 
 @dataclass(frozen=True)
+class EkfStatus:
+    """The autopilot estimator's own verdict (ArduPilot EKF_STATUS_REPORT): ``flags`` are
+    EKF_STATUS_FLAGS; ``pos_horiz_abs`` true while it trusts its absolute horizontal position
+    (GPS or an injected fix); ``const_pos_mode`` when it has fallen back to a constant position.
+    Variances are the EKF's normalised innovation test ratios (0..1 good, > 1 rejected)."""
+
+    flags: int
+    pos_horiz_abs: bool
+    const_pos_mode: bool
+    velocity_variance: float
+    pos_horiz_variance: float
+    time_s: float
+
+
+@dataclass(frozen=True)
 class Battery:
     """Battery (SYS_STATUS / BATTERY_STATUS); NaN when the autopilot does not know."""
 
@@ -129,6 +144,7 @@ class VehicleState:
     velocity: Velocity | None = None
     attitude: Attitude | None = None
     gps: GpsStatus | None = None
+    ekf: EkfStatus | None = None
     battery: Battery | None = None
     home: Home | None = None
     mission_seq: int = -1

@@ -16,7 +16,7 @@ import math
 import struct
 from functools import lru_cache
 
-from skyfix.drivers.state import Battery, GpsStatus, Home, Position, Velocity
+from skyfix.drivers.state import Battery, EkfStatus, GpsStatus, Home, Position, Velocity
 
 UINT16_UNKNOWN = 65535
 
@@ -87,6 +87,15 @@ def home(msg, now_s: float) -> Home:
     lat, lon, alt_amsl = msg.latitude / 1e7, msg.longitude / 1e7, msg.altitude / 1000.0
     return Home(lat, lon, alt_amsl, now_s, msg.time_usec / 1e6,
                 alt_ellipsoid_m=ellipsoidal_from_amsl_m(lat, lon, alt_amsl))
+
+
+EKF_POS_HORIZ_ABS, EKF_CONST_POS_MODE = 16, 128  # EKF_STATUS_FLAGS bits
+
+
+def ekf_status(msg, now_s: float) -> EkfStatus:
+    """EKF_STATUS_REPORT -> :class:`EkfStatus`."""
+    return EkfStatus(int(msg.flags), bool(msg.flags & EKF_POS_HORIZ_ABS), bool(msg.flags & EKF_CONST_POS_MODE),
+                     float(msg.velocity_variance), float(msg.pos_horiz_variance), now_s)
 
 
 def battery(msg, now_s: float) -> Battery:

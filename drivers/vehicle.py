@@ -40,6 +40,7 @@ M = mavlink
 DEFAULT_STREAM_RATES_HZ: dict[str, float] = {
     "GLOBAL_POSITION_INT": 10.0, "ATTITUDE": 10.0, "GPS_RAW_INT": 5.0, "SYS_STATUS": 2.0,
     "BATTERY_STATUS": 1.0, "EXTENDED_SYS_STATE": 2.0, "MISSION_CURRENT": 2.0, "HOME_POSITION": 0.5,
+    "EKF_STATUS_REPORT": 2.0,  # ArduPilot only (PX4 answers UNSUPPORTED)
 }
 _LANDED = {0: "UNDEFINED", 1: "ON_GROUND", 2: "IN_AIR", 3: "TAKEOFF", 4: "LANDING"}
 _POSITION_ONLY_MASK = 0x0FF8  # SET_POSITION_TARGET type_mask: use x/y/z only
@@ -258,6 +259,9 @@ class Vehicle:
 
     def _rx_gps_raw_int(self, msg, now: float, t_mono: float) -> None:
         self._update(gps=units.gps_status(msg, now))
+
+    def _rx_ekf_status_report(self, msg, now: float, t_mono: float) -> None:
+        self._update(ekf=units.ekf_status(msg, now))
 
     def _rx_sys_status(self, msg, now: float, t_mono: float) -> None:
         self._update(battery=units.battery(msg, now))

@@ -39,6 +39,7 @@ ACCEPTED, UNSUPPORTED = M.MAV_RESULT_ACCEPTED, M.MAV_RESULT_UNSUPPORTED
 DEFAULT_INTERVALS_S: dict[str, float] = {
     "HEARTBEAT": 1.0, "SYS_STATUS": 1.0, "GLOBAL_POSITION_INT": 0.25, "ATTITUDE": 0.25,
     "GPS_RAW_INT": 0.5, "VFR_HUD": 0.5, "BATTERY_STATUS": 1.0, "EXTENDED_SYS_STATE": 1.0,
+    "EKF_STATUS_REPORT": 1.0,
     "MISSION_CURRENT": 1.0, "HOME_POSITION": 5.0, "LOCAL_POSITION_NED": 0.0,
 }
 #: REQUEST_DATA_STREAM groups (ArduPilot's SRx_ mapping) -> message names.
@@ -275,6 +276,18 @@ class VehicleServer:
             int(round((alt_ell - v.geoid_m) * 1000)), min(int(round(r.hdop * 100)), 65534),
             min(int(round(r.vdop * 100)), 65534), int(speed * 100), int(cog * 100), r.satellites,
             int(round(alt_ell * 1000)), int(round(r.eph_m * 1000)), int(round(r.epv_m * 1000)), 100, 0, 0)
+
+    def _msg_ekf_status_report(self):
+        """ArduPilot's EKF verdict as Copter 4.7 SITL reports it: 831 (attitude, velocities,
+        relative and absolute position, predicted positions) when healthy; 37 (attitude,
+        vertical velocity, absolute height) once it has lost its horizontal position source,
+        with no position innovations left to test (ratio 0)."""
+        v = self.vehicle
+        if v.flavour != "ardupilot":
+            return None
+        ok = v.position_ok
+        ratio = 0.05 if ok else 0.0
+        return M.MAVLink_ekf_status_report_message(831 if ok else 37, ratio, ratio, 0.01, 0.05, 0.0, 0.0)
 
     def _msg_sys_status(self):
         v = self.vehicle

@@ -91,7 +91,11 @@ def test_gps_loss_without_injection_triggers_ekf_failsafe(sim, vehicle):
     vehicle.set_mode("GUIDED")
     vehicle.arm()
     vehicle.takeoff(8.0)
+    assert vehicle.wait_until(lambda s: s.ekf is not None, 5.0).ekf.pos_horiz_abs
     sim.set_param(0, "SIM_GPS1_ENABLE", 0)
+    # the EKF's own verdict first (3 s without a fix), then ArduPilot's failsafe lands
+    ekf = vehicle.wait_until(lambda s: not s.ekf.pos_horiz_abs, 10.0, what="EKF loses position").ekf
+    assert ekf.flags == 37  # what ArduPilot 4.7 SITL reports in the same case (test_drivers_sitl)
     st = vehicle.wait_until(lambda s: s.mode == "LAND", 20.0, what="EKF failsafe")
     assert st.mode == "LAND"
     assert any("EKF Failsafe" in e.text for e in vehicle.events if e.kind == "statustext")
