@@ -7,7 +7,7 @@ ENU frame of its own centre (:class:`LocalDem`: the surface's exact ``up`` coord
 a regular east/north grid at the DEM's resolution, curvature of the earth included).
 A ray is then marched in steps of half a cell from where it passes the highest summit
 until it is below the surface (so a ridge in front is never skipped), and the crossing
-is refined by regula falsi to a millimetre. Only the hit points go back through pyproj.
+is refined by regula falsi to a centimetre. Only the hit points go back through pyproj.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ import pyproj
 from skyfix.errors import GeometryError
 from skyfix.geo import LocalFrame
 
-#: Refinement stops when the ray is this close to the surface, metres.
-HIT_TOL_M = 0.001
+#: Refinement stops when the ray is this close to the surface, metres (DEMs are good to decimetres at best).
+HIT_TOL_M = 0.01
 _BLOCK = 16
 
 

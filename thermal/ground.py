@@ -201,7 +201,7 @@ def intersect(camera: Camera, pose: CameraPose, uv: np.ndarray, ground: FlatGrou
 
     Flat ground: one exact ray/ellipsoid-height intersection (the foundation's
     :func:`ground_intersection`). DEM: first hit on the DEM, all rays at once
-    (:class:`~skyfix.thermal.demcast.LocalDem`, to a millimetre); raises
+    (:class:`~skyfix.thermal.demcast.LocalDem`, to a centimetre); raises
     :class:`GeometryError` when a ray points above the horizon, leaves the DEM or meets
     a no-data hole that was not filled.
     """

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from skyfix.cli import main
@@ -92,3 +93,45 @@ def test_help(sub, capsys):
     assert "usage: skyfix thermal" in text
     if sub in (["detect"], ["locate"]):
         assert "--ground-alt" in text and "ellipsoid" in text
+
+
+@pytest.mark.slow
+def test_mountain_flight_joint_locate_outputs_and_dem_coverage(tmp_path, capsys, caplog):
+    import csv
+
+    sim = tmp_path / "mt"
+    assert main(["-q", "thermal", "simulate", str(sim), "--mountain", "orbit", "--frames", "20", "--fires", "2",
+                 "--size", "320x256", "--seed", "5"]) == 0
+    out = tmp_path / "out" / "fires.geojson"
+    common = ["-q", "thermal", "locate", str(sim / "frames"), "--poses", str(sim / "poses.csv"), "--camera",
+              str(sim / "camera.json"), "--dem-datum", "amsl", "--joint", "-o", str(out)]
+    assert main(common + ["--dem", str(sim / "dem.tif")]) == 0
+    truth = json.loads((sim / "truth.json").read_text())
+    feats = json.loads(out.read_text())["features"]
+    points = [f for f in feats if f["geometry"]["type"] == "Point"]
+    ellipses = [f for f in feats if f["geometry"]["type"] == "Polygon"]
+    assert len(points) == len(ellipses) == len(truth["fires"]) == 2
+    for t in truth["fires"]:
+        errs = [float(inverse(t["lat_deg"], t["lon_deg"], p["geometry"]["coordinates"][1],
+                              p["geometry"]["coordinates"][0])[1]) for p in points]
+        # A consumer drone's GNSS wander (1.5 m) is not averaged away in 20 s: a few metres.
+        assert min(errs) < 6.0
+    assert {"first_seen_s", "last_seen_s", "ellipse95_semi_major_m"} <= set(points[0]["properties"])
+    rows = list(csv.DictReader(open(out.with_suffix(".csv"))))
+    assert len(rows) == 2 and float(rows[0]["ellipse95_semi_major_m"]) > 0
+    cal = json.loads((out.parent / "fires_calibration.json").read_text())
+    assert len(cal["boresight_deg"]) == 3
+    assert (out.parent / "fires_map.png").stat().st_size > 5000
+    # A DEM that does not cover the flight: one error line naming it (skyfix's CLI exit
+    # status for a refused input is 1).
+    import rasterio
+    from rasterio.transform import from_origin
+
+    far = tmp_path / "far.tif"
+    with rasterio.open(far, "w", driver="GTiff", width=20, height=20, count=1, dtype="float32", crs="EPSG:32632",
+                       transform=from_origin(100000.0, 5000000.0, 10.0, 10.0)) as dst:
+        dst.write(np.full((20, 20), 500.0, np.float32), 1)
+    caplog.clear()
+    assert main(common + ["--dem", str(far)]) == 1
+    errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    assert len(errors) == 1 and "does not cover the flight" in errors[0] and "poses.csv" in errors[0]
