@@ -530,6 +530,10 @@ class Vehicle:
         live stream, ArduPilot drops velocity targets after 3 s, and either may lose a packet)."""
         self._setpoint = msg
         self.send(msg)
+        old = self._setpoint_thread
+        if old is not None and old.is_alive() and self._setpoint_stop.is_set() \
+                and old is not threading.current_thread():
+            old.join(timeout=1.0)  # told to stop and not gone yet: it would leave our stream dead
         if self._setpoint_thread is None or not self._setpoint_thread.is_alive():
             self._setpoint_stop.clear()
             self._setpoint_thread = threading.Thread(target=self._setpoint_loop, daemon=True,

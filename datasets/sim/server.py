@@ -58,6 +58,11 @@ MISSION_TIMINGS_S = {"ardupilot": (1.0, 8.0), "px4": (0.25, 5.0)}
 _MAX_PEERS = 64
 
 
+def _dop_x100(dop: float) -> int:
+    """A DOP as GPS_RAW_INT carries it: x 100, 65535 when unknown."""
+    return min(int(round(dop * 100)), 65534) if math.isfinite(dop) else 65535
+
+
 class VehicleServer:
     """MAVLink endpoint of one :class:`SimVehicle` over one UDP socket.
 
@@ -273,8 +278,7 @@ class VehicleServer:
         # alt_ellipsoid above WGS84 (mm)
         return M.MAVLink_gps_raw_int_message(
             int(v.t_s * 1e6), r.fix_type, int(round(lat * 1e7)), int(round(lon * 1e7)),
-            int(round((alt_ell - v.geoid_m) * 1000)), min(int(round(r.hdop * 100)), 65534),
-            min(int(round(r.vdop * 100)), 65534), int(speed * 100), int(cog * 100), r.satellites,
+            int(round((alt_ell - v.geoid_m) * 1000)), _dop_x100(r.hdop), _dop_x100(r.vdop), int(speed * 100), int(cog * 100), r.satellites,
             int(round(alt_ell * 1000)), int(round(r.eph_m * 1000)), int(round(r.epv_m * 1000)), 100, 0, 0)
 
     def _msg_ekf_status_report(self):
@@ -587,12 +591,19 @@ class VehicleServer:
 
     # ------------------------------------------------------------- external position
     def _on_gps_input(self, msg, addr) -> None:
-        if not all(math.isfinite(x) for x in (msg.alt, msg.horiz_accuracy, msg.hdop)):
+        """GPS_INPUT as ArduPilot's MAV GPS driver reads it: ``alt`` AMSL, accuracies in metres
+        unless their ignore flags are set (then HDOP/VDOP x 1.5 m stand in), DOPs unitless."""
+        ign = msg.ignore_flags
+        if not all(math.isfinite(x) for x in (msg.alt, msg.horiz_accuracy, msg.hdop, msg.vdop)):
             return
-        eph = msg.horiz_accuracy if msg.horiz_accuracy > 0 else max(msg.hdop, 0.5) * 1.5
-        epv = msg.vert_accuracy if msg.vert_accuracy > 0 else 1.5 * eph
+        hdop = msg.hdop if not ign & M.GPS_INPUT_IGNORE_FLAG_HDOP and msg.hdop > 0 else math.nan
+        vdop = msg.vdop if not ign & M.GPS_INPUT_IGNORE_FLAG_VDOP and msg.vdop > 0 else math.nan
+        use_h = msg.horiz_accuracy > 0 and not ign & M.GPS_INPUT_IGNORE_FLAG_HORIZONTAL_ACCURACY
+        use_v = msg.vert_accuracy > 0 and not ign & M.GPS_INPUT_IGNORE_FLAG_VERTICAL_ACCURACY
+        eph = msg.horiz_accuracy if use_h else 1.5 * (hdop if hdop >= 0.5 else 1.0)
+        epv = msg.vert_accuracy if use_v else 1.5 * (vdop if vdop >= 0.5 else 1.5)
         if not self.vehicle.gps_input(msg.lat / 1e7, msg.lon / 1e7, msg.alt, msg.fix_type,
-                                      msg.satellites_visible, eph, epv):
+                                      msg.satellites_visible, eph, epv, hdop, vdop):
             self.gps_input_ignored += 1  # silently, as the real autopilot does
 
     def _on_vision(self, msg, addr) -> None:

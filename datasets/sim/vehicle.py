@@ -114,6 +114,8 @@ class _ExternalFix:
     lon_deg: float = 0.0
     alt_m: float = 0.0
     consumed: bool = False
+    hdop: float = math.nan
+    vdop: float = math.nan
 
 
 @dataclass
@@ -313,7 +315,7 @@ class SimVehicle:
         if fix is None or self.t_s - fix.time_s > 1.0:
             return GpsReading(np.full(3, np.nan), np.full(3, np.nan), 1, 0, math.inf, math.inf)
         return GpsReading(self.pos_enu_m + fix.residual_enu_m, self.vel_enu_mps.copy(), fix.fix_type,
-                          fix.satellites, fix.eph_m, fix.epv_m)
+                          fix.satellites, fix.eph_m, fix.epv_m, fix.hdop, fix.vdop)
 
     def _select_fix(self) -> tuple[np.ndarray, float] | None:
         """(residual, eph) of a fresh usable position measurement, or None."""
@@ -411,13 +413,15 @@ class SimVehicle:
 
     # -------------------------------------------------------------- inputs
     def gps_input(self, lat_deg: float, lon_deg: float, alt_amsl_m: float, fix_type: int,
-                  satellites: int, eph_m: float, epv_m: float) -> bool:
+                  satellites: int, eph_m: float, epv_m: float, hdop: float = math.nan,
+                  vdop: float = math.nan) -> bool:
         """A GPS_INPUT sample; returns False when the autopilot's settings ignore it."""
         if "mav" not in self._gps_instances():
             return False
         pos = self.enu_amsl(lat_deg, lon_deg, alt_amsl_m)
         self.mav_gps = _ExternalFix(pos - self.pos_enu_m, self.t_s, fix_type, satellites,
-                                    max(eph_m, 0.01), max(epv_m, 0.01), lat_deg, lon_deg, alt_amsl_m)
+                                    max(eph_m, 0.01), max(epv_m, 0.01), lat_deg, lon_deg, alt_amsl_m,
+                                    hdop=hdop, vdop=vdop)
         return True
 
     def vision_position(self, north_m: float, east_m: float, down_m: float, sigma_m: float) -> bool:

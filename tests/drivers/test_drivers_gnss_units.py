@@ -8,6 +8,7 @@ home), and a telemetry log recorded from the real ArduPilot Copter SITL firmware
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 
 import pytest
@@ -89,3 +90,22 @@ def test_sitl_telemetry_log_parses_with_real_units():
     assert g.alt_ellipsoid_source == "autopilot"
     assert st.position.alt_rel_m == pytest.approx(5.0, abs=0.3)
     assert st.home.lat_deg == pytest.approx(46.52, abs=1e-5) and st.home.alt_amsl_m == pytest.approx(372.1, abs=0.5)
+
+
+def test_gps_input_comes_back_in_the_same_units():
+    """GPS_INPUT (AMSL, accuracies in metres, DOPs) -> the autopilot's GPS_RAW_INT -> GpsStatus."""
+    with Simulator(SimulatorConfig(vehicles=1, speed=5.0, seed=4, params={"GPS1_TYPE": 14})) as sim:
+        with Vehicle.connect(sim.url(0), timeout_s=5.0) as v:
+            t = sim.truth(0)
+            deadline = time.monotonic() + 5.0
+            while time.monotonic() < deadline:  # a MAV GPS reports what was injected in the last second
+                v.inject_gps(t["lat_deg"], t["lon_deg"], t["alt_amsl_m"] + 2.0, h_acc_m=0.6, v_acc_m=0.9)
+                g = v.state.gps
+                if g is not None and g.fix_type >= 3 and g.time_s > time.time() - 0.1:
+                    break
+                time.sleep(0.05)
+    assert g is not None and g.fix_type >= 3
+    assert (g.h_acc_m, g.v_acc_m) == pytest.approx((0.6, 0.9), abs=1e-3)
+    assert (g.hdop, g.vdop) == pytest.approx((0.4, 0.6), abs=0.011)  # skyfix sends accuracy / 1.5
+    assert g.alt_amsl_m == pytest.approx(t["alt_amsl_m"] + 2.0, abs=0.01)
+    assert g.alt_ellipsoid_m == pytest.approx(t["alt_m"] + 2.0, abs=0.01)
