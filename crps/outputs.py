@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from skyfix.errors import InputError
-from skyfix.fusion.log import _nan_to_none
+from skyfix.fusion.log import _nan_to_none, _plain
 from skyfix.fusion.log_mcap import McapLog
 
 log = logging.getLogger(__name__)
@@ -45,17 +45,22 @@ class Outputs:
         self._server = None if live is None else _start_live(live, name)
         self.mcap = McapLog(self.log_path, None) if self.log_path is not None else None
 
-    def fusion_sink(self, header: dict) -> McapLog | None:
-        """The log as the node's measurement-log sink, with the fusion ``header`` written."""
+    def fusion_sink(self, header: dict) -> FusionTee:
+        """The node's measurement-log sink: the MCAP log (``header`` written) and the live view."""
         if self.mcap is not None:
             self.mcap.set_header(header)
-        return self.mcap
+        return FusionTee(self)
 
     def json(self, topic: str, obj: dict, time_s: float | None = None) -> None:
         """One JSON message on ``topic`` (schema: a JSON object named after the topic)."""
         if self.mcap is not None:
             self.mcap.channel(topic, "skyfix" + topic.replace("/", "."), _OBJECT)
             self.mcap.write(topic, obj, time_s)
+        if self._server is not None:
+            self.live_json(topic, obj)
+
+    def live_json(self, topic: str, obj: dict) -> None:
+        """``obj`` on ``topic`` of the live view only (when there is one)."""
         if self._server is not None:
             self._live(topic, lambda: _json_channel(topic)).log(_nan_to_none(obj))
 
@@ -94,6 +99,28 @@ class Outputs:
             return ch
 
 
+class FusionTee:
+    """The node's measurement-log sink: engine records to the MCAP log and to the live view."""
+
+    def __init__(self, outputs: Outputs) -> None:
+        self.outputs = outputs
+
+    def record(self, op: str, args: dict | None = None) -> None:
+        if self.outputs.mcap is not None:
+            self.outputs.mcap.record(op, args)
+        if self.outputs._server is not None:
+            plain = {"op": op} if args is None else {"op": op, "args": {k: _plain(v) for k, v in args.items()}}
+            self.outputs.live_json(f"/fusion/{op}", plain)
+
+    def truth(self, drone_id: str, time_s: float, lat_deg: float, lon_deg: float, alt_m: float) -> None:
+        if self.outputs.mcap is not None:
+            self.outputs.mcap.truth(drone_id, time_s, lat_deg, lon_deg, alt_m)
+
+    def close(self) -> None:
+        if self.outputs.mcap is not None:
+            self.outputs.mcap.close()
+
+
 def _start_live(spec: str, name: str):
     import foxglove
 
@@ -113,9 +140,13 @@ def _start_live(spec: str, name: str):
 
 
 def _json_channel(topic: str):
+    import json
+
     import foxglove
 
-    return foxglove.Channel(topic, schema=_OBJECT)
+    schema = foxglove.Schema(name="skyfix" + topic.replace("/", "."), encoding="jsonschema",
+                             data=json.dumps(_OBJECT).encode())
+    return foxglove.Channel(topic, schema=schema, message_encoding="json")
 
 
 def _fix_channel(topic: str):

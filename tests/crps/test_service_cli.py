@@ -109,12 +109,15 @@ def test_live_view_advertises_the_topics():
     try:
         outputs.location_fix("d1", time.time(), 46.5, 6.6, 420.0, [1.0, 0, 0, 0, 1.0, 0, 0, 0, 2.0])
         outputs.json("/swarm/peers", {"event": "joined", "drone": "d2", "time_s": time.time()})
+        sink = outputs.fusion_sink({"origin": [46.5, 6.6, 420.0], "lag_s": 2.0, "config": {}})
+        sink.record("velocity", {"drone_id": "d1", "time_s": time.time(), "vel_enu_mps": [1.0, 0.0, float("nan")],
+                                 "sigma_mps": 0.2})
 
         async def advertised() -> dict[str, str]:
             async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"]) as ws:
                 channels: dict[str, str] = {}
                 deadline = time.monotonic() + 5.0
-                while len(channels) < 2 and time.monotonic() < deadline:
+                while len(channels) < 3 and time.monotonic() < deadline:
                     msg = await asyncio.wait_for(ws.recv(), timeout=5.0)
                     if isinstance(msg, str) and json.loads(msg).get("op") == "advertise":
                         channels.update({c["topic"]: c["schemaName"] for c in json.loads(msg)["channels"]})
@@ -124,7 +127,8 @@ def test_live_view_advertises_the_topics():
     finally:
         outputs.close()
     assert channels["/fix/d1"] == "foxglove.LocationFix"
-    assert "/swarm/peers" in channels
+    assert channels["/swarm/peers"] == "skyfix.swarm.peers"
+    assert channels["/fusion/velocity"] == "skyfix.fusion.velocity"  # the engine's inputs too
 
 
 def test_fence_file_becomes_the_safety_gate(tmp_path):
