@@ -6,7 +6,9 @@ sensor is simulated at the message level, with the same arguments the engine's
 ``add_*`` methods take (``skyfix.fusion``, see ``feed``):
 
 * GNSS, 5 Hz per drone: white noise ``gnss_h_sigma_m`` per horizontal axis and
-  ``gnss_v_sigma_m`` vertical, fix type 3, 10-14 satellites, hdop 0.8-1.2.
+  ``gnss_v_sigma_m`` vertical, optionally plus a Gauss-Markov wander (``gnss_gm_*``) and
+  multipath outliers (:func:`correlated_scenario`); fix type 3, 10-14 satellites, hdop
+  0.8-1.2; the reported accuracy is the total of white and wandering parts.
 * Velocity, 10 Hz per drone, in the ENU axes at the drone: truth + bias + white noise.
   The bias is a random walk (see :class:`NoiseModel`) as for an autopilot velocity that
   is not GNSS-aided (optical flow scaled by a height estimate, or IMU + drag model).
@@ -21,7 +23,7 @@ sensor is simulated at the message level, with the same arguments the engine's
 Faults: a GNSS outage on one drone ("silent": no messages; "no_fix": messages with
 fix type 1 and lat/lon 0 as receivers report) and a spoofed jump on another (the fix
 moves by a fixed horizontal offset and follows the drone, with a normal fix type and
-satellite count). Delivery: each event has its measurement time ``time_s`` and its
+satellite count); further spoof windows (``faults``) may drift at a constant rate. Delivery: each event has its measurement time ``time_s`` and its
 arrival time ``arrival_s``; a fraction of relative observations and GNSS messages
 arrive 0.2-1.0 s late, and events are ordered by arrival.
 
