@@ -1,7 +1,7 @@
 """Dense surface: OpenCV semi-global matching on rectified pairs of overlapping photos.
 
-Each registered photo is paired with up to ``neighbours`` others that overlap it with a
-useful baseline (0.08-0.8 of the flying height). A pair is rectified with one common
+Each registered photo is paired with up to ``neighbours`` (4) others that overlap it with
+a useful baseline (0.08-1.2 of the flying height: along the line and across to the next). A pair is rectified with one common
 rotation whose x axis is the baseline (both views turned to look alike, so epipolar
 lines are image rows and the left camera is the first), undistorted through its lens
 model, matched by ``cv2.StereoSGBM`` (left-right consistency, uniqueness and speckle
@@ -11,7 +11,7 @@ disparity pixel is 1/scale photo pixels.
 
 Every pair's points land in the DSM grid in metres; each cell takes the median height of
 all its points from all pairs, spikes (a cell more than ``spike_m`` off its 5x5 median)
-are dropped, and only cells seen by at least ``min_pairs`` pairs are kept; holes are
+and isolated cells are dropped, and only cells seen by at least ``min_pairs`` pairs are kept; holes are
 filled from a coarser level for ``filled_m`` (the orthophoto's surface) and stay NaN in
 ``surface_m``.
 """
@@ -139,8 +139,12 @@ def _match_pair(left: View, right: View, images: dict, sparse_enu: np.ndarray, s
         (v < left_box[:, 1].max())
     if inside.sum() < 20:
         return None
-    depth = pts[inside, 2]
-    d_lo, d_hi = f * baseline / np.percentile(depth, 99.5) * 0.9, f * baseline / np.percentile(depth, 0.5) * 1.1
+    # Robust depth bounds: the 2-98 % of the sparse points in view, widened by 10 % (and
+    # never beyond 0.6-1.6x their median: a stray sparse point must not open the range).
+    near_m, far_m = np.percentile(pts[inside, 2], [2, 98])
+    median_m = float(np.median(pts[inside, 2]))
+    near_m, far_m = max(0.9 * near_m, 0.6 * median_m), min(1.1 * far_m, 1.6 * median_m)
+    d_lo, d_hi = f * baseline / far_m, f * baseline / near_m
     min_disp = int(np.floor(d_lo))
     num_disp = int(np.ceil((d_hi - min_disp) / 16.0) * 16)
     if num_disp > 512:
@@ -161,7 +165,8 @@ def _match_pair(left: View, right: View, images: dict, sparse_enu: np.ndarray, s
                                  mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
     disparity = sgbm.compute(rectified[0], rectified[1]).astype(np.float32) / 16.0
     seen = cv2.cvtColor(rectified[0], cv2.COLOR_BGR2GRAY) > 0
-    valid = (disparity >= min_disp) & seen
+    # Disparities at the ends of the searched range are matches that wanted to go further: dropped.
+    valid = (disparity > min_disp + 0.5) & (disparity < min_disp + num_disp - 1.5) & seen
     rows, cols = np.nonzero(valid)
     d = disparity[rows, cols]
     z = f * baseline / d
@@ -185,7 +190,8 @@ def fill_holes(surface_m: np.ndarray) -> np.ndarray:
 
 
 def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.ndarray, to_utm: EnuToUtm,
-              grid: Grid, *, scale: float = 0.5, neighbours: int = 2, block_px: int = 5, min_pairs: int = 1,
+              grid: Grid, *, scale: float = 0.5, neighbours: int = 4, max_ratio: float = 1.2, block_px: int = 5,
+              min_pairs: int = 1,
               spike_m: float = 2.0, max_points: int = 5_000_000, seed: int = 0) -> tuple[Dsm, DenseCloud]:
     """Dense DSM on ``grid`` (every matched pixel) and the dense point cloud (at most
     ``max_points``: each pair contributes an equal seeded subset) from ``views`` (ENU poses) and the sparse points'
@@ -195,7 +201,7 @@ def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.nda
     if len(views) < 2:
         raise DataError("a dense surface needs at least two registered photos")
     depth_m = float(np.median([_centre(v)[2] for v in views]) - np.median(sparse_enu[:, 2]))
-    pairs = stereo_pairs(views, depth_m, neighbours)
+    pairs = stereo_pairs(views, depth_m, neighbours, max_ratio=max_ratio)
     if not pairs:
         raise DataError("no pair of registered photos overlaps with a usable baseline for dense matching")
     images: dict[str, np.ndarray] = {}
@@ -240,6 +246,9 @@ def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.nda
     filled = fill_holes(surface)
     spikes = np.abs(surface - median_filter(filled, size=5, mode="nearest")) > spike_m
     surface[spikes] = np.nan
+    # Isolated cells (fewer than 6 measured in their 5x5 neighbourhood) are stray matches.
+    neighbours_seen = cv2.boxFilter(np.isfinite(surface).astype(np.float32), -1, (5, 5), normalize=False)
+    surface[neighbours_seen < 6] = np.nan
     filled = fill_holes(surface)
     xyz, rgb = np.concatenate(xyz_keep), np.concatenate(rgb_keep)
     observed = np.isfinite(surface)

@@ -496,8 +496,8 @@ def _dsm_load(config, project, state, report, marker) -> None:
 def _median_gsd_m(models: list, frame, dsm, ground_up: float | None = None) -> float:
     """Median ground sample distance: height above the median DSM height (or ``ground_up``,
     ENU metres) / focal length."""
-    if ground_up is None:
-        ground_up = float(np.nanmedian(dsm.filled_m)) - frame.alt0_m
+    if ground_up is None:  # measured cells only: filled ones are interpolations
+        ground_up = float(np.nanmedian(dsm.surface_m)) - frame.alt0_m
     gsd = []
     for rec in models:
         for image in rec.images.values():
