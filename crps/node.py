@@ -111,14 +111,17 @@ class Node:
             self._sink.truth(str(drone_id), time_s, lat_deg, lon_deg, alt_m)
 
     # -- answers --------------------------------------------------------------------------
-    def update(self) -> list[Estimate]:
-        """Run the smoother; the estimate of every localised drone (also kept in ``latest``)."""
+    def update(self, drone_ids: tuple[str, ...] | None = None) -> list[Estimate]:
+        """Run the smoother; the estimates of ``drone_ids`` (default: every drone), localised ones only,
+        also kept in ``latest``. (A covariance per estimate: ask only for the drones needed.)"""
         with self._lock:
             if self._sink is not None:
                 self._sink.record("update")
             self.engine.update()
             out = []
-            for drone_id in self.engine.drone_ids:
+            for drone_id in self.engine.drone_ids if drone_ids is None else drone_ids:
+                if drone_id not in self.engine.drone_ids:
+                    continue
                 try:
                     est = self.engine.estimate(drone_id)
                 except NotAvailableError:

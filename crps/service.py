@@ -225,7 +225,7 @@ class Service:
         if state is not None and state.link_ok:
             self.node.add_telemetry(self.cfg.drone_id, state, lambda m: m.time_s,
                                     use_gnss=self.injector is None)
-        estimates = self.node.update()
+        estimates = self.node.update((self.cfg.drone_id,))  # peers publish their own
         now = time.time()
         fix = self.node.fix(self.cfg.drone_id, now)
         if fix is None:
