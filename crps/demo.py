@@ -148,7 +148,7 @@ class FusedPositionSource:
                             p_obs = _enu(truth[i]) + _vel(truth[i]) * (t_obs - truth[i]["time_s"])
                             self.node.add_relative(relative_observation(
                                 self.sim.world, str(v.system_id), self.target_id, t_obs, p_obs, p_tgt, self._rng))
-                estimates = self.node.update()
+                estimates = self.node.update((self.target_id,))
                 for i, v in enumerate(self.vehicles):
                     self.node.record_truth(str(v.system_id), t, truth[i]["lat_deg"], truth[i]["lon_deg"],
                                            truth[i]["alt_m"])

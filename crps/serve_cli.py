@@ -114,7 +114,8 @@ def register(subparsers) -> None:
     p.add_argument("--origin", default=None, metavar="LAT,LON,ALT_M",
                    help="fusion frame origin (default: the autopilot's home or first GNSS fix)")
     p.add_argument("--camera", default=None, metavar="SRC",
-                   help="camera frames: a folder of images, an OpenCV device index or stream URL")
+                   help="camera frames (a folder of images, an OpenCV device index or stream URL) through a "
+                        "drop-oldest queue to the drone detector; detections are logged on /camera/detections")
     p.add_argument("--log", type=Path, default=None, metavar="FILE.mcap", help="MCAP log to write (never overwritten)")
     p.add_argument("--live", default=None, metavar="[HOST:]PORT",
                    help="stream the log's topics over the Foxglove WebSocket protocol (default host 127.0.0.1)")
