@@ -143,24 +143,31 @@ def upload(vehicle: Vehicle, items: Sequence[MissionItem], *, progress: Callable
         resends[0] += 1
 
     with vehicle.subscribe(wanted) as q:
-        out = count_msg
+        out, sent = count_msg, False
         while True:
             msg = transact(vehicle, out, lambda m: DONE, types=(), replies=q, timeout_s=item_timeout_s,
                            retries=retries, what=f"mission upload at item {highest + 1}/{n}",
-                           on_resend=count_resend)
+                           on_resend=count_resend, first_sent=sent)
+            sent = True  # until the vehicle asks for something new, only silence re-sends
             if msg.get_type() == "MISSION_ACK":
                 if msg.type == M.MAV_MISSION_ACCEPTED and (highest == n - 1 or n == 0):
                     return TransferStats(len(items), time.monotonic() - t0, resends[0] + resent)
-                if msg.type != M.MAV_MISSION_ACCEPTED:
-                    name = _RESULTS.get(msg.type, str(msg.type))
-                    raise CommandRejected(f"vehicle {sysid} rejected the mission upload ({name}) "
-                                          f"at item {highest + 1}/{n}{vehicle._reasons(t0)}",
-                                          command="MISSION_COUNT", result=msg.type)
-                continue  # a stale ACK from an earlier transaction: keep listening, re-send on silence
+                if msg.type == M.MAV_MISSION_INVALID_SEQUENCE and out is not count_msg:
+                    # ArduPilot already has the item we re-sent: its request for the next one was
+                    # lost. It keeps the upload open (and re-asks only after 1 s): send that one now
+                    if out.seq + 1 < n:
+                        out, sent = wire[out.seq + 1].to_message(out.seq + 1, sysid, comp), False
+                    continue
+                if msg.type == M.MAV_MISSION_ACCEPTED:
+                    continue  # a stale ACK from an earlier transaction: keep listening
+                name = _RESULTS.get(msg.type, str(msg.type))
+                raise CommandRejected(f"vehicle {sysid} rejected the mission upload ({name}) "
+                                      f"at item {highest + 1}/{n}{vehicle._reasons(t0)}",
+                                      command="MISSION_COUNT", result=msg.type)
             seq = msg.seq
             if not 0 <= seq < n:
                 continue
-            out = wire[seq].to_message(seq, sysid, comp)
+            out, sent = wire[seq].to_message(seq, sysid, comp), False
             if seq > highest:
                 highest = seq
                 if progress is not None:

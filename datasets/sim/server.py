@@ -653,7 +653,10 @@ class VehicleServer:
                 self._mission_ack(addr, M.MAV_MISSION_ACCEPTED, msg)
             return
         if msg.seq != up["next"]:
-            self._request_item()  # duplicate or out of order: ask again for what we need
+            if self.vehicle.flavour == "ardupilot":  # MissionItemProtocol: says so, keeps the upload,
+                self._mission_ack(addr, M.MAV_MISSION_INVALID_SEQUENCE, msg)  # re-asks after 1 s
+            else:
+                self._request_item()  # duplicate or out of order: ask again for what we need
             return
         if msg.get_type() == "MISSION_ITEM":
             x, y = int(round(msg.x * 1e7)), int(round(msg.y * 1e7))

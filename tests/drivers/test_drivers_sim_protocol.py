@@ -104,3 +104,30 @@ def test_mission_upload_timings_follow_the_firmware(sim):
         assert 7.6 <= ack[1] - t_req[0] <= 8.8  # abandoned after 8 s of silence
     finally:
         master.close()
+
+
+def test_a_duplicate_item_is_refused_but_the_upload_goes_on(sim):
+    """ArduPilot's MissionItemProtocol: an item that is not the one requested gets MISSION_ACK
+    INVALID_SEQUENCE and the upload stays open (skyfix's uploader must not give up on it)."""
+    master = _client(sim)
+    try:
+        lat, lon = sim.truth(0)["lat_deg"], sim.truth(0)["lon_deg"]
+
+        def item(seq: int):
+            return M.MAVLink_mission_item_int_message(1, 1, seq, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                                                      M.MAV_CMD_NAV_WAYPOINT, 0, 1, 0, 0, 0, 0,
+                                                      int(lat * 1e7), int(lon * 1e7), 10.0, 0)
+
+        master.mav.mission_count_send(1, 1, 2, M.MAV_MISSION_TYPE_MISSION)
+        assert _collect(master, "MISSION_REQUEST_INT", 0.5, lambda m: m.seq == 0)
+        master.mav.send(item(0))
+        assert _collect(master, "MISSION_REQUEST_INT", 0.5, lambda m: m.seq == 1)
+        master.mav.send(item(0))  # a re-send of an item it already has
+        acks = _collect(master, "MISSION_ACK", 0.3)
+        assert [a.type for a in acks] == [M.MAV_MISSION_INVALID_SEQUENCE]
+        master.mav.send(item(1))
+        acks = _collect(master, "MISSION_ACK", 0.5)
+        assert [a.type for a in acks] == [M.MAV_MISSION_ACCEPTED]
+        assert len(sim.vehicle(0).mission) == 2
+    finally:
+        master.close()
