@@ -36,6 +36,14 @@ class FusionConfig:
     velocity_model_sigma_mps: float = 0.02  # interpolation between samples (jerk), added to the white sigma
     bias_initial_sigma_mps: float = 0.3
     bias_walk_mps_per_sqrt_s: float = 0.01
+    # Optional scale-factor and heading-error states of the velocity (the main errors of an
+    # autopilot's dead reckoning without GNSS: optical flow scaled by a wrong height, a compass
+    # or gyro heading error). Observable in turns; off by default (a Python factor per interval).
+    velocity_scale_heading: bool = False
+    velocity_scale_sigma: float = 0.05          # initial 1-sigma of the scale error (5 %)
+    velocity_heading_sigma_deg: float = 5.0     # initial 1-sigma of the heading error
+    velocity_scale_walk_per_sqrt_s: float = 1e-4
+    velocity_heading_walk_deg_per_sqrt_s: float = 0.01
     # GNSS
     gnss_uere_m: float = 1.5            # sigma per unit HDOP when the receiver gives no h_acc
     gnss_vertical_factor: float = 1.7   # v_sigma / h_sigma when the receiver gives no v_acc
@@ -75,9 +83,13 @@ class FusionConfig:
             raise InputError(f"FusionConfig.roster must be a sequence of non-empty drone id strings, got {roster!r}")
         object.__setattr__(self, "roster", tuple(roster))
         for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if f.type in (bool, "bool"):
+                if not isinstance(value, bool):
+                    raise InputError(f"FusionConfig.{f.name} must be True or False, got {value!r}")
+                continue
             if f.name == "roster":
                 continue
-            value = getattr(self, f.name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value == value:
                 raise InputError(f"FusionConfig.{f.name} must be a number, got {value!r}")
             if value <= 0 and f.name not in ("log_fsync_s",):

@@ -105,6 +105,13 @@ class FusionEngine:
         self._readmit_gate = cfg.gate_chi2(2, 0.95)  # after a drift: agreement with the velocity, both tests
         self._gm_sigma = np.array([cfg.gnss_gm_h_sigma_m, cfg.gnss_gm_h_sigma_m, cfg.gnss_gm_v_sigma_m])
         self._next_index = 0
+        self._q0 = self._q_sigma = self._q_walk = None
+        if cfg.velocity_scale_heading:  # (scale, heading rad, pinned 0)
+            self._q0 = np.zeros(3)
+            self._q_sigma = np.array([cfg.velocity_scale_sigma, math.radians(cfg.velocity_heading_sigma_deg), 1e-6])
+            self._q_walk = np.array([cfg.velocity_scale_walk_per_sqrt_s,
+                                     math.radians(cfg.velocity_heading_walk_deg_per_sqrt_s), 1e-9]) \
+                * math.sqrt(cfg.state_dt_s)
         self._unknown_observers = 0
         self._unknown_last: tuple[str, float] | None = None
         self._vel_sigma_floor = cfg.velocity_model_sigma_mps
@@ -197,11 +204,13 @@ class FusionEngine:
         self._drift_test(drone).velocity(t, vel_frame)
         if drone.velocity is None or t >= drone.velocity[0]:
             drone.velocity = (t, vel_frame, float(sigma.max()) ** 2 + self._vel_sigma_floor**2)
+        scaled = self.config.velocity_scale_heading
         for j, mean, sig in self._intervals(drone).add(t, vel_frame, sigma):
             if not drone.anchored or j < self._window.oldest_alive_step() or j < drone.first_k:
                 continue
             self._ensure(drone, j + 1)
-            self._window.velocity(drone.index, j, mean, np.hypot(sig, self.config.velocity_model_sigma_mps))
+            add = self._window.velocity_scaled if scaled else self._window.velocity
+            add(drone.index, j, mean, np.hypot(sig, self.config.velocity_model_sigma_mps))
 
     def add_altitude(self, drone_id: str, time_s: float, alt_m: float, sigma_m: float) -> None:
         """A height (metres above the WGS84 ellipsoid, e.g. a barometer referenced to it)."""
@@ -600,13 +609,15 @@ class FusionEngine:
         (or ``p_sigma_m`` gives it a weak prior about ``p0``). The GNSS error starts from its
         stationary distribution."""
         window, cfg = self._window, self.config
-        window.new_state(drone.index, k, p0, np.zeros(3) if b0 is None else b0, np.zeros(3))
+        window.new_state(drone.index, k, p0, np.zeros(3) if b0 is None else b0, np.zeros(3), self._q0)
         if b_cov is None:
             window.prior_bias(drone.index, k, cfg.bias_initial_sigma_mps)
         else:
             window.prior(drone.index, 1, k, b0, b_cov)
         r = drone.r_frame_from_local
         window.prior(drone.index, 2, k, np.zeros(3), r @ np.diag(self._gm_sigma**2) @ r.T)
+        if self._q_sigma is not None:
+            window.prior(drone.index, 3, k, np.zeros(3), np.diag(self._q_sigma**2))
         if p_sigma_m is not None:
             window.prior(drone.index, 0, k, p0, _EYE3 * p_sigma_m**2)
         drone.first_k = drone.last_k = k
@@ -630,16 +641,18 @@ class FusionEngine:
             step = np.zeros(3)
             if drone.velocity is not None and abs(window.time_of(prev) - drone.velocity[0]) <= cfg.velocity_timeout_s:
                 step = (drone.velocity[1] - b_prev) * window.dt_s
-            window.new_state(i, prev + 1, p_prev + step, b_prev, phi * window.value(i, 2, prev))
-            window.motion(i, prev, walk, bias_walk)
+            window.new_state(i, prev + 1, p_prev + step, b_prev, phi * window.value(i, 2, prev),
+                             None if self._q0 is None else window.value(i, 3, prev))
+            window.motion(i, prev, walk, bias_walk, self._q_walk)
             window.gauss_markov(i, prev, phi, self._gm_sigma)
             drone.last_k = prev + 1
         while drone.first_k > k:
             nxt = drone.first_k
             if nxt - 1 < window.oldest_alive_step():
                 raise InputError("measurement is older than the fusion lag")
-            window.new_state(i, nxt - 1, window.value(i, 0, nxt), window.value(i, 1, nxt), window.value(i, 2, nxt))
-            window.motion(i, nxt - 1, walk, bias_walk)
+            window.new_state(i, nxt - 1, window.value(i, 0, nxt), window.value(i, 1, nxt), window.value(i, 2, nxt),
+                             None if self._q0 is None else window.value(i, 3, nxt))
+            window.motion(i, nxt - 1, walk, bias_walk, self._q_walk)
             window.gauss_markov(i, nxt - 1, phi, self._gm_sigma)
             drone.first_k = nxt - 1
 

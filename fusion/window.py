@@ -6,7 +6,11 @@ drone per grid step k (time ``epoch + k * dt``):
 - ``p`` position of the drone,
 - ``b`` bias of the drone's autopilot velocity,
 - ``n`` (optional) the drone's GNSS error, negated: a fix measures ``p - n`` (so GNSS is a
-  ``BetweenFactorPoint3(n, p)``), and n follows a first-order Gauss-Markov process.
+  ``BetweenFactorPoint3(n, p)``), and n follows a first-order Gauss-Markov process,
+- ``q`` (optional) the velocity's scale-factor and heading errors ``(s, psi_rad, 0)``: the
+  measured velocity is ``(1 + s) R_up(psi) v_true + b`` (the third component is held at
+  zero by its prior and walk). Its velocity factor is a ``gtsam.CustomFactor`` (four keys,
+  nonlinear), so the option costs a Python call per interval and update.
 
 Factors are gtsam's own C++ ones: ``PriorFactorPoint3`` (GNSS, tag fixes),
 ``BetweenFactorPoint3`` (relative observations, the bias random walk, the weak motion
@@ -45,7 +49,13 @@ _UP_ROW = np.array([[0.0, 0.0, 1.0]])
 
 
 _STEP_MASK = (1 << 38) - 1
-KINDS = 3  # p, b, n
+KINDS = 4  # p, b, n, q
+_J_UP = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])  # d R_up(a) u / da = J R_up(a) u
+
+
+def _r_up(angle_rad: float) -> np.ndarray:
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 class GraphWindow:
@@ -99,11 +109,12 @@ class GraphWindow:
         return self._live
 
     # -- variables ---------------------------------------------------------------------
-    def new_state(self, drone_index: int, k: int, p0: np.ndarray, b0: np.ndarray, n0: np.ndarray | None = None) -> None:
-        """Insert p_k, b_k (and n_k) with initial guesses; the caller adds their constraining factors."""
+    def new_state(self, drone_index: int, k: int, p0: np.ndarray, b0: np.ndarray, n0: np.ndarray | None = None,
+                  q0: np.ndarray | None = None) -> None:
+        """Insert p_k, b_k (and n_k, q_k) with initial guesses; the caller adds their constraining factors."""
         if k < 0 or k > _STEP_MASK:
             raise EstimationError(f"grid step {k} outside the window's key range")
-        for kind, guess in ((0, p0), (1, b0), (2, n0)):
+        for kind, guess in ((0, p0), (1, b0), (2, n0), (3, q0)):
             if guess is None:
                 continue
             key = self.key(drone_index, kind, k)
@@ -177,12 +188,40 @@ class GraphWindow:
         self._add(gtsam.BetweenFactorPoint3(self.key(drone_index, 2, k), self.key(drone_index, 0, k),
                                             gtsam.Point3(*enu_m), self._robust(cov_m2)), k, measurement=True)
 
-    def motion(self, drone_index: int, k: int, walk_sigma_m: float, bias_walk_sigma_mps: float) -> None:
-        """Step k -> k+1: weak bound on the position change and the bias random walk."""
-        for kind, sigma in ((0, walk_sigma_m), (1, bias_walk_sigma_mps)):
+    def motion(self, drone_index: int, k: int, walk_sigma_m: float, bias_walk_sigma_mps: float,
+               q_walk_sigma: np.ndarray | None = None) -> None:
+        """Step k -> k+1: weak bound on the position change and the bias random walk (and q's, per component)."""
+        for kind, sigma in ((0, walk_sigma_m), (1, bias_walk_sigma_mps), (3, q_walk_sigma)):
+            if sigma is None:
+                continue
             self._add(gtsam.BetweenFactorPoint3(
                 self.key(drone_index, kind, k), self.key(drone_index, kind, k + 1), gtsam.Point3(0.0, 0.0, 0.0),
-                gtsam.noiseModel.Isotropic.Sigma(3, sigma)), k)
+                gtsam.noiseModel.Diagonal.Sigmas(np.broadcast_to(np.asarray(sigma, float), (3,)).copy())), k)
+
+    def velocity_scaled(self, drone_index: int, k: int, vel_mps: np.ndarray, sigma_mps: np.ndarray) -> None:
+        """p_k+1 - p_k = R_up(-psi) (v - b_k) dt / (1 + s), q_k = (s, psi, 0); sigma per axis ``sigma_mps * dt``."""
+        dt, v = self.dt_s, np.asarray(vel_mps, float).copy()
+        keys = [self.key(drone_index, 0, k), self.key(drone_index, 0, k + 1), self.key(drone_index, 1, k),
+                self.key(drone_index, 3, k)]
+
+        def error(_factor, values, jacobians):
+            s, psi, _ = values.atPoint3(keys[3])
+            u = v - values.atPoint3(keys[2])
+            c = dt / (1.0 + s)
+            rot = _r_up(-psi)
+            moved = rot @ u * c
+            if jacobians is not None:
+                jacobians[0] = -_EYE
+                jacobians[1] = _EYE.copy()
+                jacobians[2] = rot * c
+                jq = np.zeros((3, 3))
+                jq[:, 0] = moved / (1.0 + s)
+                jq[:, 1] = _J_UP @ moved
+                jacobians[3] = jq
+            return values.atPoint3(keys[1]) - values.atPoint3(keys[0]) - moved
+
+        noise = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigma_mps, float) * dt)
+        self._add(gtsam.CustomFactor(noise, keys, error), k)
 
     def velocity(self, drone_index: int, k: int, vel_mps: np.ndarray, sigma_mps: np.ndarray) -> None:
         """p_k+1 - p_k + b_k dt = v dt, sigma per axis ``sigma_mps * dt``."""
