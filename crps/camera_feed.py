@@ -14,7 +14,10 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+
+import numpy as np
 
 from skyfix.errors import InputError
 
@@ -25,18 +28,22 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
 
 class CameraFeed:
-    """Frames from ``source`` (folder, device index, or stream URL) to the detector; ``outputs``
-    receives the detections. ``folder_fps``: replay rate of a folder of images."""
+    """Frames from ``source`` (folder, device index, stream URL, or a callable returning a frame or None)
+    to the detector; ``outputs`` receives the detections. ``folder_fps``: rate of a folder's or a
+    callable's frames."""
 
-    def __init__(self, source: str, outputs, folder_fps: float = 10.0) -> None:
+    def __init__(self, source: str | Callable[[], np.ndarray | None], outputs, folder_fps: float = 10.0) -> None:
         import cv2
 
         self.outputs, self.folder_fps = outputs, folder_fps
         self.frames: queue.Queue = queue.Queue(FRAME_QUEUE)
         self.n_frames = self.n_dropped = self.n_detected = 0
         self._stop = threading.Event()
-        path = Path(source)
-        if path.is_dir():
+        self._render = source if callable(source) else None
+        path = Path("") if callable(source) else Path(source)
+        if self._render is not None:
+            self._files = self._capture = None
+        elif path.is_dir():
             self._files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
             if not self._files:
                 raise InputError(f"--camera {source}: no images ({', '.join(IMAGE_SUFFIXES)}) in the folder")
@@ -80,7 +87,10 @@ class CameraFeed:
 
         i = 0
         while not self._stop.is_set():
-            if self._files is not None:
+            if self._render is not None:
+                image = self._render()
+                self._stop.wait(1.0 / self.folder_fps)
+            elif self._files is not None:
                 image = cv2.imread(str(self._files[i % len(self._files)]), cv2.IMREAD_UNCHANGED)
                 i += 1
                 self._stop.wait(1.0 / self.folder_fps)

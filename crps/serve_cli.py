@@ -114,7 +114,8 @@ def register(subparsers) -> None:
     p.add_argument("--origin", default=None, metavar="LAT,LON,ALT_M",
                    help="fusion frame origin (default: the autopilot's home or first GNSS fix)")
     p.add_argument("--camera", default=None, metavar="SRC",
-                   help="camera frames (a folder of images, an OpenCV device index or stream URL) through a "
+                   help="camera frames (a folder of images, an OpenCV device index or stream URL, or 'sim': the "
+                        "simulator's renderer drawing the nearest peer where it says it is, 5 Hz) through a "
                         "drop-oldest queue to the drone detector; detections are logged on /camera/detections")
     p.add_argument("--log", type=Path, default=None, metavar="FILE.mcap", help="MCAP log to write (never overwritten)")
     p.add_argument("--live", default=None, metavar="[HOST:]PORT",
@@ -154,7 +155,9 @@ def run_serve(args) -> int:
         from skyfix.crps.camera_feed import CameraFeed
 
         try:
-            service.camera = CameraFeed(args.camera, service.outputs).start()
+            source = service.sim_camera() if args.camera == "sim" else args.camera
+            service.camera = CameraFeed(source, service.outputs, folder_fps=5.0 if args.camera == "sim" else 10.0
+                                        ).start()
         except InputError as exc:
             service.close()
             sys.stderr.write(f"skyfix serve: error: {exc}\n")

@@ -210,6 +210,20 @@ class Service:
     def _drop_report(self) -> dict[str, int]:
         return {**dict(self.codec.dropped), "inbox_overflow": self.counters["inbox_overflow"]}
 
+    def sim_camera(self):
+        """``--camera sim``: the simulator's renderer pointed from this drone's fix at the nearest peer."""
+        from skyfix.crps.sim_camera import SimCamera
+
+        def own():
+            fix = self.node.fix(self.cfg.drone_id, time.time()) if self.node is not None else None
+            return None if fix is None else (fix.lat_deg, fix.lon_deg, fix.alt_m)
+
+        def peers():
+            return [(p.lat_deg, p.lon_deg, p.alt_m) for p in self.peers.snapshot()
+                    if not p.lost and math.isfinite(p.alt_m)]
+
+        return SimCamera(own, peers)
+
     # -- fusion ---------------------------------------------------------------------------------
     def _tick(self) -> None:
         vehicle = self.vehicle

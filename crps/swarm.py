@@ -30,6 +30,7 @@ class Peer:
     sigma_h_m: float = math.nan
     lat_deg: float = math.nan
     lon_deg: float = math.nan
+    alt_m: float = math.nan
     mavlink_ok: bool = False
     n_messages: int = 0
     rejoins: int = 0
@@ -73,7 +74,7 @@ class PeerTable:
                 peer.health, peer.fix_source = body.health, body.fix_source
                 peer.sigma_h_m, peer.mavlink_ok = body.sigma_h_m, body.mavlink_ok
             elif isinstance(body, FusedEstimate):
-                peer.lat_deg, peer.lon_deg = body.lat_deg, body.lon_deg
+                peer.lat_deg, peer.lon_deg, peer.alt_m = body.lat_deg, body.lon_deg, body.alt_m
         return event
 
     def check(self, now_s: float | None = None) -> list[PeerEvent]:

@@ -31,7 +31,7 @@ ALLOWED = {
 }
 #: crps modules above fusion (the swarm system) and the applications on top; the rest is perception.
 CRPS_SYSTEM = {"node", "transport", "messages", "swarm", "outputs", "camera_feed", "cli", "__init__"}
-CRPS_APPS = {"demo", "service", "serve_cli"}
+CRPS_APPS = {"demo", "service", "serve_cli", "sim_camera"}
 
 
 def _layer_of_module(dotted: str) -> str | None:

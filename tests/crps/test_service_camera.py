@@ -66,3 +66,26 @@ def test_bad_sources(tmp_path):
         CameraFeed(str(tmp_path), Sink())
     with pytest.raises(InputError, match="OpenCV cannot open"):
         CameraFeed(str(tmp_path / "no-such-stream.mp4"), Sink())
+
+
+def test_sim_camera_frames_show_the_nearest_peer_to_the_detector():
+    """--camera sim: the renderer draws the nearest peer (here 25 m north, 3 m up; another at 80 m) where
+    the camera is pointed, and the same feed finds it at the image centre."""
+    from skyfix.crps.sim_camera import SimCamera
+    from skyfix.geo import LocalFrame
+
+    frame = LocalFrame(46.52, 6.63, 420.0)
+    near = tuple(float(c) for c in frame.to_geodetic(0.0, 25.0, 3.0))
+    far = tuple(float(c) for c in frame.to_geodetic(80.0, 0.0, 0.0))
+    cam = SimCamera(lambda: (46.52, 6.63, 420.0), lambda: [far, near], width=640, height=480, hfov_deg=40.0)
+    image = cam()
+    assert image.shape == (480, 640) and image.dtype == np.uint8
+    sink = Sink()
+    feed = CameraFeed(cam, sink, folder_fps=20.0).start()
+    try:
+        assert wait_for(lambda: any(m["detections"] for _, m in sink.messages), 20.0)
+    finally:
+        feed.stop()
+    det = next(d for _, m in sink.messages for d in m["detections"])
+    assert np.hypot(det["centroid_uv"][0] - 319.5, det["centroid_uv"][1] - 239.5) < 3.0
+    assert SimCamera(lambda: None, lambda: [near])() is None  # nothing to render before the first fix
