@@ -73,27 +73,36 @@ def _centre(view: View) -> np.ndarray:
     return -view.cam_from_enu[:, :3].T @ view.cam_from_enu[:, 3]
 
 
-def stereo_pairs(views: list[View], depth_m: float, neighbours: int = 2, min_ratio: float = 0.08,
-                 max_ratio: float = 0.8) -> list[tuple[int, int]]:
+def _footprint_samples(view: View, depth_m: float) -> np.ndarray:
+    """ENU ground points (3x3 lattice at 1/4, 1/2, 3/4 of the photo) ``depth_m`` below its camera."""
+    cam = view.camera
+    uu, vv = np.meshgrid(np.array([0.25, 0.5, 0.75]) * cam.width, np.array([0.25, 0.5, 0.75]) * cam.height)
+    rays_cam = np.hstack((np.asarray(cam.cam_from_img(np.stack((uu.ravel(), vv.ravel()), axis=1))),
+                          np.ones((9, 1))))
+    rays = rays_cam @ view.cam_from_enu[:, :3]  # rows: R^T d, camera rays in ENU
+    return _centre(view) + rays * (depth_m / np.maximum(-rays[:, 2:3], 1e-6))
+
+
+def stereo_pairs(views: list[View], depth_m: float, neighbours: int = 4, min_ratio: float = 0.08,
+                 max_ratio: float = 1.2, min_shared: int = 3) -> list[tuple[int, int]]:
     """Index pairs (i < j) of overlapping views: for each view its ``neighbours`` nearest
     others whose baseline is ``min_ratio``-``max_ratio`` of ``depth_m`` (the flying height)
-    and whose image centre's ground point falls inside the other photo."""
+    and which see at least ``min_shared`` of its 9 footprint lattice points (a third of it)."""
     centres = np.array([_centre(v) for v in views])
     pairs: set[tuple[int, int]] = set()
     for i, view in enumerate(views):
-        look = view.cam_from_enu[2, :3]  # optical axis in ENU
-        ground = centres[i] + depth_m * look / max(-look[2], 1e-6)
+        ground = _footprint_samples(view, depth_m)
         found = []
         for j in np.argsort(np.linalg.norm(centres - centres[i], axis=1)):
             baseline = float(np.linalg.norm(centres[j] - centres[i]))
             if j == i or not min_ratio * depth_m <= baseline <= max_ratio * depth_m:
                 continue
             other = views[j]
-            p = other.cam_from_enu[:, :3] @ ground + other.cam_from_enu[:, 3]
-            if p[2] <= 0:
-                continue
-            u, v = np.asarray(other.camera.img_from_cam(p[None, :]))[0]
-            if 0 <= u < other.camera.width and 0 <= v < other.camera.height:
+            p = ground @ other.cam_from_enu[:, :3].T + other.cam_from_enu[:, 3]
+            uv = np.asarray(other.camera.img_from_cam(p, check_cheirality=False))
+            seen = (p[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < other.camera.width) & (uv[:, 1] >= 0) \
+                & (uv[:, 1] < other.camera.height)
+            if seen.sum() >= min_shared:
                 found.append(int(j))
             if len(found) == neighbours:
                 break
@@ -152,6 +161,9 @@ def _match_pair(left: View, right: View, images: dict, sparse_enu: np.ndarray, s
     x0, y0 = np.floor(xy.min(axis=0)).astype(int)
     x1, y1 = np.ceil(xy.max(axis=0)).astype(int)
     size = (int(x1 - x0), int(y1 - y0))
+    if min_disp < 0 or min_disp + num_disp + block_px >= size[0] or size[0] * size[1] > 16 * len(images[left.name]) \
+            * images[left.name].shape[1]:
+        return None  # overlap too small for the disparities, or a degenerate rectification
     k_new = np.array([[f, 0.0, -x0], [0.0, f, -y0], [0.0, 0.0, 1.0]])
     rectified = []
     for view, (k, dist) in ((left, lens_l), (right, lens_r)):
@@ -172,6 +184,29 @@ def _match_pair(left: View, right: View, images: dict, sparse_enu: np.ndarray, s
     z = f * baseline / d
     rect = np.stack(((cols + x0) * z / f, (rows + y0) * z / f, z), axis=1)
     return rect @ r_rect + _centre(left), rectified[0][rows, cols]
+
+
+def stereo_area(views: list[View], grid: Grid, to_utm: EnuToUtm, ground_up_m: float) -> np.ndarray:
+    """(H, W) bool: grid cells inside the ground footprints of at least two photos (the area
+    a stereo surface can exist in), each footprint its image border cast to ``ground_up_m``."""
+    count = np.zeros((grid.height, grid.width), np.uint8)
+    for view in views:
+        cam = view.camera
+        t = np.linspace(0.0, 1.0, 9)
+        border = np.vstack([np.stack((t * cam.width, np.zeros(9)), 1), np.stack((np.full(9, cam.width), t * cam.height), 1),
+                            np.stack((t[::-1] * cam.width, np.full(9, cam.height)), 1),
+                            np.stack((np.zeros(9), t[::-1] * cam.height), 1)])
+        rays = np.hstack((np.asarray(cam.cam_from_img(border)), np.ones((len(border), 1)))) @ view.cam_from_enu[:, :3]
+        down = rays[:, 2] < -1e-6
+        if down.sum() < 3:
+            continue
+        centre = _centre(view)
+        ground = centre + rays[down] * ((ground_up_m - centre[2]) / rays[down, 2:3])
+        col, row = grid.to_pixel(*to_utm(ground)[:, :2].T)
+        mask = np.zeros_like(count)
+        cv2.fillPoly(mask, [np.round(np.stack((col, row), 1)).astype(np.int32)], 1)
+        count += mask
+    return count >= 2
 
 
 def fill_holes(surface_m: np.ndarray) -> np.ndarray:

@@ -430,17 +430,20 @@ def _dsm_run(config, project, state, report) -> dict:
     from skyfix.mapping.height_check import flying_height
 
     check = flying_height(state["referenced"], state["photos"], frame, dsm)
+    area = extra.pop("stereo_area", None)
     data = {"grid": grid.to_dict(), "points": len(xyz), "flying_height": check.to_dict(),
-            "flying_height_suspicious": check.suspicious(), "valid_share": _valid_share(dsm.observed), **extra}
+            "flying_height_suspicious": check.suspicious(), "valid_share": _valid_share(dsm.observed, area), **extra}
     _dsm_load(config, project, state, report, data)
     return data
 
 
-def _valid_share(observed: np.ndarray) -> float:
-    """Share of the cells inside the surveyed area (convex hull of the measured cells) that
-    hold a measured height (not interpolated)."""
+def _valid_share(observed: np.ndarray, area: np.ndarray | None = None) -> float:
+    """Share of the cells inside the surveyed ``area`` (default: the convex hull of the
+    measured cells) that hold a measured height (not interpolated)."""
     import cv2
 
+    if area is not None:
+        return float(observed[area].mean()) if area.any() else 0.0
     rows, cols = np.nonzero(observed)
     if len(rows) < 3:
         return 0.0
@@ -452,7 +455,7 @@ def _valid_share(observed: np.ndarray) -> float:
 
 def _dense(config, project, state, sparse_enu: np.ndarray, epsg: int) -> tuple:
     """Dense DSM (mapping.dense) on a grid of ``dense_cell_px`` matched pixels; saves the cloud."""
-    from skyfix.mapping.dense import dense_dsm
+    from skyfix.mapping.dense import dense_dsm, stereo_area
     from skyfix.mapping.grid import EnuToUtm, Grid
     from skyfix.mapping.ortho import load_views
 
@@ -467,7 +470,8 @@ def _dense(config, project, state, sparse_enu: np.ndarray, epsg: int) -> tuple:
     dsm, cloud = dense_dsm(views, {v.name: v.path for v in views}, sparse_enu, to_utm, grid,
                            scale=config.dense_scale, max_points=config.max_dense_points, seed=config.seed)
     np.savez(project.work / "dense_points.npz", xyz=cloud.xyz_utm_m, rgb=cloud.rgb)
-    return dsm, {"dense_points": len(cloud.xyz_utm_m), "dense_pairs": cloud.pairs, "dense_scale": cloud.scale,
+    area = stereo_area(views, grid, to_utm, float(np.median(sparse_enu[:, 2])))
+    return dsm, {"stereo_area": area, "valid_area": "cells inside the footprints of two or more photos","dense_points": len(cloud.xyz_utm_m), "dense_pairs": cloud.pairs, "dense_scale": cloud.scale,
                  "enu_to_utm_max_residual_m": to_utm.max_residual_m}
 
 
