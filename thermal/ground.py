@@ -9,6 +9,7 @@ expected by accident: ``FlatGround.from_amsl(h, geoid_undulation_m=N)`` (h_ell =
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -54,14 +55,18 @@ class FlatGround:
         """Ground ellipsoidal height (m) at the given points (broadcast shape)."""
         return np.full(np.broadcast(np.asarray(lat_deg), np.asarray(lon_deg)).shape, self.alt_m)
 
+    def sigma_at(self, lat_deg, lon_deg) -> np.ndarray:
+        """1-sigma height error (m) at the given points: ``sigma_m`` everywhere."""
+        return np.full(np.broadcast(np.asarray(lat_deg), np.asarray(lon_deg)).shape, self.sigma_m)
+
 
 @dataclass(frozen=True, eq=False)
 class DemGround:
     """A gridded elevation model: ``heights_m`` ``(H, W)`` ellipsoidal heights on a
     north-up grid in ``crs``, ``transform`` the GDAL affine (x0, dx, 0, y0, 0, dy) of the
-    pixel *corners*. NaN cells are no-data: filled from their neighbours when
-    ``fill_holes`` (``hole_fraction`` says how much was filled), else refused when a ray
-    meets them. ``sigma_m`` is the DEM's 1-sigma height error.
+    pixel *corners*. NaN cells are no-data: filled by linear interpolation when
+    ``fill_holes`` (``hole_fraction`` says how much; :meth:`sigma_at` grows inside them),
+    else refused when a ray meets them. ``sigma_m`` is the DEM's 1-sigma height error.
     """
 
     heights_m: np.ndarray
@@ -72,6 +77,7 @@ class DemGround:
     _to_grid: pyproj.Transformer = field(init=False, repr=False)
     hole_fraction: float = field(init=False, default=0.0)
     _median_m: float = field(init=False, repr=False, default=0.0)
+    _fill_dist_m: np.ndarray | None = field(init=False, repr=False, default=None)
     _local: list = field(init=False, repr=False, default_factory=list)
 
     def __post_init__(self) -> None:
@@ -83,7 +89,7 @@ class DemGround:
         h = h.copy()
         holes = ~np.isfinite(h)
         if self.fill_holes and holes.any():
-            h = _inpaint(h, holes)
+            h = _fill(h, holes)
         h.setflags(write=False)
         object.__setattr__(self, "heights_m", h)
         object.__setattr__(self, "hole_fraction", float(holes.mean()))
@@ -94,6 +100,14 @@ class DemGround:
         object.__setattr__(self, "transform", t)
         object.__setattr__(self, "sigma_m", validate.finite_scalar("DemGround.sigma_m", self.sigma_m))
         object.__setattr__(self, "_to_grid", pyproj.Transformer.from_crs("EPSG:4326", self.crs, always_xy=True))
+        if self.fill_holes and holes.any():
+            from scipy.ndimage import distance_transform_edt
+
+            cell_m = abs(t[1])
+            if pyproj.CRS(self.crs).is_geographic:  # degrees: metres at the grid's middle latitude
+                lat_mid = t[3] + t[5] * h.shape[0] / 2.0
+                cell_m *= 111_320.0 * math.cos(math.radians(lat_mid))
+            object.__setattr__(self, "_fill_dist_m", distance_transform_edt(holes) * cell_m)
 
     @classmethod
     def from_geotiff(cls, path: str | Path, *, datum: str, geoid_undulation_m: float | None = None,
@@ -148,6 +162,22 @@ class DemGround:
         """Median ellipsoidal height of the DEM, metres (a starting guess for ray casting)."""
         return self._median_m
 
+    def sigma_at(self, lat_deg, lon_deg) -> np.ndarray:
+        """1-sigma height error (m) at the given points: ``sigma_m``, growing by
+        :data:`FILL_SIGMA_PER_M` per metre into a filled no-data hole (interpolated
+        across it, a slope's curvature is unknown)."""
+        lat = validate.latitude("lat_deg", lat_deg)
+        lon = validate.longitude("lon_deg", lon_deg)
+        base = np.full(np.broadcast(lat, lon).shape, self.sigma_m)
+        if self._fill_dist_m is None:
+            return base
+        x, y = self._to_grid.transform(lon, lat)
+        x0, dx, _, y0, _, dy = self.transform
+        h, w = self.heights_m.shape
+        col = np.clip(((np.asarray(x) - x0) / dx).astype(int), 0, w - 1)
+        row = np.clip(((np.asarray(y) - y0) / dy).astype(int), 0, h - 1)
+        return base + FILL_SIGMA_PER_M * self._fill_dist_m[row, col]
+
     def height_at(self, lat_deg, lon_deg) -> np.ndarray:
         """Bilinear ellipsoidal height (m) at the given points; NaN outside the grid."""
         lat = validate.latitude("lat_deg", lat_deg)
@@ -168,6 +198,10 @@ class DemGround:
 
 
 Ground = FlatGround | DemGround
+
+#: Growth of a filled DEM cell's height sigma with its distance to real data, m per m
+#: (a 30 m hole in a 30-degree slope: linear interpolation misses its curvature by ~1 m).
+FILL_SIGMA_PER_M = 0.05
 
 
 def as_ground(ground: float | FlatGround | DemGround) -> FlatGround | DemGround:
@@ -218,14 +252,22 @@ def intersect(camera: Camera, pose: CameraPose, uv: np.ndarray, ground: FlatGrou
     return np.stack(frame.to_enu(lat, lon, h), axis=1), np.asarray(h, float)
 
 
-def _inpaint(heights_m: np.ndarray, holes: np.ndarray) -> np.ndarray:
-    """No-data cells filled from the surrounding heights (OpenCV Navier-Stokes inpainting)."""
-    import cv2
+def _fill(heights_m: np.ndarray, holes: np.ndarray) -> np.ndarray:
+    """No-data cells filled by linear interpolation (Delaunay, scipy) from the valid cells
+    around them; cells outside their hull (a hole on the edge) take the nearest value."""
+    from scipy.interpolate import griddata
+    from scipy.ndimage import binary_dilation
 
-    base = float(np.nanmedian(heights_m))
-    img = np.where(holes, 0.0, heights_m - base).astype(np.float32)
-    filled = cv2.inpaint(img, holes.astype(np.uint8), 3, cv2.INPAINT_NS).astype(np.float64) + base
-    return np.where(holes, filled, heights_m)
+    ring = binary_dilation(holes, iterations=2) & ~holes
+    src = np.argwhere(ring)
+    dst = np.argwhere(holes)
+    out = heights_m.copy()
+    if src.shape[0] == 0:
+        raise InputError("DemGround.heights_m: no-data everywhere around the holes")
+    vals = griddata(src, heights_m[ring], dst, method="linear")
+    near = griddata(src, heights_m[ring], dst, method="nearest")
+    out[holes] = np.where(np.isfinite(vals), vals, near)
+    return out
 
 
 def _cell_undulations_m(shape: tuple[int, int], transform: tuple, crs: str) -> np.ndarray:

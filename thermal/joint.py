@@ -1,6 +1,6 @@
 """Fire positions from every frame that saw them, with the pose errors drones really have.
 
-One least-squares problem over a whole flight (scipy ``least_squares``), in pixels:
+One least-squares problem over a whole flight (Levenberg-Marquardt), in pixels:
 each sighting (camera stamp, hotspot centroid, fire) is predicted by projecting the
 fire's 3-D point into the camera the pose log says was there, corrected by
 
@@ -26,8 +26,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse
-from scipy.optimize import least_squares, linear_sum_assignment
+from scipy.optimize import linear_sum_assignment
 from scipy.spatial.transform import Rotation
 
 from skyfix import validate
@@ -99,17 +100,32 @@ class _Problem:
     """Parameter layout, prediction and whitening of one joint problem."""
 
     def __init__(self, camera: Camera, log: PoseLog, s: Sightings, ground: FlatGround | DemGround,
-                 frame: LocalFrame, prior: PoseErrorPrior, boresight_deg) -> None:
+                 frame: LocalFrame, prior: PoseErrorPrior, boresight_deg, calibration) -> None:
         self.camera, self.log, self.s, self.ground, self.frame, self.prior = camera, log, s, ground, frame, prior
         self.n_fires = s.n_fires
         lo, hi = float(s.pool[:, 0].min()), float(s.pool[:, 0].max())
         n_knots = max(int(math.ceil((hi - lo) / prior.knot_spacing_s)) + 1, 2)
         self.knots = np.linspace(lo, hi + 1e-9, n_knots)
         self.smooth = log.smoothed(8.0)
+        # Height prior of each fire: the ground's sigma where it is (larger in filled DEM holes).
+        lat, lon, _ = frame.to_geodetic(s.initial_en_m[:, 0], s.initial_en_m[:, 1],
+                                        np.full(s.n_fires, ground.alt_m - frame.alt0_m))
+        self.dh_sigma = np.maximum(ground.sigma_at(lat, lon), 0.05)
         self.rows = self.bind(s.time_s, s.fire_index)
         self._own_poses = self._poses_at(s.time_s)
         self.fixed_boresight = None if boresight_deg is None else np.radians(
             validate.finite_array("boresight_deg", boresight_deg).reshape(3))
+        # Prior of boresight (rad) and time offset (s): nominal zero, or an earlier calibration.
+        if calibration is None:
+            self.bore_mean, self.dt_mean, self.dt_sigma = np.zeros(3), 0.0, prior.time_offset_sigma_s
+            self.bore_white = np.eye(3) / math.radians(prior.boresight_sigma_deg)
+        else:
+            if not isinstance(calibration, JointSolution):
+                raise InputError(f"calibration must be a JointSolution, got {type(calibration).__name__}")
+            self.bore_mean = np.radians(calibration.boresight_deg)
+            cov = np.radians(np.radians(calibration.boresight_cov_deg2)) + 1e-12 * np.eye(3)
+            self.bore_white = np.linalg.inv(np.linalg.cholesky(cov))
+            self.dt_mean, self.dt_sigma = calibration.time_offset_s, max(calibration.time_offset_sigma_s, 1e-4)
         nf = 3 * self.n_fires
         self.sl_fire = slice(0, nf)
         self.sl_bore = slice(nf, nf + 3)
@@ -183,8 +199,8 @@ class _Problem:
 
     def _prior_residuals(self, x: np.ndarray) -> np.ndarray:
         p = self.prior
-        out = [x[self.sl_fire].reshape(-1, 3)[:, 2] / max(self.ground.sigma_m, 0.05),
-               x[self.sl_bore] / math.radians(p.boresight_sigma_deg), [x[self.i_dt] / p.time_offset_sigma_s]]
+        out = [x[self.sl_fire].reshape(-1, 3)[:, 2] / self.dh_sigma,
+               self.bore_white @ (x[self.sl_bore] - self.bore_mean), [(x[self.i_dt] - self.dt_mean) / self.dt_sigma]]
         dt = np.diff(self.knots)[:, None]
         for sl, sig, tau in ((self.sl_gnss, np.array([p.gnss_h_sigma_m, p.gnss_h_sigma_m, p.gnss_v_sigma_m]),
                               p.gnss_tau_s),
@@ -229,14 +245,16 @@ class _Problem:
         return np.vstack((self.white @ j, j_prior))
 
     def _prior_jacobian(self, x: np.ndarray) -> np.ndarray:
-        r0 = self._prior_residuals(x)
-        j = np.zeros((r0.size, self.n_params))
-        # The priors are linear: one difference per parameter is exact.
-        for i in range(self.n_params):
-            xp = x.copy()
-            xp[i] += 1.0
-            j[:, i] = self._prior_residuals(xp) - r0
-        return j
+        """The priors are linear: their Jacobian is built once, one difference per parameter."""
+        if getattr(self, "_j_prior", None) is None:
+            r0 = self._prior_residuals(x)
+            j = np.zeros((r0.size, self.n_params))
+            for i in range(self.n_params):
+                xp = x.copy()
+                xp[i] += 1.0
+                j[:, i] = self._prior_residuals(xp) - r0
+            self._j_prior = j
+        return self._j_prior
 
     # --- whitening -------------------------------------------------------------------
     def set_whitening(self, x: np.ndarray) -> None:
@@ -262,12 +280,15 @@ class _Problem:
 
 def locate_jointly(camera: Camera, log: PoseLog, sightings: Sightings, ground, *,
                    prior: PoseErrorPrior | None = None, frame: LocalFrame | None = None,
-                   boresight_deg=None, merge_m: float = 4.0, gate_px: float = 25.0) -> JointSolution:
+                   boresight_deg=None, calibration: JointSolution | None = None, merge_m: float = 4.0,
+                   gate_px: float = 25.0) -> JointSolution:
     """Joint estimate of every fire of ``sightings`` (see module docstring).
 
     ``ground``: ellipsoidal height (m), :class:`FlatGround` or :class:`DemGround`.
     ``boresight_deg``: a known boresight rotation vector (deg) to hold fixed; None
-    estimates it. ``merge_m``: fires estimated closer than this are one fire. ``gate_px``: a
+    estimates it. ``calibration``: an earlier solution of the same camera (e.g. an orbit
+    that saw fires from every side) whose boresight and time offset, with their
+    covariance, replace the nominal prior. ``merge_m``: fires estimated closer than this are one fire. ``gate_px``: a
     hotspot farther than this from every fire's predicted pixel is left out. Raises :class:`EstimationError` when the problem does not converge.
     """
     if not isinstance(camera, Camera) or not isinstance(log, PoseLog) or not isinstance(sightings, Sightings):
@@ -277,9 +298,10 @@ def locate_jointly(camera: Camera, log: PoseLog, sightings: Sightings, ground, *
     frame = frame or sightings.frame
     x_shared = None
     for _ in range(6):  # solve; merge split fires; re-associate in pixels; until stable
-        prob = _Problem(camera, log, sightings, ground, frame, prior, boresight_deg)
+        prob = _Problem(camera, log, sightings, ground, frame, prior, boresight_deg, calibration)
         x = np.zeros(prob.n_params)
         x[prob.sl_fire] = np.column_stack((sightings.initial_en_m, np.zeros(sightings.n_fires))).ravel()
+        x[prob.sl_bore], x[prob.i_dt] = prob.bore_mean, prob.dt_mean
         if x_shared is not None:
             x[prob.sl_fire.stop:] = x_shared
         x, chi2, dof = _solve(prob, x)
@@ -333,15 +355,41 @@ def _reassign(prob: _Problem, x: np.ndarray, gate_px: float, min_detection_rate:
 
 
 def _solve(prob: _Problem, x: np.ndarray) -> tuple[np.ndarray, float, int]:
-    """Levenberg-Marquardt (MINPACK through scipy), whitening relinearised once."""
+    """Levenberg-Marquardt on the normal equations (the problem is nearly linear and has a
+    few hundred unknowns: Cholesky of J^T J is far cheaper than MINPACK's pivoted QR of J),
+    whitening relinearised once at the first solution."""
     for _ in range(2):
         prob.set_whitening(x)
-        sol = least_squares(prob.residuals, x, jac=prob.jacobian, method="lm", x_scale="jac",
-                            xtol=1e-8, ftol=1e-10, max_nfev=50)
-        if not np.all(np.isfinite(sol.x)):
-            raise EstimationError("joint fire estimate did not converge")
-        x = sol.x
-    return x, float(2.0 * sol.cost), int(sol.fun.size - prob.n_params)
+        x, r = _levenberg_marquardt(prob, x)
+    return x, float(r @ r), int(r.size - prob.n_params)
+
+
+def _levenberg_marquardt(prob: _Problem, x: np.ndarray, max_iter: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    r = prob.residuals(x)
+    cost, lam = float(r @ r), 1e-4
+    for _ in range(max_iter):
+        j = prob.jacobian(x)
+        h, g = j.T @ j, j.T @ r
+        damping = np.diag(h).copy() + 1e-12
+        while True:
+            try:
+                step = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(h + lam * np.diag(damping)), g)
+                r_new = prob.residuals(x + step)
+                cost_new = float(r_new @ r_new)
+            except (np.linalg.LinAlgError, scipy.linalg.LinAlgError, EstimationError):
+                cost_new = math.inf
+            if cost_new <= cost:
+                break
+            lam *= 10.0
+            if lam > 1e10:
+                return x, r  # no step lowers the cost: converged (or stuck at the prior's edge)
+        x, r, done = x + step, r_new, cost - cost_new < 1e-9 * max(cost, 1.0)
+        cost, lam = cost_new, max(lam / 10.0, 1e-9)
+        if done:
+            break
+    if not np.all(np.isfinite(x)):
+        raise EstimationError("joint fire estimate did not converge")
+    return x, r
 
 
 def _solution(prob: _Problem, x: np.ndarray, cov: np.ndarray, chi2: float, dof: int) -> JointSolution:
