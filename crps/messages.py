@@ -84,9 +84,14 @@ class RelativeObs(msgspec.Struct, tag=True, array_like=True, frozen=True):
     observer_cov_enu_m2: tuple[float, ...] = ()
 
 
+# Help protocol (see :mod:`skyfix.crps.help_protocol`). Fields added after the first release
+# are trailing and defaulted: msgspec fills a missing trailing field with its default and
+# ignores unknown trailing ones, so old and new senders understand each other (wire version 1).
 class HelpRequest(msgspec.Struct, tag=True, array_like=True, frozen=True):
     """The sender asks for (``active``) or cancels help with its position; carries its last good
-    position (WGS84, ellipsoidal m) at ``last_good_time_s`` with horizontal 1-sigma ``sigma_h_m``."""
+    position (WGS84, ellipsoidal m) at ``last_good_time_s`` with horizontal 1-sigma ``sigma_h_m``,
+    its ENU covariance there, m^2 (9, row-major; empty from old senders), and ``epoch``, which
+    goes up by one with every new request of the sender (a repeat keeps it)."""
 
     active: bool
     last_good_time_s: float
@@ -94,19 +99,45 @@ class HelpRequest(msgspec.Struct, tag=True, array_like=True, frozen=True):
     lon_deg: float
     alt_m: float
     sigma_h_m: float
+    cov_enu_m2: tuple[float, ...] = ()
+    epoch: int = 0
 
 
 class HelpResponse(msgspec.Struct, tag=True, array_like=True, frozen=True):
-    """A helper accepts (``accept``) or declines ``requester_id``'s request; ``eta_s`` until it can observe."""
+    """A helper offers (``accept``) or declines ``requester_id``'s request ``epoch``; ``eta_s`` until it
+    can observe; its position (WGS84, ellipsoidal m), battery share 0-1 and distance to the requester's
+    last good fix, m. ``assigned`` True acknowledges a :class:`HelpAssign` naming the sender."""
 
     requester_id: str
     accept: bool
     eta_s: float = 0.0
+    lat_deg: float = math.nan
+    lon_deg: float = math.nan
+    alt_m: float = math.nan
+    battery_frac: float = math.nan
+    distance_m: float = math.nan
+    epoch: int = 0
+    assigned: bool = False
 
 
-Body = Heartbeat | FusedEstimate | RelativeObs | HelpRequest | HelpResponse
+class HelpAssign(msgspec.Struct, tag=True, array_like=True, frozen=True):
+    """The requester (sender) assigns ``helper_ids`` to its request ``epoch``; repeated until each acknowledges."""
+
+    helper_ids: tuple[str, ...]
+    epoch: int
+
+
+class HelpRelease(msgspec.Struct, tag=True, array_like=True, frozen=True):
+    """The requester (sender) releases ``helper_ids`` (back to their missions); ``reason`` in words."""
+
+    helper_ids: tuple[str, ...]
+    epoch: int
+    reason: str = ""
+
+
+Body = Heartbeat | FusedEstimate | RelativeObs | HelpRequest | HelpResponse | HelpAssign | HelpRelease
 TOPIC_OF = {Heartbeat: "heartbeat", FusedEstimate: "estimate", RelativeObs: "relative",
-            HelpRequest: "help", HelpResponse: "help"}
+            HelpRequest: "help", HelpResponse: "help", HelpAssign: "help", HelpRelease: "help"}
 
 
 class Envelope(msgspec.Struct, array_like=True, frozen=True):
