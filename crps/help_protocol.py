@@ -257,6 +257,7 @@ class HelpResponder:
     requester_id: str | None = None
     epoch: int = 0
     request: HelpRequest | None = None  # the request of the drone helped (its last good fix)
+    team: tuple[str, ...] = ()  # every helper of that request, this one included (the newest assignment)
     requests: dict[str, HelpRequest] = field(default_factory=dict)  # newest active request per sender
     events: list[tuple[float, str, str]] = field(default_factory=list)  # (time_s, what, requester id)
     _requester_heard_s: float = -math.inf
@@ -316,7 +317,7 @@ class HelpResponder:
             if not named and msg.epoch == self.epoch:
                 self._release(now_s, "replaced")
             elif named:
-                self.epoch = msg.epoch
+                self.epoch, self.team = msg.epoch, msg.helper_ids
                 return [self._ack(sender, msg.epoch)]  # a repeat: our acknowledgement was lost
             return []
         if not named:
@@ -324,7 +325,7 @@ class HelpResponder:
         if self.requester_id is not None or not me.available or not me.battery_frac >= self.cfg.min_battery_frac:
             return [HelpResponse(sender, False, epoch=msg.epoch)]
         self.requester_id, self.epoch, self._requester_heard_s = sender, msg.epoch, now_s
-        self.request = self.requests.get(sender)
+        self.request, self.team = self.requests.get(sender), msg.helper_ids
         self.events.append((now_s, "helping", sender))
         return [self._ack(sender, msg.epoch)]
 
@@ -333,4 +334,4 @@ class HelpResponder:
 
     def _release(self, now_s: float, why: str) -> None:
         self.events.append((now_s, f"released ({why})", self.requester_id or ""))
-        self.requester_id, self.request = None, None
+        self.requester_id, self.request, self.team = None, None, ()

@@ -1,0 +1,99 @@
+"""Where a helper should fly to look at a drone that lost GNSS.
+
+All positions are ENU metres in one caller's :class:`skyfix.geo.LocalFrame`. Candidates lie
+on a grid of azimuths (every ``azimuth_step_deg``) and slant ranges (``range_min_m`` to
+``range_max_m``, where monocular ranging is accurate, see the crps README) around the
+target, ``below_target_m`` lower so the target is seen against the sky. A candidate is
+feasible when it keeps ``min_separation_m`` from every other drone (plus three sigma of the
+target's horizontal uncertainty from the target) and from the other helpers' vantage points;
+the chosen one minimises a weighted sum of: distance from the preferred range, distance to
+fly, and ``1 - geometry_quality`` of the lines of sight of all helpers seen from the target.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from skyfix.crps.help_protocol import geometry_quality
+
+
+@dataclass(frozen=True)
+class VantageConfig:
+    """Vantage-point search (lengths m, angles deg)."""
+
+    range_min_m: float = 20.0
+    range_max_m: float = 60.0
+    range_preferred_m: float = 35.0
+    n_ranges: int = 9
+    azimuth_step_deg: float = 5.0
+    below_target_m: float = 5.0      # helper flies lower: the target against the sky, not terrain
+    min_separation_m: float = 10.0   # from every drone, at the vantage point
+    w_range: float = 1.0             # cost of the range error, per (range span)^2
+    w_travel: float = 0.5            # cost per preferred-range of distance to fly
+    w_geometry: float = 2.0          # cost of collinear lines of sight
+
+
+@dataclass(frozen=True)
+class Vantage:
+    """A vantage point (ENU m), the heading that faces the target (deg clockwise from north), the
+    camera pitch (deg, positive up), the slant range to the target (m) and the geometry quality (0-1)."""
+
+    enu_m: np.ndarray
+    yaw_deg: float
+    pitch_deg: float
+    range_m: float
+    geometry_quality: float
+
+
+def _candidates(target_enu_m: np.ndarray, cfg: VantageConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) candidate positions and their (N,) slant ranges."""
+    az = np.radians(np.arange(0.0, 360.0, cfg.azimuth_step_deg))
+    slant = np.linspace(cfg.range_min_m, cfg.range_max_m, cfg.n_ranges)
+    az_g, slant_g = np.meshgrid(az, slant, indexing="ij")
+    horiz = np.sqrt(np.maximum(slant_g**2 - cfg.below_target_m**2, 0.0))
+    pts = np.stack([target_enu_m[0] + horiz * np.sin(az_g), target_enu_m[1] + horiz * np.cos(az_g),
+                    np.full_like(horiz, target_enu_m[2] - cfg.below_target_m)], axis=-1)
+    return pts.reshape(-1, 3), slant_g.ravel()
+
+
+def _min_distance(pts: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """(N,) distance from each point to the nearest of ``others`` (inf when there are none)."""
+    if others.size == 0:
+        return np.full(len(pts), np.inf)
+    return np.linalg.norm(pts[:, None, :] - others[None, :, :], axis=-1).min(axis=1)
+
+
+def vantage_point(target_enu_m, own_enu_m, other_drones_enu_m=(), helper_vantages_enu_m=(), *,
+                  target_sigma_h_m: float = 0.0, cfg: VantageConfig | None = None) -> Vantage | None:
+    """The best vantage point for a helper at ``own_enu_m`` looking at ``target_enu_m`` (3,).
+
+    ``other_drones_enu_m`` (N, 3): every other drone now (not the target, not this one);
+    ``helper_vantages_enu_m`` (M, 3): where the other helpers are going. None when no
+    candidate is feasible (crowded sky: hold where you are)."""
+    cfg = cfg or VantageConfig()
+    target = np.asarray(target_enu_m, dtype=float).reshape(3)
+    own = np.asarray(own_enu_m, dtype=float).reshape(3)
+    drones = np.asarray(other_drones_enu_m, dtype=float).reshape(-1, 3)
+    mates = np.asarray(helper_vantages_enu_m, dtype=float).reshape(-1, 3)
+    pts, slant = _candidates(target, cfg)
+    ok = (np.linalg.norm(pts - target, axis=1) >= cfg.min_separation_m + 3.0 * target_sigma_h_m)
+    ok &= _min_distance(pts, np.vstack([drones, mates])) >= cfg.min_separation_m
+    if not ok.any():
+        return None
+    pts, slant = pts[ok], slant[ok]
+    span = cfg.range_max_m - cfg.range_min_m
+    cost = cfg.w_range * ((slant - cfg.range_preferred_m) / span) ** 2
+    cost += cfg.w_travel * np.linalg.norm(pts - own, axis=1) / cfg.range_preferred_m
+    mate_az = np.degrees(np.arctan2(mates[:, 0] - target[0], mates[:, 1] - target[1]))
+    cand_az = np.degrees(np.arctan2(pts[:, 0] - target[0], pts[:, 1] - target[1]))
+    quality = np.array([geometry_quality([*mate_az, a]) for a in cand_az]) if len(mates) else np.ones(len(pts))
+    cost += cfg.w_geometry * (1.0 - quality)
+    best = int(np.argmin(cost))
+    p = pts[best]
+    d = target - p
+    return Vantage(p, float(np.degrees(np.arctan2(d[0], d[1])) % 360.0),
+                   float(np.degrees(math.atan2(d[2], math.hypot(d[0], d[1])))), float(slant[best]),
+                   float(quality[best]))

@@ -1,0 +1,48 @@
+"""Vantage points: range where ranging is accurate, >= 10 m from every drone, spread lines of sight."""
+
+import math
+
+import numpy as np
+import pytest
+
+from skyfix.crps.vantage import VantageConfig, vantage_point
+
+TARGET = np.array([0.0, 0.0, 50.0])
+
+
+def bearing_deg(p, from_=TARGET):
+    return math.degrees(math.atan2(p[0] - from_[0], p[1] - from_[1])) % 360.0
+
+
+def test_two_helpers_spread_their_lines_of_sight_and_keep_their_distance():
+    cfg = VantageConfig()
+    h1, h2, bystander = np.array([70.0, 5.0, 45.0]), np.array([-10.0, -80.0, 48.0]), np.array([30.0, 0.0, 45.0])
+    v1 = vantage_point(TARGET, h1, [h2, bystander], [], cfg=cfg)
+    v2 = vantage_point(TARGET, h2, [h1, bystander], [v1.enu_m], cfg=cfg)
+    for v, others in ((v1, [h2, bystander]), (v2, [h1, bystander, v1.enu_m])):
+        assert cfg.range_min_m <= v.range_m <= cfg.range_max_m
+        assert np.linalg.norm(v.enu_m - TARGET) == pytest.approx(v.range_m, abs=1e-9)
+        assert min(np.linalg.norm(v.enu_m - o) for o in [TARGET, *others]) >= 10.0
+        assert v.enu_m[2] == pytest.approx(TARGET[2] - cfg.below_target_m)
+        # the camera faces the target and looks up at it (the target against the sky)
+        assert v.yaw_deg == pytest.approx(bearing_deg(TARGET, from_=v.enu_m), abs=1e-9)
+        assert v.pitch_deg == pytest.approx(math.degrees(math.asin(cfg.below_target_m / v.range_m)), abs=1e-6)
+    # v1 avoids the bystander on its own side, v2 sits across the lines of sight: 90 deg +- one grid step
+    sep = abs((bearing_deg(v1.enu_m) - bearing_deg(v2.enu_m) + 90.0) % 180.0 - 90.0)
+    assert sep == pytest.approx(90.0, abs=cfg.azimuth_step_deg)
+    assert v2.geometry_quality >= 1 - math.cos(math.radians(90 - cfg.azimuth_step_deg)) - 1e-9
+    # a helper flies little: v1 is on its side of the target, at most the preferred range + 10 m away
+    assert np.linalg.norm(v1.enu_m[:2] - h1[:2]) <= np.linalg.norm(h1[:2] - TARGET[:2]) - 10.0
+
+
+def test_target_uncertainty_widens_the_separation_from_the_target():
+    v = vantage_point(TARGET, np.array([15.0, 0.0, 45.0]), target_sigma_h_m=5.0)
+    assert np.linalg.norm(v.enu_m - TARGET) >= 10.0 + 3 * 5.0
+    near = vantage_point(TARGET, np.array([15.0, 0.0, 45.0]), cfg=VantageConfig(w_range=0.0, w_travel=1.0))
+    assert np.linalg.norm(near.enu_m - TARGET) < 25.0  # without the uncertainty it could stay closer
+
+
+def test_crowded_sky_gives_no_vantage():
+    ring = [np.array([r * math.sin(a), r * math.cos(a), 45.0])
+            for r in np.arange(15.0, 70.0, 8.0) for a in np.radians(np.arange(0, 360, 10))]
+    assert vantage_point(TARGET, np.array([80.0, 0.0, 45.0]), ring) is None
