@@ -150,7 +150,7 @@ def upload(vehicle: Vehicle, items: Sequence[MissionItem], *, progress: Callable
                            on_resend=count_resend, first_sent=sent)
             sent = True  # until the vehicle asks for something new, only silence re-sends
             if msg.get_type() == "MISSION_ACK":
-                if msg.type == M.MAV_MISSION_ACCEPTED and (highest == n - 1 or n == 0):
+                if msg.type == M.MAV_MISSION_ACCEPTED and (n == 0 or out is not count_msg and out.seq == n - 1):
                     return TransferStats(len(items), time.monotonic() - t0, resends[0] + resent)
                 if msg.type == M.MAV_MISSION_INVALID_SEQUENCE and out is not count_msg:
                     # ArduPilot already has the item we re-sent: its request for the next one was
