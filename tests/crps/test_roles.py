@@ -1,0 +1,138 @@
+"""Requester and helper roles: GNSS loss from the real fusion engine's health, hold, help request,
+fault response once helpers position the drone, normal again when GNSS is back; helper vantage."""
+
+import numpy as np
+import pytest
+from helpnet import ALT0, LAT0, LON0, Net, at, last_fix
+
+from skyfix.crps.help_protocol import HelperStatus
+from skyfix.crps.messages import HelpRelease, HelpRequest
+from skyfix.crps.roles import FaultResponse, HelperRole, Mode, RequesterConfig, RequesterRole
+from skyfix.errors import InputError
+from skyfix.fusion.engine import FusionEngine
+from skyfix.geo import LocalFrame
+from skyfix.types import RelativeObservation
+
+FRAME = LocalFrame(LAT0, LON0, ALT0)
+POS = {"a": np.array([0.0, 0.0, 50.0]), "h1": np.array([30.0, 0.0, 45.0]), "h2": np.array([0.0, 30.0, 45.0])}
+GNSS_SIGMA_M = 1.0       # GNSS error: Gauss-Markov, 1 m 1-sigma, 60 s correlation time (as receivers drift)
+GNSS_TAU_S = 60.0
+RANGE_SIGMA_REL = 0.02   # 2 % of range, 1-sigma (crps ranging on tracks)
+BEARING_SIGMA_RAD = 2e-3
+
+
+def fly(role, rng, t_loss, t_back, t_end, observe_from_s, dt=0.2):
+    """Three hovering drones in a real FusionEngine; 'a' has no GNSS fix in [t_loss, t_back); the
+    helpers observe it (noisy range and bearing) from ``observe_from_s`` while it asks for help.
+    Decisions and messages by time."""
+    eng = FusionEngine((LAT0, LON0, ALT0), lag_s=2.0)
+    log = []
+    bias = {d: rng.normal(0, GNSS_SIGMA_M, 3) for d in POS}
+    keep = np.exp(-dt / GNSS_TAU_S)
+    for t in np.arange(0.0, t_end, dt):
+        t = round(float(t), 6)
+        for d, p in POS.items():
+            bias[d] = keep * bias[d] + rng.normal(0, GNSS_SIGMA_M * np.sqrt(1 - keep**2), 3)
+            eng.add_velocity(d, t, rng.normal(0, 0.05, 3), 0.1)
+            fix_type = 0 if d == "a" and t_loss <= t < t_back else 3
+            lat, lon, alt = FRAME.to_geodetic(*(p + bias[d] + rng.normal(0, 0.1, 3)))
+            eng.add_gnss(d, t, float(lat), float(lon), float(alt), h_sigma_m=GNSS_SIGMA_M,
+                         v_sigma_m=GNSS_SIGMA_M, fix_type=fix_type)
+        if t >= observe_from_s and role.protocol.active:
+            for h in ("h1", "h2"):
+                los = POS["a"] - POS[h]
+                r = float(np.linalg.norm(los))
+                u = los / r + rng.normal(0, BEARING_SIGMA_RAD, 3)
+                s2 = (RANGE_SIGMA_REL * r) ** 2
+                cov = np.eye(3) * (BEARING_SIGMA_RAD * r) ** 2 + np.outer(los, los) / r**2 * s2
+                lat, lon, alt = FRAME.to_geodetic(*POS[h])
+                eng.add_relative(RelativeObservation(h, "a", t, u / np.linalg.norm(u), r * (1 + rng.normal(0, 0.02)),
+                                                     cov, float(lat), float(lon), float(alt)))
+        eng.update()
+        decision, out = role.step(t, eng.health("a").get("gnss"), eng.estimate("a"), ["h1", "h2"])
+        log.append((t, decision, out))
+    return log
+
+
+def first(log, pred):
+    return next(entry for entry in log if pred(entry))
+
+
+def test_gnss_loss_hold_request_return_home_and_back_to_normal():
+    home = at(100.0, -50.0)
+    role = RequesterRole("a", home)
+    log = fly(role, np.random.default_rng(1), t_loss=6.0, t_back=20.0, t_end=30.0, observe_from_s=9.0)
+    t_hold, d_hold, out = first(log, lambda e: e[1].mode is Mode.HOLD)
+    assert t_hold == 6.0  # the receiver reports no fix: fusion calls GNSS lost at once
+    req = next(b for b in out if isinstance(b, HelpRequest))
+    assert req.active and req.epoch == 1
+    # the request carries the last good fused fix: where 'a' hovers, its 1-sigma near GNSS's
+    e, n, _ = FRAME.to_enu(req.lat_deg, req.lon_deg, req.alt_m)
+    assert np.hypot(e, n) < 3 * GNSS_SIGMA_M and 0.2 < req.sigma_h_m < 2 * GNSS_SIGMA_M
+    assert d_hold.setpoint == pytest.approx((req.lat_deg, req.lon_deg, req.alt_m))
+    t_rth, d_rth, _ = first(log, lambda e: e[1].mode is Mode.RETURN_HOME)
+    assert 9.0 <= t_rth <= 12.0 and d_rth.setpoint == home and d_rth.reason == "positioned by helpers"
+    # never back to hold while observed; normal once GNSS has been healthy (readmitted) for 3 s
+    t_ok = first(log, lambda e: e[1].mode is Mode.NORMAL and e[0] > 20.0)[0]
+    assert all(d.mode is Mode.RETURN_HOME for t, d, _ in log if t_rth <= t < t_ok)
+    t_ok, d_ok, out_ok = first(log, lambda e: e[1].mode is Mode.NORMAL and e[0] > 20.0)
+    assert 20.0 + 3.0 <= t_ok <= 20.0 + 5.0 + 3.0 + 1.0  # readmission (<= 5 s) + 3 s healthy
+    assert d_ok.setpoint is None
+    cancel = next(b for b in out_ok if isinstance(b, HelpRequest))
+    assert not cancel.active and cancel.epoch == 1
+
+
+@pytest.mark.parametrize(("response", "setpoint"), [(FaultResponse.CONTINUE, None), (FaultResponse.LAND, "here")])
+def test_configured_fault_responses(response, setpoint):
+    role = RequesterRole("a", at(100.0, 0.0), RequesterConfig(fault_response=response))
+    log = fly(role, np.random.default_rng(2), t_loss=5.0, t_back=99.0, t_end=12.0, observe_from_s=7.0)
+    t, d, _ = first(log, lambda e: e[1].mode is Mode(response.value))
+    assert 7.0 <= t <= 10.0
+    if setpoint is None:
+        assert d.setpoint is None
+    else:  # land where it is: the fused position, within a few metres of the hover point
+        e, n, _ = FRAME.to_enu(*d.setpoint)
+        assert np.hypot(e, n) < 3.0
+
+
+def test_no_helpers_holds_then_lands_after_the_timeout():
+    role = RequesterRole("a", at(100.0, 0.0), RequesterConfig(hold_timeout_s=6.0))
+    log = fly(role, np.random.default_rng(3), t_loss=3.0, t_back=99.0, t_end=12.0, observe_from_s=99.0)
+    t_hold = first(log, lambda e: e[1].mode is Mode.HOLD)[0]
+    t_land, d_land, _ = first(log, lambda e: e[1].mode is Mode.LAND)
+    assert t_land - t_hold == pytest.approx(6.0, abs=0.21) and d_land.reason == "no helper fix for 6 s"
+    assert FaultResponse.parse("land") is FaultResponse.LAND
+    with pytest.raises(InputError, match="fault response"):
+        FaultResponse.parse("panic")
+
+
+def test_helper_role_flies_to_a_vantage_and_back_to_its_mission():
+    net = Net()
+    lost = net.add("lost", 0, 0)
+    net.add("h1", 40, 0)
+    net.add("h2", 0, -40)
+    net.run(1.0)
+    lost.send(lost.requester.start(net.clock.t, last_fix(net.clock)))
+    net.run(3.0)
+    roles = {h: HelperRole(h, FRAME) for h in ("h1", "h2")}
+    for h, r in roles.items():
+        r.protocol = net.drones[h].responder  # the role around the protocol state that the net drove
+    peers = {"lost": at(0, 0), "h1": at(40, 0), "h2": at(0, -40)}
+    d1, _ = roles["h1"].step(net.clock.t, HelperStatus(*peers["h1"], 0.9), peers, list(peers))
+    mates = {"h1": d1.vantage.enu_m}
+    d2, _ = roles["h2"].step(net.clock.t, HelperStatus(*peers["h2"], 0.9), peers, list(peers), mates)
+    assert d1.helping == d2.helping == "lost" and roles["h2"].protocol.team == ("h1", "h2")
+    target = np.array([float(c) for c in FRAME.to_enu(*peers["lost"])])
+    for d in (d1, d2):
+        assert 20.0 <= d.vantage.range_m <= 60.0
+        assert np.linalg.norm(d.vantage.enu_m - target) >= 10.0
+    assert np.linalg.norm(d1.vantage.enu_m - d2.vantage.enu_m) >= 10.0
+    assert d2.vantage.geometry_quality > 0.95
+    # own GNSS lost while helping: it withdraws (a decline) and is back on its own
+    d, out = roles["h1"].step(net.clock.t, HelperStatus(*peers["h1"], 0.9, localised=False), peers, list(peers))
+    assert d.helping is None and out and not out[0].accept and out[0].requester_id == "lost"
+    # a release sends h2 back to its mission
+    lost.send([HelpRelease(("h2",), lost.requester.epoch, "done")])
+    net.run(0.2)
+    d, _ = roles["h2"].step(net.clock.t, HelperStatus(*peers["h2"], 0.9), peers, list(peers))
+    assert d.helping is None and d.vantage is None
