@@ -19,6 +19,7 @@ each returns the message bodies to publish on the ``help`` topic.
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -29,6 +30,8 @@ from skyfix import geo
 from skyfix.crps.messages import Body, Envelope, HelpAssign, HelpRelease, HelpRequest, HelpResponse
 from skyfix.crps.swarm import LOST_AFTER_S
 from skyfix.types import GeoFix
+
+log = logging.getLogger(__name__)
 
 MAX_CANDIDATES = 8  # offers ranked by their own cost before the combinatorial geometry search
 
@@ -183,10 +186,12 @@ class HelpRequester:
             else:  # it believes it is assigned, we do not (an assignment that was replaced): release it
                 return [HelpRelease((h,), self.epoch, "not assigned")]
             return []
-        if all(math.isfinite(v) for v in (body.lat_deg, body.lon_deg, body.eta_s)):
-            self.offers[h] = Offer(h, now_s, body.lat_deg, body.lon_deg, body.alt_m,
-                                   body.battery_frac if math.isfinite(body.battery_frac) else 0.0,
-                                   body.distance_m, body.eta_s)
+        if not _plausible(body.lat_deg, body.lon_deg, body.alt_m) or not body.eta_s >= 0.0:
+            log.warning("help offer from %r dropped: position (%r, %r, %r) or ETA %r not physical", h,
+                        body.lat_deg, body.lon_deg, body.alt_m, body.eta_s)
+            return []
+        battery = body.battery_frac if 0.0 <= body.battery_frac <= 1.0 else 0.0  # unknown: ranked last
+        self.offers[h] = Offer(h, now_s, body.lat_deg, body.lon_deg, body.alt_m, battery, body.distance_m, body.eta_s)
         return []
 
     def tick(self, now_s: float, live_peers: Iterable[str]) -> list[Body]:
@@ -233,6 +238,11 @@ class HelpRequester:
         f = self.fix
         return HelpRequest(True, f.time_s, f.lat_deg, f.lon_deg, f.alt_m, f.sigma_horizontal_m,
                            tuple(float(x) for x in np.asarray(f.cov_enu_m2, dtype=float).reshape(9)), self.epoch)
+
+
+def _plausible(lat_deg: float, lon_deg: float, alt_m: float) -> bool:
+    """A position a drone can be at (a key holder's bug must not stop the protocol with an exception)."""
+    return -90.0 <= lat_deg <= 90.0 and -180.0 <= lon_deg <= 180.0 and -1000.0 < alt_m < 20000.0
 
 
 @dataclass(frozen=True)
@@ -298,6 +308,10 @@ class HelpResponder:
             self.requests.pop(sender, None)
             if sender == self.requester_id:
                 self._release(now_s, "request cancelled")
+            return []
+        if not _plausible(req.lat_deg, req.lon_deg, req.alt_m):
+            log.warning("help request from %r dropped: position (%r, %r, %r) not physical", sender,
+                        req.lat_deg, req.lon_deg, req.alt_m)
             return []
         self.requests[sender] = req
         if sender == self.requester_id:

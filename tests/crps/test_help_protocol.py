@@ -184,3 +184,40 @@ def test_a_helper_that_loses_its_own_gnss_withdraws_and_a_busy_helper_declines()
     assert net.drones["h1"].responder.requester_id == "a"  # busy: it declined b
     assert b.responder.requester_id is None
     assert HelpRequest in {type(x) for x in b.requester.tick(net.clock.t + 1.0, ["a", "h1"])}  # still asking
+
+
+def test_help_messages_stay_compatible_with_the_first_release_both_ways():
+    import msgspec
+
+    class OldHelpRequest(msgspec.Struct, tag="HelpRequest", array_like=True):  # as released with wire version 1
+        active: bool
+        last_good_time_s: float
+        lat_deg: float
+        lon_deg: float
+        alt_m: float
+        sigma_h_m: float
+
+    old = OldHelpRequest(True, 1.7e9, 46.5, 6.6, 500.0, 1.5)
+    new = msgspec.msgpack.decode(msgspec.msgpack.encode(old), type=HelpRequest)
+    assert new == HelpRequest(True, 1.7e9, 46.5, 6.6, 500.0, 1.5, (), 0)
+    back = msgspec.msgpack.decode(msgspec.msgpack.encode(HelpRequest(True, 1.7e9, 46.5, 6.6, 500.0, 1.5,
+                                                                     tuple(range(9)), 3)), type=OldHelpRequest)
+    assert back == old
+    assert math.isnan(HelpResponse("a", True).battery_frac) and not HelpResponse("a", True).assigned
+
+
+def test_signed_but_non_physical_help_messages_are_dropped_and_the_protocol_goes_on():
+    net = Net()
+    lost = net.add("lost", 0, 0)
+    h1 = net.add("h1", 30, 0)
+    net.run(1.0)
+    buggy = SwarmCodec("buggy", KEY, clock=net.clock)  # holds the key, sends nonsense
+    link = net.bus.attach("skyfix", "buggy")
+    link.publish("help", buggy.encode(HelpRequest(True, net.clock.t, 123.0, 6.6, 500.0, 1.0)))  # latitude 123
+    lost.send(lost.requester.start(net.clock.t, last_fix(net.clock)))
+    for offer in (HelpResponse("lost", True, -4.0, *at(0, 30), 0.9, 30.0, 1),  # negative ETA: would rank first
+                  HelpResponse("lost", True, 4.0, math.nan, 6.6, 500.0, 0.9, 30.0, 1)):
+        link.publish("help", buggy.encode(offer))
+    net.run(1.2)
+    assert lost.requester.helpers() == ("h1",) and "buggy" not in lost.requester.offers
+    assert "buggy" not in h1.responder.requests and h1.responder.requester_id == "lost"
