@@ -70,17 +70,22 @@ class Offer:
     eta_s: float
 
 
-def geometry_quality(bearings_deg: Iterable[float]) -> float:
-    """How well horizontal bearings (deg from north) spread, 0 (collinear) to 1 (evenly spread).
+def geometry_quality(bearings_deg) -> float | np.ndarray:
+    """How well horizontal bearings (deg from north) spread, 0 (collinear) to 1 (evenly spread);
+    ``(..., k)`` bearings give ``(...)`` qualities (a float for one set).
 
     Each line of sight constrains the target across it (information ``I - u u^T``); the
     quality is the weakest direction's information over the best possible, ``k/2``."""
-    az = np.radians(np.asarray(list(bearings_deg), dtype=float))
-    if az.size < 2:
-        return 0.0
-    u = np.stack([np.sin(az), np.cos(az)], axis=1)  # (k, 2) east, north
-    info = az.size * np.eye(2) - u.T @ u
-    return float(np.linalg.eigvalsh(info)[0] / (az.size / 2.0))
+    az = np.radians(np.asarray(list(bearings_deg) if not isinstance(bearings_deg, np.ndarray) else bearings_deg,
+                               dtype=float))
+    k = az.shape[-1] if az.ndim else 1
+    if k < 2:
+        return 0.0 if az.ndim <= 1 else np.zeros(az.shape[:-1])
+    e, n = np.sin(az), np.cos(az)
+    a, b, c = k - (e * e).sum(-1), -(e * n).sum(-1), k - (n * n).sum(-1)  # info = [[a, b], [b, c]]
+    lam_min = 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
+    q = np.clip(lam_min / (k / 2.0), 0.0, 1.0)
+    return float(q) if az.ndim == 1 else q
 
 
 def own_cost(offer: Offer, cfg: HelpConfig) -> float:

@@ -89,7 +89,10 @@ def vantage_point(target_enu_m, own_enu_m, other_drones_enu_m=(), helper_vantage
     cost += cfg.w_travel * np.linalg.norm(pts - own, axis=1) / cfg.range_preferred_m
     mate_az = np.degrees(np.arctan2(mates[:, 0] - target[0], mates[:, 1] - target[1]))
     cand_az = np.degrees(np.arctan2(pts[:, 0] - target[0], pts[:, 1] - target[1]))
-    quality = np.array([geometry_quality([*mate_az, a]) for a in cand_az]) if len(mates) else np.ones(len(pts))
+    if len(mates):
+        quality = geometry_quality(np.column_stack([np.broadcast_to(mate_az, (len(pts), len(mates))), cand_az]))
+    else:
+        quality = np.ones(len(pts))
     cost += cfg.w_geometry * (1.0 - quality)
     best = int(np.argmin(cost))
     p = pts[best]

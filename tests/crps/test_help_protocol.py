@@ -17,6 +17,8 @@ def test_geometry_quality_known_values():
     assert geometry_quality([0.0, 45.0]) == pytest.approx(1 - math.cos(math.radians(45)))  # eigen 1 -/+ cos
     assert geometry_quality([0.0, 120.0, 240.0]) == pytest.approx(1.0)
     assert geometry_quality([30.0]) == 0.0
+    batch = np.random.default_rng(0).uniform(0, 360, (50, 3))  # batched = one at a time
+    np.testing.assert_allclose(geometry_quality(batch), [geometry_quality(list(b)) for b in batch], atol=1e-12)
 
 
 def test_selection_prefers_spread_bearings_over_a_slightly_closer_collinear_helper():
