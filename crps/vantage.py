@@ -5,7 +5,8 @@ on a grid of azimuths (every ``azimuth_step_deg``) and slant ranges (``range_min
 ``range_max_m``, where monocular ranging is accurate, see the crps README) around the
 target, ``below_target_m`` lower so the target is seen against the sky. A candidate is
 feasible when it keeps ``min_separation_m`` from every other drone (plus three sigma of the
-target's horizontal uncertainty from the target) and from the other helpers' vantage points;
+target's horizontal uncertainty from the target) and from the other helpers' vantage points,
+and the straight leg from the helper to it keeps that from the target and the other drones;
 the chosen one minimises a weighted sum of: distance from the preferred range, distance to
 fly, and ``1 - geometry_quality`` of the lines of sight of all helpers seen from the target.
 """
@@ -66,6 +67,17 @@ def _min_distance(pts: np.ndarray, others: np.ndarray) -> np.ndarray:
     return np.linalg.norm(pts[:, None, :] - others[None, :, :], axis=-1).min(axis=1)
 
 
+def _path_clearance(start: np.ndarray, ends: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
+    """(N, M) closest approach to each of ``obstacles`` (M, 3) along the straight legs from ``start`` (3,)
+    to each of ``ends`` (N, 3)."""
+    leg = ends - start                                               # (N, 3)
+    rel = obstacles - start                                          # (M, 3)
+    len2 = np.maximum((leg * leg).sum(axis=1), 1e-12)[:, None]
+    frac = np.clip(leg @ rel.T / len2, 0.0, 1.0)                     # (N, M)
+    closest = start + frac[..., None] * leg[:, None, :]              # (N, M, 3)
+    return np.linalg.norm(closest - obstacles[None, :, :], axis=-1)
+
+
 def vantage_point(target_enu_m, own_enu_m, other_drones_enu_m=(), helper_vantages_enu_m=(), *,
                   target_sigma_h_m: float = 0.0, cfg: VantageConfig | None = None) -> Vantage | None:
     """The best vantage point for a helper at ``own_enu_m`` looking at ``target_enu_m`` (3,).
@@ -81,6 +93,12 @@ def vantage_point(target_enu_m, own_enu_m, other_drones_enu_m=(), helper_vantage
     pts, slant = _candidates(target, cfg)
     ok = (np.linalg.norm(pts - target, axis=1) >= cfg.min_separation_m + 3.0 * target_sigma_h_m)
     ok &= _min_distance(pts, np.vstack([drones, mates])) >= cfg.min_separation_m
+    # the way there keeps the separation too (or, from a drone already closer, does not close in)
+    obstacles = np.vstack([target[None, :], drones])
+    need = np.full(len(obstacles), cfg.min_separation_m)
+    need[0] += 3.0 * target_sigma_h_m
+    need = np.minimum(need, np.linalg.norm(obstacles - own, axis=1) - 1e-6)
+    ok &= (_path_clearance(own, pts, obstacles) >= need).all(axis=1)
     if not ok.any():
         return None
     pts, slant = pts[ok], slant[ok]

@@ -46,3 +46,17 @@ def test_crowded_sky_gives_no_vantage():
     ring = [np.array([r * math.sin(a), r * math.cos(a), 45.0])
             for r in np.arange(15.0, 70.0, 8.0) for a in np.radians(np.arange(0, 360, 10))]
     assert vantage_point(TARGET, np.array([80.0, 0.0, 45.0]), ring) is None
+
+
+def test_the_way_to_the_vantage_does_not_cross_the_target():
+    # geometry wants east or west of the target (the mate is south); east comes first on the grid,
+    # but from the west the straight leg east would pass through the target
+    cfg = VantageConfig(w_travel=0.0)
+    own, mate = np.array([-50.0, 0.0, 45.0]), np.array([0.0, -35.0, 45.0])
+    v = vantage_point(TARGET, own, [], [mate], cfg=cfg)
+    leg = v.enu_m - own
+    frac = np.clip(np.dot(TARGET - own, leg) / np.dot(leg, leg), 0, 1)
+    assert np.linalg.norm(own + frac * leg - TARGET) >= 10.0
+    assert v.enu_m[0] < 0  # it stays on its side
+    from_east = vantage_point(TARGET, np.array([50.0, 0.0, 45.0]), [], [mate], cfg=cfg)
+    assert from_east.enu_m[0] > 0
