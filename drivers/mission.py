@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 from skyfix import validate
 from skyfix.drivers.mav import mavlink
 from skyfix.drivers.request import DONE, transact
-from skyfix.errors import CommandRejected, InputError
+from skyfix.errors import CommandRejected, InputError, SkyfixTimeout
 
 if TYPE_CHECKING:
     from skyfix.drivers.vehicle import Vehicle
@@ -144,7 +144,11 @@ def upload(vehicle: Vehicle, items: Sequence[MissionItem], *, progress: Callable
 
     with vehicle.subscribe(wanted) as q:
         out, sent = count_msg, False
+        progress_t = time.monotonic()  # last time the transfer moved on
         while True:
+            if time.monotonic() - progress_t > timeout_s:  # answers, but no progress
+                raise SkyfixTimeout(f"vehicle {sysid}: mission upload stuck at item {highest + 1}/{n} "
+                                    f"for {timeout_s:.0f} s{vehicle._reasons(t0)}")
             msg = transact(vehicle, out, lambda m: DONE, types=(), replies=q, timeout_s=item_timeout_s,
                            retries=retries, what=f"mission upload at item {highest + 1}/{n}",
                            on_resend=count_resend, first_sent=sent)
@@ -157,6 +161,7 @@ def upload(vehicle: Vehicle, items: Sequence[MissionItem], *, progress: Callable
                     # lost. It keeps the upload open (and re-asks only after 1 s): send that one now
                     if out.seq + 1 < n:
                         out, sent = wire[out.seq + 1].to_message(out.seq + 1, sysid, comp), False
+                        progress_t = time.monotonic()
                     continue
                 if msg.type == M.MAV_MISSION_ACCEPTED:
                     continue  # a stale ACK from an earlier transaction: keep listening
@@ -169,7 +174,7 @@ def upload(vehicle: Vehicle, items: Sequence[MissionItem], *, progress: Callable
                 continue
             out, sent = wire[seq].to_message(seq, sysid, comp), False
             if seq > highest:
-                highest = seq
+                highest, progress_t = seq, time.monotonic()
                 if progress is not None:
                     progress(seq + 1, n)
             else:
