@@ -8,8 +8,10 @@ each returns the message bodies to publish on the ``help`` topic.
   last good fix, collects offers for ``offer_window_s``, assigns the best ``helpers_wanted``
   (:func:`select_helpers`: distance/ETA, battery and the spread of their bearings seen from the
   last fix), repeats request and assignment every ``retry_s`` until answered (a lossy link still
-  ends assigned), replaces a helper that declines, does not acknowledge within ``ack_timeout_s``
-  or goes quiet (the peer table's lost signal), and releases everyone on cancel. It fuses the
+  ends assigned), replaces a helper that declines, does not acknowledge within ``ack_timeout_s``,
+  goes quiet (the peer table's lost signal) or sends no observation of it (none by its ETA +
+  ``obs_grace_s``, or none for ``obs_timeout_s``: the target left its view), and releases
+  everyone on cancel. It fuses the
   helpers' observations itself, so there is no leader: :meth:`HelpRequester.helpers` is the
   roster of observers to trust.
 - :class:`HelpResponder` (every other drone): offers or declines, acknowledges an assignment,
@@ -27,7 +29,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from skyfix import geo
-from skyfix.crps.messages import Body, Envelope, HelpAssign, HelpRelease, HelpRequest, HelpResponse
+from skyfix.crps.messages import (
+    Body,
+    Envelope,
+    HelpAssign,
+    HelpRelease,
+    HelpRequest,
+    HelpResponse,
+    RelativeObs,
+)
 from skyfix.crps.swarm import LOST_AFTER_S
 from skyfix.types import GeoFix
 
@@ -47,6 +57,8 @@ class HelpConfig:
     offer_max_age_s: float = 5.0    # an older offer is not used (the helper has moved on)
     exclude_s: float = 10.0         # a replaced helper is not assigned again for this long
     quiet_after_s: float = LOST_AFTER_S  # what the peer table calls lost
+    obs_grace_s: float = 10.0       # after its ETA, a helper with no observation of the requester is replaced
+    obs_timeout_s: float = 5.0      # ... and one whose observations stopped for this long (target out of view)
     abandon_after_s: float = 10.0   # a helper goes back to its mission when its requester is silent this long
     min_battery_frac: float = 0.3   # below this share a drone declines (and offers from it are ignored)
     eta_ref_s: float = 30.0         # an ETA of this many seconds costs 1
@@ -125,6 +137,13 @@ class _Assignment:
     offer: Offer
     since_s: float
     acked: bool = False
+    observed_s: float = -math.inf  # newest observation of the requester by this helper
+
+    def blind(self, now_s: float, cfg: HelpConfig) -> bool:
+        """No observation by the time it should be there (ETA + grace), or none for ``obs_timeout_s`` since."""
+        if self.observed_s == -math.inf:
+            return now_s - self.since_s > self.offer.eta_s + cfg.obs_grace_s
+        return now_s - self.observed_s > cfg.obs_timeout_s
 
 
 @dataclass
@@ -175,11 +194,13 @@ class HelpRequester:
 
     def on_message(self, env: Envelope, now_s: float) -> list[Body]:
         """Account for one accepted envelope (offers, declines, acknowledgements of this epoch)."""
-        body = env.body
+        body, h = env.body, env.sender
+        if isinstance(body, RelativeObs) and body.target_id == self.drone_id and h in self.assigned:
+            self.assigned[h].observed_s = now_s
+            return []
         if not (self.active and isinstance(body, HelpResponse) and body.requester_id == self.drone_id
                 and body.epoch == self.epoch):
             return []
-        h = env.sender
         if not body.accept:
             self.offers.pop(h, None)
             if self.assigned.pop(h, None) is not None:
@@ -206,8 +227,9 @@ class HelpRequester:
         live = set(live_peers)
         out: list[Body] = []
         for h, a in list(self.assigned.items()):
-            why = "went quiet" if h not in live else (
-                "did not acknowledge" if not a.acked and now_s - a.since_s > self.cfg.ack_timeout_s else None)
+            why = ("went quiet" if h not in live else
+                   "did not acknowledge" if not a.acked and now_s - a.since_s > self.cfg.ack_timeout_s else
+                   "no observations" if a.acked and a.blind(now_s, self.cfg) else None)
             if why is not None:
                 del self.assigned[h]
                 out.append(HelpRelease((h,), self.epoch, why))

@@ -8,7 +8,7 @@ import numpy as np
 
 from skyfix import geo
 from skyfix.crps.help_protocol import HelpConfig, HelperStatus, HelpRequester, HelpResponder
-from skyfix.crps.messages import TOPIC_OF, Heartbeat, SwarmCodec
+from skyfix.crps.messages import TOPIC_OF, Heartbeat, RelativeObs, SwarmCodec
 from skyfix.crps.swarm import PeerTable
 from skyfix.crps.transport import InProcessBus
 from skyfix.types import GeoFix
@@ -48,6 +48,7 @@ class Drone:
         self.requester = HelpRequester(drone_id, net.cfg)
         self.responder = HelpResponder(drone_id, net.cfg)
         self.loss, self.quiet = loss, False
+        self.observes = False  # while helping, streams an observation of its requester every step
 
     def send(self, bodies) -> None:
         for body in bodies:
@@ -69,8 +70,22 @@ class Drone:
         live = self.peers.live()
         self.send(self.requester.tick(now_s, live))
         self.responder.tick(now_s, live)
+        req = self.responder.request
+        if self.observes and self.responder.requester_id is not None and req is not None:
+            self.send([self._observation(now_s, req)])
         if round(now_s / DT_S) % 5 == 0:  # heartbeat at 2 Hz keeps this drone live in the peer tables
             self.send([Heartbeat("ok", "gnss", 1.0, True, len(live))])
+
+
+    def _observation(self, now_s: float, req) -> RelativeObs:
+        """What this helper's camera pipeline would send: here aimed at the request's last fix (the
+        protocol counts observations, their content is fusion's business)."""
+        frame = geo.LocalFrame(self.status.lat_deg, self.status.lon_deg, self.status.alt_m)
+        los = np.array([float(c) for c in frame.to_enu(req.lat_deg, req.lon_deg, req.alt_m)])
+        r = float(np.linalg.norm(los))
+        cov = tuple((np.eye(3) * (0.02 * r) ** 2).ravel().tolist())
+        return RelativeObs(self.responder.requester_id, now_s, tuple((los / r).tolist()), r, cov,
+                           self.status.lat_deg, self.status.lon_deg, self.status.alt_m)
 
 
 class Net:

@@ -223,3 +223,37 @@ def test_signed_but_non_physical_help_messages_are_dropped_and_the_protocol_goes
     net.run(1.2)
     assert lost.requester.helpers() == ("h1",) and "buggy" not in lost.requester.offers
     assert "buggy" not in h1.responder.requests and h1.responder.requester_id == "lost"
+
+
+def test_a_helper_whose_observations_stop_is_replaced():
+    net = Net()
+    lost = net.add("lost", 0, 0)
+    for h, (e, n) in {"h1": (30, 0), "h2": (0, 40), "h3": (-60, -60)}.items():
+        net.add(h, e, n).observes = True
+    net.run(1.0)
+    lost.send(lost.requester.start(net.clock.t, last_fix(net.clock)))
+    net.run(8.0)
+    assert lost.requester.helpers() == ("h1", "h2")  # observing: kept well past ETA + grace
+    net.drones["h1"].observes = False  # the target left h1's view; h1 is still flying and talking
+    t_blind = net.clock.t
+    took = net.run(10.0, until=lambda: lost.requester.helpers() == ("h2", "h3"))
+    # 5 s without an observation, then a fresh request -> offer -> assignment -> acknowledgement (3 steps)
+    assert took == pytest.approx(net.cfg.obs_timeout_s + 0.3, abs=0.25)
+    assert ("dropped (no observations)", "h1") in [(e[1], e[2]) for e in lost.requester.events]
+    assert net.drones["h1"].responder.requester_id is None  # released back to its mission
+    assert lost.requester.excluded_until_s["h1"] == pytest.approx(t_blind + 5.1 + net.cfg.exclude_s, abs=0.15)
+
+
+def test_a_helper_that_never_observes_is_replaced_after_its_eta_and_grace():
+    net = Net(HelpConfig(obs_grace_s=2.0))
+    lost = net.add("lost", 0, 0)
+    net.add("h1", 40, 0).observes = True
+    net.add("h2", 0, 80)          # never sees the target; ETA 10 s
+    net.add("h3", -70, -70).observes = True
+    net.run(1.0)
+    t0 = net.clock.t
+    lost.send(lost.requester.start(t0, last_fix(net.clock)))
+    net.run(20.0, until=lambda: lost.requester.helpers() == ("h1", "h3"))
+    t_drop = next(e[0] for e in lost.requester.events if e[1] == "dropped (no observations)")
+    t_assigned = next(e[0] for e in lost.requester.events if e[1:] == ("assigned", "h2"))
+    assert t_drop - t_assigned == pytest.approx(80.0 / net.cfg.cruise_mps + 2.0, abs=0.15)
