@@ -21,10 +21,10 @@ RANGE_SIGMA_REL = 0.02   # 2 % of range, 1-sigma (crps ranging on tracks)
 BEARING_SIGMA_RAD = 2e-3
 
 
-def fly(role, rng, t_loss, t_back, t_end, observe_from_s, dt=0.2):
+def fly(role, rng, t_loss, t_back, t_end, observe_from_s, dt=0.2, back_off_m=(0.0, 0.0, 0.0)):
     """Three hovering drones in a real FusionEngine; 'a' has no GNSS fix in [t_loss, t_back); the
-    helpers observe it (noisy range and bearing) from ``observe_from_s`` while it asks for help.
-    Decisions and messages by time."""
+    helpers observe it (noisy range and bearing) from ``observe_from_s`` while it asks for help; its
+    GNSS comes back ``back_off_m`` (ENU) off. Decisions and messages by time."""
     eng = FusionEngine((LAT0, LON0, ALT0), lag_s=2.0)
     log = []
     bias = {d: rng.normal(0, GNSS_SIGMA_M, 3) for d in POS}
@@ -35,7 +35,8 @@ def fly(role, rng, t_loss, t_back, t_end, observe_from_s, dt=0.2):
             bias[d] = keep * bias[d] + rng.normal(0, GNSS_SIGMA_M * np.sqrt(1 - keep**2), 3)
             eng.add_velocity(d, t, rng.normal(0, 0.05, 3), 0.1)
             fix_type = 0 if d == "a" and t_loss <= t < t_back else 3
-            lat, lon, alt = FRAME.to_geodetic(*(p + bias[d] + rng.normal(0, 0.1, 3)))
+            off = np.asarray(back_off_m) if d == "a" and t >= t_back else 0.0
+            lat, lon, alt = FRAME.to_geodetic(*(p + bias[d] + off + rng.normal(0, 0.1, 3)))
             eng.add_gnss(d, t, float(lat), float(lon), float(alt), h_sigma_m=GNSS_SIGMA_M,
                          v_sigma_m=GNSS_SIGMA_M, fix_type=fix_type)
         if t >= observe_from_s and role.protocol.active:
@@ -136,3 +137,13 @@ def test_helper_role_flies_to_a_vantage_and_back_to_its_mission():
     net.run(0.2)
     d, _ = roles["h2"].step(net.clock.t, HelperStatus(*peers["h2"], 0.9), peers, list(peers))
     assert d.helping is None and d.vantage is None
+
+
+def test_gnss_back_30_m_off_is_not_trusted_and_recovery_goes_on():
+    role = RequesterRole("a", at(100.0, 0.0))
+    log = fly(role, np.random.default_rng(4), t_loss=4.0, t_back=10.0, t_end=22.0, observe_from_s=6.0,
+              back_off_m=(30.0, 0.0, 0.0))
+    t_rth = first(log, lambda e: e[1].mode is Mode.RETURN_HOME)[0]
+    assert t_rth <= 9.0
+    assert all(d.mode is Mode.RETURN_HOME for t, d, _ in log if t >= t_rth)  # 12 s of offset GNSS: never normal
+    assert role.protocol.active and role.protocol.helpers() == ()  # (no bus here: nobody was assigned)
