@@ -68,7 +68,7 @@ def test_boresight_and_time_offset_recovered_when_only_they_are_wrong(world):
 @pytest.mark.slow
 def test_stated_covariance_covers_the_truth_with_correlated_gnss(world):
     scene, dem = world
-    log = orbit_log(scene, (0.0, 0.0), radius_m=170.0, height_m=90.0, laps=0.6, speed_mps=10.0)
+    log = orbit_log(scene, (0.0, 0.0), radius_m=170.0, height_m=90.0, laps=0.8, speed_mps=10.0)
     nees, bore_z = [], []
     for seed in range(4):
         errors = PoseErrorModel.draw(np.random.default_rng(100 + seed))
