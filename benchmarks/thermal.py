@@ -291,8 +291,9 @@ def _score(fires, scene) -> list[tuple[float, float]]:
     return out
 
 
-def _terrain_flight(flight, dem, centre_en, keep: list) -> dict:
-    """Detect on every frame once; run the joint estimate (DEM, flat) and the tracker."""
+def _terrain_flight(flight, dem, centre_en, keep: list, calibration=None) -> dict:
+    """Detect on every frame once; run the joint estimate (DEM, flat) and the tracker; with
+    a ``calibration`` (the same drone's orbit solution) also the calibrated DEM estimate."""
     detections = []
     for stamp, counts in progress(flight.frames(), desc="render+detect", total=len(flight.stamps_s), unit="frame"):
         detections.append((stamp, detect_hotspots(counts)))
@@ -302,9 +303,10 @@ def _terrain_flight(flight, dem, centre_en, keep: list) -> dict:
     lat, lon, _ = scene.frame.to_geodetic(centre_en[0], centre_en[1], 0.0)
     flat = FlatGround(float(dem.height_at(lat, lon)))
     out = {"n_frames": len(detections), "n_true": len(scene.fires)}
-    for name, ground in (("dem", dem), ("flat", flat)):
+    runs = [("dem", dem, None), ("flat", flat, None)] + ([("cal", dem, calibration)] if calibration else [])
+    for name, ground, cal in runs:
         sol = locate_jointly(flight.camera, flight.log, associate(flight.camera, flight.log, detections, ground),
-                             ground)
+                             ground, calibration=cal)
         out[name] = _score(sol.fires, scene)
         out[name + "_sol"] = sol
     tracker = FireTracker(flight.camera, dem, uncertainty=PoseUncertainty(1.5, 2.5, 0.5, 0.5, 0.5))
@@ -315,13 +317,18 @@ def _terrain_flight(flight, dem, centre_en, keep: list) -> dict:
 
 
 def _terrain_lines(kind: str, runs: list[dict], goal_m: float) -> tuple[bool, float]:
-    mean = {k: float(np.mean([e for r in runs for e, _ in r[k]])) for k in ("dem", "flat", "tracker")}
-    counts = [f"{len(r['dem'])}/{r['n_true']}" for r in runs]
-    ok = mean["dem"] <= goal_m and all(len(r["dem"]) == r["n_true"] for r in runs)
-    print(f"   {kind:5s}: mean horizontal error skyfix joint+DEM {mean['dem']:.2f} m | same, flat ground "
+    """Print a flight kind's mean errors; the goal is judged on the calibrated estimate
+    when there is one (a pass flown with the boresight from the same drone's orbit)."""
+    keys = [k for k in ("dem", "cal", "flat", "tracker") if k in runs[0]]
+    mean = {k: float(np.mean([e for r in runs for e, _ in r[k]])) for k in keys}
+    judged = "cal" if "cal" in mean else "dem"
+    counts = [f"{len(r[judged])}/{r['n_true']}" for r in runs]
+    ok = mean[judged] <= goal_m and all(len(r[judged]) == r["n_true"] for r in runs)
+    cal = f" | with the orbit's boresight/clock calibration {mean['cal']:.2f} m" if "cal" in mean else ""
+    print(f"   {kind:5s}: mean horizontal error skyfix joint+DEM {mean['dem']:.2f} m{cal} | same, flat ground "
           f"{mean['flat']:.2f} m | FireTracker+DEM (independent errors) {mean['tracker']:.2f} m; fires found "
-          f"{', '.join(counts)}; goal <= {goal_m:.0f} m -> {'MET' if ok else 'NOT MET'}")
-    return ok, mean["dem"]
+          f"{', '.join(counts)}; goal ({judged}) <= {goal_m:.0f} m -> {'MET' if ok else 'NOT MET'}")
+    return ok, mean[judged]
 
 
 def section_t(n_seeds: int, laps: float) -> bool:
@@ -344,7 +351,8 @@ def section_t(n_seeds: int, laps: float) -> bool:
         line = lines_log(scene, ends, up_m=float(path_up.max()) + 110.0, gimbal_pitch_deg=-60.0)
         for log, runs, cx in ((orbit, orbits, (0.0, 0.0)), (line, passes, (0.0, 0.0))):
             flight = fly(scene, CAMERA, log, errors, frame_rate_hz=1.0, seed=seed + 50 * len(runs))
-            r = _terrain_flight(flight, dem, cx, keep)
+            cal = orbits[-1]["dem_sol"] if runs is passes else None
+            r = _terrain_flight(flight, dem, cx, keep, cal)
             runs.append(r)
             if runs is orbits:
                 sol = r["dem_sol"]
@@ -357,13 +365,13 @@ def section_t(n_seeds: int, laps: float) -> bool:
     print(f"T. terrain: {n_seeds} seeded mountains, 10 m AMSL DEM (UTM, holes), consumer-drone pose errors:")
     ok_o, m_o = _terrain_lines("orbit", orbits, 2.0)
     ok_p, m_p = _terrain_lines("pass", passes, 4.0)
-    nees = np.array([n for r in orbits + passes for _, n in r["dem"]])
+    nees = np.array([n for r in orbits + passes for k in ("dem", "cal") if k in r for _, n in r[k]])
     inside = float(np.mean((nees > CHI2_2DOF_95[0]) & (nees < CHI2_2DOF_95[1])))
     trk = np.array([n for r in orbits + passes for _, n in r["tracker"]])
     trk_in = float(np.mean((trk > CHI2_2DOF_95[0]) & (trk < CHI2_2DOF_95[1])))
     ok_n = inside >= 0.85
     print(f"   NEES (2 dof) inside [{CHI2_2DOF_95[0]}, {CHI2_2DOF_95[1]}]: skyfix joint {100 * inside:.0f} % of "
-          f"{nees.size} fires (median {np.median(nees):.2f}); FireTracker {100 * trk_in:.0f} % (median "
+          f"{nees.size} fire estimates (orbits, passes, calibrated passes) (median {np.median(nees):.2f}); FireTracker {100 * trk_in:.0f} % (median "
           f"{np.median(trk):.1f}); goal >= 85 % -> {'MET' if ok_n else 'NOT MET'}")
     worst = max(b[0] for b in bores)
     ok_b = worst <= 0.2
