@@ -64,7 +64,8 @@ def _add_ground_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--dem-datum", choices=("ellipsoid", "amsl"), default="ellipsoid",
                    help="vertical datum of --dem (default: ellipsoid)")
     g.add_argument("--geoid-undulation", type=float, metavar="M",
-                   help="geoid height above the ellipsoid at the site (needed for AMSL inputs), metres")
+                   help="geoid height above the ellipsoid at the site, metres (needed for --ground-amsl and "
+                        "alt_amsl_m poses; an AMSL --dem uses the EGM96 grid cell by cell when omitted)")
     g.add_argument("--ground-sigma", type=float, default=0.0, metavar="M",
                    help="1-sigma ground height error for flat ground, metres (default 0)")
 
