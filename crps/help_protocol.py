@@ -349,6 +349,7 @@ class HelpResponder:
             return [HelpResponse(sender, False, epoch=req.epoch)]
         _, dist = geo.inverse(me.lat_deg, me.lon_deg, req.lat_deg, req.lon_deg)
         dist_m = float(math.hypot(float(dist), me.alt_m - req.alt_m))
+        # ETA: straight flight to the last fix at cruise speed, an upper bound of the time until it can observe
         return [HelpResponse(sender, True, dist_m / self.cfg.cruise_mps, me.lat_deg, me.lon_deg, me.alt_m,
                              me.battery_frac, dist_m, req.epoch)]
 
