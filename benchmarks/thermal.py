@@ -61,7 +61,9 @@ from skyfix.thermal import (
     RelativeTemperatureWarning,
     detect_hotspots,
     geolocate_many,
+    locate_in_frame,
 )
+from skyfix.thermal.ground import frame_near
 from skyfix.thermal.joint import locate_jointly
 from skyfix.thermal.sightings import associate
 from skyfix.thermal.source_method import source_method_locate
@@ -398,9 +400,20 @@ def _terrain_throughput(keep: list, dem: DemGround, repeats: int = 7) -> tuple[b
         per_frame.append((time.process_time() - t0) / len(keep))
     best = min(per_frame)
     ok = 1.0 / best >= 500.0
+    # The tracker's and the joint estimate's path: ENU points with covariances, no GeoFix objects.
+    frame = frame_near(keep[0][1].lat, keep[0][1].lon, dem.alt_m)
+    enu_frame = []
+    for _ in range(repeats):
+        t0 = time.process_time()
+        for counts, pose in keep:
+            spots = detect_hotspots(counts)
+            if spots:
+                locate_in_frame(CAMERA, pose, np.array([[h.u_px, h.v_px] for h in spots]), dem, frame)
+        enu_frame.append((time.process_time() - t0) / len(keep))
     print(f"   detect + locate on a {dem.heights_m.shape[1]}x{dem.heights_m.shape[0]} DEM: {1.0 / best:.0f} frames/s "
-          f"(fastest of {repeats}; median repeat {1.0 / float(np.median(per_frame)):.0f}), {n_fix / len(keep):.1f} "
-          f"fires per frame; goal >= 500 frames/s -> {'MET' if ok else 'NOT MET'}")
+          f"with GeoFix out (fastest of {repeats}; median repeat {1.0 / float(np.median(per_frame)):.0f}), "
+          f"{1.0 / min(enu_frame):.0f} frames/s for ENU points + covariance (the tracker's path); "
+          f"{n_fix / len(keep):.1f} fires per frame; goal (GeoFix) >= 500 frames/s -> {'MET' if ok else 'NOT MET'}")
     return ok, 1.0 / best
 
 
