@@ -30,7 +30,8 @@ ALLOWED = {
     "crps.app": set(PACKAGES) - {"crps"} | {"crps.perception", "crps.system"},
 }
 #: crps modules above fusion (the swarm system) and the applications on top; the rest is perception.
-CRPS_SYSTEM = {"node", "transport", "messages", "swarm", "outputs", "camera_feed", "cli", "__init__"}
+CRPS_SYSTEM = {"node", "transport", "messages", "swarm", "outputs", "camera_feed", "cli", "__init__",
+               "help_protocol", "help_agent", "roles", "vantage"}
 CRPS_APPS = {"demo", "service", "serve_cli", "sim_camera"}
 
 
