@@ -8,7 +8,10 @@ from fusion_sim import ORIGIN, Line, fly
 
 from skyfix.cli import main
 from skyfix.errors import DataError, InputError
-from skyfix.fusion import FusionEngine, read_log, replay
+from skyfix.fusion import FusionEngine, read_log
+from skyfix.fusion.replay import (
+    replay,  # the package attribute "replay" is the submodule once it is imported
+)
 
 EAST = Line((0.0, 0.0, 80.0), (8.0, 0.0, 0.0))
 LINES = {"A": EAST, "B": Line((-30.0, -40.0, 90.0), (8.0, 0.0, 0.0))}
