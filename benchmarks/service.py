@@ -37,6 +37,7 @@ import numpy as np
 
 from skyfix.crps import messages as M
 from skyfix.crps.transport import Endpoints, ZenohTransport
+from skyfix.crps.transport import free_tcp_ports as free_ports
 from skyfix.datasets.sim import Simulator, SimulatorConfig
 from skyfix.fusion.log import MeasurementLog
 from skyfix.fusion.log_mcap import McapLog
@@ -45,16 +46,6 @@ from skyfix.types import RelativeObservation
 KEY = b"benchmark swarm key, 32 bytes!!!"
 SENDERS = ("d1", "d2", "d3")
 EST_HZ, OBS_HZ = 10.0, 30.0
-
-
-def free_ports(n: int) -> list[int]:
-    socks = [socket.socket() for _ in range(n)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
 
 
 def _bodies(rng: np.random.Generator):

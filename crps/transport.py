@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import logging
 import re
+import socket
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -196,3 +197,15 @@ def open_transport(swarm: str, drone: str, endpoints: Endpoints | Sequence[str] 
     if not isinstance(endpoints, Endpoints):
         endpoints = Endpoints.parse(endpoints if isinstance(endpoints, str) else ",".join(endpoints))
     return ZenohTransport(swarm, drone, endpoints)
+
+
+def free_tcp_ports(count: int) -> list[int]:
+    """``count`` distinct TCP ports on 127.0.0.1 free at the time of the call (for loopback swarms)."""
+    socks = [socket.socket() for _ in range(count)]
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()

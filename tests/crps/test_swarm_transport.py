@@ -9,17 +9,8 @@ import time
 import pytest
 
 from skyfix.crps.transport import Endpoints, InProcessBus, ZenohTransport, key_expr, split_key
+from skyfix.crps.transport import free_tcp_ports as free_ports
 from skyfix.errors import InputError, LinkError
-
-
-def free_ports(n: int) -> list[int]:
-    socks = [socket.socket() for _ in range(n)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
 
 
 class Inbox:
