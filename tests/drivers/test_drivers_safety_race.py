@@ -44,6 +44,10 @@ def _flying_at_8m(seed: int):
         v = Vehicle.connect(sim.url(0), timeout_s=5.0)
         try:
             v.wait_until(lambda s: s.position is not None and s.home is not None, 10.0, what="telemetry")
+            # at 5x under two busy processes and 15 % loss, arm-then-takeoff can take longer than
+            # DISARM_DELAY (10 s sim = 2 s wall) and the autopilot disarms in between, as the real
+            # one would; this test is about the gate, so idle disarm is off (0 disables it)
+            v.set_param("DISARM_DELAY", 0)
             v.set_mode("GUIDED")
             v.arm()
             v.takeoff(8.0, timeout_s=40.0)
