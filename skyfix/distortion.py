@@ -4,40 +4,56 @@ Every model maps between *ideal* pixels (what a pinhole camera with the camera's
 intrinsics K would see) and *raw* pixels (what the lens actually recorded), both in
 OpenCV pixel coordinates (pixel centres at integers, origin at the top-left pixel):
 
-- ``distort(uv_ideal, camera) -> uv_raw``
-- ``undistort(uv_raw, camera) -> uv_ideal`` (iterative inverse, converged to 1e-9 px)
+- ``distort(uv_ideal, grid) -> uv_raw``
+- ``undistort(uv_raw, grid) -> uv_ideal`` (iterative inverse, converged to 1e-9 px)
 
-All take and return ``(N, 2)`` float arrays.
+All take and return ``(N, 2)`` float arrays. ``grid`` is anything with the pinhole
+intrinsics and image size (:class:`Intrinsics`; a :class:`skyfix.camera.Camera` is one),
+so this module knows nothing of cameras: the camera applies K, the model bends points.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from skyfix import validate
 from skyfix.errors import GeometryError
 
-if TYPE_CHECKING:
-    from skyfix.camera import Camera
+
+class Intrinsics(Protocol):
+    """Pinhole intrinsics in pixels (OpenCV convention) and the image size in pixels."""
+
+    @property
+    def fx(self) -> float: ...
+    @property
+    def fy(self) -> float: ...
+    @property
+    def cx(self) -> float: ...
+    @property
+    def cy(self) -> float: ...
+    @property
+    def width(self) -> int: ...
+    @property
+    def height(self) -> int: ...
 
 
 @runtime_checkable
 class Distortion(Protocol):
     """What a lens model must provide (see module docstring)."""
 
-    def distort(self, uv_ideal: np.ndarray, camera: Camera) -> np.ndarray: ...
+    def distort(self, uv_ideal: np.ndarray, camera: Intrinsics) -> np.ndarray: ...
 
-    def undistort(self, uv_raw: np.ndarray, camera: Camera) -> np.ndarray: ...
+    def undistort(self, uv_raw: np.ndarray, camera: Intrinsics) -> np.ndarray: ...
 
 
-def _to_normalized(uv: np.ndarray, camera: Camera) -> np.ndarray:
+def _to_normalized(uv: np.ndarray, camera: Intrinsics) -> np.ndarray:
     return np.stack(((uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy), axis=1)
 
 
-def _to_pixels(xy: np.ndarray, camera: Camera) -> np.ndarray:
+def _to_pixels(xy: np.ndarray, camera: Intrinsics) -> np.ndarray:
     return np.stack((xy[:, 0] * camera.fx + camera.cx, xy[:, 1] * camera.fy + camera.cy), axis=1)
 
 
@@ -92,10 +108,10 @@ class BrownConrady:
         yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
         return np.stack((xd, yd), axis=1)
 
-    def distort(self, uv_ideal: np.ndarray, camera: Camera) -> np.ndarray:
+    def distort(self, uv_ideal: np.ndarray, camera: Intrinsics) -> np.ndarray:
         return _to_pixels(self._forward(_to_normalized(uv_ideal, camera)), camera)
 
-    def undistort(self, uv_raw: np.ndarray, camera: Camera) -> np.ndarray:
+    def undistort(self, uv_raw: np.ndarray, camera: Intrinsics) -> np.ndarray:
         xy = _newton_invert_2d(self._forward, _to_normalized(uv_raw, camera))
         return _to_pixels(xy, camera)
 
@@ -126,14 +142,14 @@ class Fisheye:
         t2 = theta * theta
         return theta * (1.0 + t2 * (self.k1 + t2 * (self.k2 + t2 * (self.k3 + t2 * self.k4))))
 
-    def distort(self, uv_ideal: np.ndarray, camera: Camera) -> np.ndarray:
+    def distort(self, uv_ideal: np.ndarray, camera: Intrinsics) -> np.ndarray:
         xy = _to_normalized(uv_ideal, camera)
         r = np.hypot(xy[:, 0], xy[:, 1])
         theta = np.arctan(r)
         scale = np.where(r > 1e-12, self._theta_d(theta) / np.maximum(r, 1e-300), 1.0)
         return _to_pixels(xy * scale[:, None], camera)
 
-    def undistort(self, uv_raw: np.ndarray, camera: Camera) -> np.ndarray:
+    def undistort(self, uv_raw: np.ndarray, camera: Intrinsics) -> np.ndarray:
         xy_d = _to_normalized(uv_raw, camera)
         rd = np.hypot(xy_d[:, 0], xy_d[:, 1])
         theta = rd.copy()
@@ -175,7 +191,7 @@ class Barrel:
         object.__setattr__(self, "d", d)
 
     @staticmethod
-    def _centre_and_scale(camera: Camera) -> tuple[np.ndarray, float]:
+    def _centre_and_scale(camera: Intrinsics) -> tuple[np.ndarray, float]:
         centre = np.array([(camera.width - 1) / 2.0, (camera.height - 1) / 2.0])
         return centre, min(camera.width, camera.height) / 2.0
 
@@ -183,13 +199,13 @@ class Barrel:
         """Source-radius factor ``a r^3 + b r^2 + c r + d`` at normalised radius ``r``."""
         return ((self.a * r + self.b) * r + self.c) * r + self.d
 
-    def distort(self, uv_ideal: np.ndarray, camera: Camera) -> np.ndarray:
+    def distort(self, uv_ideal: np.ndarray, camera: Intrinsics) -> np.ndarray:
         centre, scale = self._centre_and_scale(camera)
         offset = uv_ideal - centre
         r = np.hypot(offset[:, 0], offset[:, 1]) / scale
         return centre + offset * self.radial_factor(r)[:, None]
 
-    def undistort(self, uv_raw: np.ndarray, camera: Camera) -> np.ndarray:
+    def undistort(self, uv_raw: np.ndarray, camera: Intrinsics) -> np.ndarray:
         centre, scale = self._centre_and_scale(camera)
         offset = uv_raw - centre
         r_src = np.hypot(offset[:, 0], offset[:, 1]) / scale
