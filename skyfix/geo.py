@@ -19,9 +19,6 @@ from skyfix import validate
 from skyfix.errors import InputError
 
 WGS84 = pyproj.Geod(ellps="WGS84")
-_A = 6378137.0
-_F = 1.0 / 298.257223563
-_E2 = _F * (2.0 - _F)
 
 
 def _geodetic_checked(lat, lon, alt) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
