@@ -16,7 +16,9 @@ footprint of every frame.
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -30,7 +32,8 @@ from skyfix.errors import GeometryError, InputError
 from skyfix.geo import LocalFrame
 from skyfix.rotation import R_ENU_FROM_NED, r_ned_from_frd
 
-__all__ = ["DroneTruth", "DroneView", "Plate", "TargetPose", "render_drone_view", "sky_background",
+__all__ = ["DroneTruth", "DroneView", "Plate", "TargetPose", "render_drone_view", "render_drones",
+           "sky_background",
            "terrain_background"]
 
 #: Grey level of each kind of part relative to ``drone_gray`` (props read lighter).
@@ -134,11 +137,15 @@ def _smooth_noise(shape: tuple[int, int], cells: tuple[int, int], rng: np.random
 
 def sky_background(camera: Camera, helper_pose: CameraPose, rng: np.random.Generator | None = None, *,
                    zenith: float = 0.55, horizon: float = 0.85, clouds: float = 0.06,
-                   cloud_cells: int = 8) -> np.ndarray:
+                   cloud_cells: int = 8, cloud_map: np.ndarray | None = None) -> np.ndarray:
     """A sky seen by ``camera``: brightness from ``zenith`` to ``horizon`` by ray elevation,
     times soft clouds of relative amplitude ``clouds``; float32 ``(H, W)``.
 
-    The gradient is evaluated on a 1/8 grid and resized (the sky is smooth).
+    Clouds: random per call (``cloud_cells`` across the image, from ``rng``), or fixed in the
+    world with ``cloud_map``, a unit-variance ``(90, 360)`` map sampled by ray elevation
+    (row, 1 deg, 0 at the horizon) and azimuth (column, 1 deg from north, wrapping), so
+    successive frames of a moving camera see the same clouds. The gradient and a mapped
+    cloud layer are evaluated on a 1/8 grid and resized (the sky is smooth).
     """
     rng = rng if rng is not None else np.random.default_rng()
     gh, gw = max(2, camera.height // 8), max(2, camera.width // 8)
@@ -148,8 +155,13 @@ def sky_background(camera: Camera, helper_pose: CameraPose, rng: np.random.Gener
     rays = camera.pixel_to_ray(np.stack((uu.ravel(), vv.ravel()), axis=1)) @ helper_pose.r_enu_from_cam().T
     up = np.clip(rays[:, 2], 0.0, 1.0).reshape(gh, gw)
     grid = (horizon + (zenith - horizon) * np.sqrt(up)).astype(np.float32)
+    if clouds > 0 and cloud_map is not None:
+        el = np.degrees(np.arcsin(up)).astype(np.float32)
+        az = (np.degrees(np.arctan2(rays[:, 0], rays[:, 1])).reshape(gh, gw) % 360.0).astype(np.float32)
+        layer = cv2.remap(np.asarray(cloud_map, np.float32), az, el, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        grid = grid * (1.0 + clouds * layer)
     sky = cv2.resize(grid, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
-    if clouds > 0:
+    if clouds > 0 and cloud_map is None:
         cells = (max(1, cloud_cells * camera.height // camera.width), cloud_cells)
         sky = sky * (1.0 + clouds * _smooth_noise(sky.shape, cells, rng))
     return sky
@@ -180,71 +192,12 @@ def _occlusion_mask(cover: np.ndarray, fraction: float, rng: np.random.Generator
     return (gu * n[0] + gv * n[1]) > thr
 
 
-def render_drone_view(camera: Camera, helper_pose: CameraPose, target: TargetPose,
-                      model: DroneModel | None = None, *, background: str | GroundTexture | np.ndarray = "sky",
-                      plate: Plate | None = None, drone_gray: float = 0.15, supersample: int = 8,
-                      blur_sigma_px: float = 0.0, motion_blur_px: float = 0.0,
-                      motion_blur_angle_deg: float = 0.0, noise_sigma: float = 0.0,
-                      occlusion_fraction: float = 0.0, occluder_gray: float | None = None,
-                      rng: np.random.Generator | None = None) -> DroneView:
-    """Render ``model`` (and/or ``plate``) at ``target`` as seen by ``camera`` at ``helper_pose``.
-
-    ``model=None`` draws only the plate. ``background``: ``"sky"``, a
-    :class:`GroundTexture` (terrain, sky above the horizon) or a float ``(H, W)`` image.
-    ``occlusion_fraction`` of the target is hidden behind a straight-edged occluder of
-    grey ``occluder_gray`` (None: the background shows through, as if the target were
-    cut off). Raises :class:`GeometryError` when the target is at or behind the camera.
-    """
-    if model is None and plate is None:
-        raise InputError("render_drone_view needs a model, a plate or both")
-    if not isinstance(supersample, int) or supersample < 1:
-        raise InputError(f"supersample must be an integer >= 1, got {supersample!r}")
-    frac = validate.finite_scalar("occlusion_fraction", occlusion_fraction)
-    if not 0.0 <= frac < 1.0:
-        raise InputError(f"occlusion_fraction must be in [0, 1), got {frac}")
-    rng = rng if rng is not None else np.random.default_rng()
-
-    if isinstance(background, str):
-        if background != "sky":
-            raise InputError(f"background must be 'sky', a GroundTexture or an (H, W) image, got {background!r}")
-        image = sky_background(camera, helper_pose, rng)
-    elif isinstance(background, GroundTexture):
-        image = terrain_background(background, camera, helper_pose, rng)
-    else:
-        image = validate.finite_array("background", background).astype(np.float32)
-        if image.shape != (camera.height, camera.width):
-            raise InputError(f"background image must be ({camera.height}, {camera.width}), got {image.shape}")
-        image = image.copy()
-
-    frame = LocalFrame(helper_pose.lat, helper_pose.lon, helper_pose.alt_m)
-    cam_enu, r_frame_from_cam = helper_pose.in_frame(frame)
-    target_enu = np.array([float(c) for c in frame.to_enu(target.lat, target.lon, target.alt_m)])
-    r_frame_from_body = (frame.enu_rotation_at(target.lat, target.lon) @ R_ENU_FROM_NED
-                         @ r_ned_from_frd(target.yaw_deg, target.pitch_deg, target.roll_deg))
-    offset = target_enu - cam_enu
-    range_m = float(np.linalg.norm(offset))
-    if range_m <= 0.0:
-        raise GeometryError("target and helper camera are at the same position")
-    bearing = offset / range_m
-    if float((offset @ r_frame_from_cam)[2]) <= 0.0:
-        raise GeometryError(f"target is behind the helper camera (range {range_m:.2f} m)")
-    centroid_uv = camera.project((offset @ r_frame_from_cam)[None, :])[0]
-    # Elevation of the line of sight below the target's own horizontal plane.
-    up_at_target = frame.enu_rotation_at(target.lat, target.lon)[:, 2]
-    elevation_deg = math.degrees(math.asin(float(np.clip(-bearing @ up_at_target, -1.0, 1.0))))
-
-    shapes: list[np.ndarray] = []
-    values: list[float] = []
-    if model is not None:
-        for name, pts in model.parts():
-            shapes.append(((pts @ r_frame_from_body.T) + target_enu - cam_enu) @ r_frame_from_cam)
-            values.append(drone_gray * _PART_SHADE[name])
-    plate_cam = None
-    if plate is not None:
-        plate_cam = ((plate.corners_body_m() @ r_frame_from_body.T) + target_enu - cam_enu) @ r_frame_from_cam
-    all_cam = np.concatenate(shapes + ([plate_cam] if plate_cam is not None else []))
-    if np.any(all_cam[:, 2] <= 1e-3):
-        raise GeometryError("part of the target is at or behind the helper camera plane")
+def _composite(image: np.ndarray, camera: Camera, shapes: list[np.ndarray], values: list[float],
+               plate: Plate | None, plate_cam: np.ndarray | None, all_cam: np.ndarray, supersample: int,
+               frac: float, occluder_gray: float | None, rng: np.random.Generator,
+               ) -> tuple[tuple[int, int, int, int] | None, float, np.ndarray | None]:
+    """Fill the target's parts (camera-frame vertices) on a supersampled canvas and blend it into
+    ``image`` in place; returns (bbox, visible fraction, per-pixel coverage)."""
     all_uv = camera.project(all_cam)
     u0 = max(int(math.floor(all_uv[:, 0].min())) - 2, 0)
     v0 = max(int(math.floor(all_uv[:, 1].min())) - 2, 0)
@@ -296,7 +249,92 @@ def render_drone_view(camera: Camera, helper_pose: CameraPose, target: TargetPos
             visible = float(cover.sum()) / drawn
             bbox = (u0, v0, u1, v1)
             coverage_out = alpha.astype(np.float32)
+    return bbox, visible, coverage_out
 
+
+def _draw_target(image: np.ndarray, camera: Camera, helper_pose: CameraPose, frame: LocalFrame,
+                 target: TargetPose, model: DroneModel | None, plate: Plate | None, drone_gray: float,
+                 supersample: int, frac: float, occluder_gray: float | None,
+                 rng: np.random.Generator) -> DroneTruth:
+    """Composite one target into ``image`` (float32 ``(H, W)``, in place) and return its truth.
+
+    ``frame`` is any local frame near the helper; the truth's vectors are in the ENU axes of
+    ``frame``. Raises :class:`GeometryError` when the target is at or behind the camera.
+    """
+    cam_enu, r_frame_from_cam = helper_pose.in_frame(frame)
+    target_enu = np.array([float(c) for c in frame.to_enu(target.lat, target.lon, target.alt_m)])
+    r_frame_from_body = (frame.enu_rotation_at(target.lat, target.lon) @ R_ENU_FROM_NED
+                         @ r_ned_from_frd(target.yaw_deg, target.pitch_deg, target.roll_deg))
+    offset = target_enu - cam_enu
+    range_m = float(np.linalg.norm(offset))
+    if range_m <= 0.0:
+        raise GeometryError("target and helper camera are at the same position")
+    bearing = offset / range_m
+    if float((offset @ r_frame_from_cam)[2]) <= 0.0:
+        raise GeometryError(f"target is behind the helper camera (range {range_m:.2f} m)")
+    centroid_uv = camera.project((offset @ r_frame_from_cam)[None, :])[0]
+    # Elevation of the line of sight below the target's own horizontal plane.
+    up_at_target = frame.enu_rotation_at(target.lat, target.lon)[:, 2]
+    elevation_deg = math.degrees(math.asin(float(np.clip(-bearing @ up_at_target, -1.0, 1.0))))
+
+    shapes: list[np.ndarray] = []
+    values: list[float] = []
+    if model is not None:
+        for name, pts in model.parts():
+            shapes.append(((pts @ r_frame_from_body.T) + target_enu - cam_enu) @ r_frame_from_cam)
+            values.append(drone_gray * _PART_SHADE[name])
+    plate_cam = None
+    if plate is not None:
+        plate_cam = ((plate.corners_body_m() @ r_frame_from_body.T) + target_enu - cam_enu) @ r_frame_from_cam
+    all_cam = np.concatenate(shapes + ([plate_cam] if plate_cam is not None else []))
+    if np.any(all_cam[:, 2] <= 1e-3):
+        raise GeometryError("part of the target is at or behind the helper camera plane")
+    bbox, visible, coverage_out = _composite(image, camera, shapes, values, plate, plate_cam, all_cam,
+                                             supersample, frac, occluder_gray, rng)
+    return DroneTruth(target_enu_m=offset.copy(), range_m=range_m, bearing_enu=bearing,
+                      centroid_uv=centroid_uv, elevation_deg=elevation_deg, bbox_px=bbox,
+                      visible_fraction=visible, coverage=coverage_out)
+
+
+def render_drone_view(camera: Camera, helper_pose: CameraPose, target: TargetPose,
+                      model: DroneModel | None = None, *, background: str | GroundTexture | np.ndarray = "sky",
+                      plate: Plate | None = None, drone_gray: float = 0.15, supersample: int = 8,
+                      blur_sigma_px: float = 0.0, motion_blur_px: float = 0.0,
+                      motion_blur_angle_deg: float = 0.0, noise_sigma: float = 0.0,
+                      occlusion_fraction: float = 0.0, occluder_gray: float | None = None,
+                      rng: np.random.Generator | None = None) -> DroneView:
+    """Render ``model`` (and/or ``plate``) at ``target`` as seen by ``camera`` at ``helper_pose``.
+
+    ``model=None`` draws only the plate. ``background``: ``"sky"``, a
+    :class:`GroundTexture` (terrain, sky above the horizon) or a float ``(H, W)`` image.
+    ``occlusion_fraction`` of the target is hidden behind a straight-edged occluder of
+    grey ``occluder_gray`` (None: the background shows through, as if the target were
+    cut off). Raises :class:`GeometryError` when the target is at or behind the camera.
+    """
+    if model is None and plate is None:
+        raise InputError("render_drone_view needs a model, a plate or both")
+    if not isinstance(supersample, int) or supersample < 1:
+        raise InputError(f"supersample must be an integer >= 1, got {supersample!r}")
+    frac = validate.finite_scalar("occlusion_fraction", occlusion_fraction)
+    if not 0.0 <= frac < 1.0:
+        raise InputError(f"occlusion_fraction must be in [0, 1), got {frac}")
+    rng = rng if rng is not None else np.random.default_rng()
+
+    if isinstance(background, str):
+        if background != "sky":
+            raise InputError(f"background must be 'sky', a GroundTexture or an (H, W) image, got {background!r}")
+        image = sky_background(camera, helper_pose, rng)
+    elif isinstance(background, GroundTexture):
+        image = terrain_background(background, camera, helper_pose, rng)
+    else:
+        image = validate.finite_array("background", background).astype(np.float32)
+        if image.shape != (camera.height, camera.width):
+            raise InputError(f"background image must be ({camera.height}, {camera.width}), got {image.shape}")
+        image = image.copy()
+
+    frame = LocalFrame(helper_pose.lat, helper_pose.lon, helper_pose.alt_m)
+    truth = _draw_target(image, camera, helper_pose, frame, target, model, plate, drone_gray, supersample,
+                         frac, occluder_gray, rng)
     if blur_sigma_px > 0:
         image = cv2.GaussianBlur(image, (0, 0), validate.positive_scalar("blur_sigma_px", blur_sigma_px))
     if motion_blur_px > 0:
@@ -306,7 +344,52 @@ def render_drone_view(camera: Camera, helper_pose: CameraPose, target: TargetPos
     if noise_sigma > 0:
         sigma = validate.positive_scalar("noise_sigma", noise_sigma)
         image = image + rng.standard_normal(image.shape, dtype=np.float32) * np.float32(sigma)
-    truth = DroneTruth(target_enu_m=offset.copy(), range_m=range_m, bearing_enu=bearing,
-                       centroid_uv=centroid_uv, elevation_deg=elevation_deg, bbox_px=bbox,
-                       visible_fraction=visible, coverage=coverage_out)
     return DroneView(image=image.astype(np.float32, copy=False), truth=truth)
+
+
+@functools.lru_cache(maxsize=8)
+def _normalised_extent(camera: Camera) -> tuple[float, float, float, float]:
+    """(x_min, x_max, y_min, y_max) of x/z, y/z over the image border, camera frame (lens included)."""
+    u = np.linspace(-0.5, camera.width - 0.5, 33)
+    v = np.linspace(-0.5, camera.height - 0.5, 33)
+    border = np.concatenate([np.column_stack((u, np.full_like(u, v[0]))), np.column_stack((u, np.full_like(u, v[-1]))),
+                             np.column_stack((np.full_like(v, u[0]), v)), np.column_stack((np.full_like(v, u[-1]), v))])
+    rays = camera.pixel_to_ray(border)
+    x, y = rays[:, 0] / rays[:, 2], rays[:, 1] / rays[:, 2]
+    return float(x.min()), float(x.max()), float(y.min()), float(y.max())
+
+
+def render_drones(image: np.ndarray, camera: Camera, helper_pose: CameraPose, targets: Sequence[TargetPose],
+                  model: DroneModel, *, drone_gray: float = 0.15, supersample: int = 4,
+                  rng: np.random.Generator | None = None) -> list[DroneTruth | None]:
+    """Composite every drone of ``targets`` the camera sees into ``image`` (float32 ``(H, W)``, in place).
+
+    Drawn far to near, so a nearer drone hides a farther one. Returns one truth per target
+    (vectors in ENU at the helper camera), None for a target behind the camera, outside
+    the field of view or within its own radius of the lens.
+    """
+    if not isinstance(supersample, int) or supersample < 1:
+        raise InputError(f"supersample must be an integer >= 1, got {supersample!r}")
+    if image.shape != (camera.height, camera.width):
+        raise InputError(f"image must be ({camera.height}, {camera.width}), got {image.shape}")
+    rng = rng if rng is not None else np.random.default_rng()
+    out: list[DroneTruth | None] = [None] * len(targets)
+    if not targets:
+        return out
+    frame = LocalFrame(helper_pose.lat, helper_pose.lon, helper_pose.alt_m)
+    cam_enu, r_frame_from_cam = helper_pose.in_frame(frame)
+    lat = np.array([t.lat for t in targets])
+    lon = np.array([t.lon for t in targets])
+    alt = np.array([t.alt_m for t in targets])
+    enu = np.stack([np.asarray(c, float).reshape(-1) for c in frame.to_enu(lat, lon, alt)], axis=1)
+    in_cam = (enu - cam_enu) @ r_frame_from_cam
+    radius = 0.6 * model.span_m  # rotor tips plus tilt
+    x0, x1, y0, y1 = _normalised_extent(camera)
+    z = np.maximum(in_cam[:, 2], 1e-9)
+    margin = radius / z
+    seen = ((in_cam[:, 2] > radius + 1e-3) & (in_cam[:, 0] / z >= x0 - margin) & (in_cam[:, 0] / z <= x1 + margin)
+            & (in_cam[:, 1] / z >= y0 - margin) & (in_cam[:, 1] / z <= y1 + margin))
+    for i in sorted(np.flatnonzero(seen), key=lambda k: -float(np.linalg.norm(in_cam[k]))):
+        out[i] = _draw_target(image, camera, helper_pose, frame, targets[i], model, None, drone_gray,
+                              supersample, 0.0, None, rng)
+    return out
