@@ -248,6 +248,8 @@ class WorldCamera:
         self._gain: float | None = None  # auto-exposure scene gain (signal per unit radiance)
         self._gain_t_s = 0.0
         self.last_truth: FrameTruth | None = None
+        #: per delivered frame: (exposure time s, keys of the vehicles whose centre was in the image)
+        self.in_view_log: list[tuple[float, tuple[int | str, ...]]] = []
         self.n_frames = 0
 
     def point(self, yaw_deg: float, pitch_deg: float) -> None:
@@ -300,6 +302,7 @@ class WorldCamera:
         image, exposure_s, blur_px = self._expose(radiance, t_exp, rate_dps, pitch)
         self.last_truth = FrameTruth(t_exp, pose, rate_dps, exposure_s, blur_px,
                                      (self.camera.width, self.camera.height), dict(zip(keys, drawn, strict=True)))
+        self.in_view_log.append((t_exp, tuple(k for k in keys if self.last_truth.in_view(k))))
         self.n_frames += 1
         g = self.gimbal_cfg
         noise = g.noise_sigma_deg * self._rng.standard_normal(2)

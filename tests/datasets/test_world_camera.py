@@ -176,6 +176,7 @@ def test_gimbal_fault_takes_the_target_out_of_view_and_back(sim):
     sim.run_steps(100)  # t0 + 6 s: fault over, back on the command
     wc()
     assert wc.last_truth.in_view(1)
+    assert [keys for _, keys in wc.in_view_log] == [(1,), (), (1,)]
 
 
 def test_latency_stamps_the_exposure_time(sim):
