@@ -1,0 +1,213 @@
+"""GPS-loss recovery benchmark (issue 18): the lost drone flies home on its helpers' cameras.
+
+Each seed is one world: three simulated ArduPilot copters surveying in wind (mean 3 m/s from a
+seeded direction, 20 % gusts), correlated (Gauss-Markov) GNSS errors on every receiver, one drone
+losing its receiver at a seeded random moment and place along its survey. It is flown twice by
+:func:`skyfix.crps.recovery.run_recovery`:
+
+* recovery: the receiver is gone; the drone holds, asks for help, two helpers fly to vantage
+  points, point their gimbal cameras (frames rendered from the simulator's truth:
+  :class:`skyfix.datasets.sim.world_camera.WorldCamera`), detect and range it in the pixels; its
+  fusion positions it from their observations; the injected fix takes it home; it lands.
+* baseline: the same seed, the same drone flying the same RTL at the same moment on its healthy
+  GNSS (what its own receiver's errors at take-off and landing allow: the floor of the landing error).
+
+Per run: landing error (truth: horizontal distance from the true take-off point), loss -> first
+fused fix resting on a helper's observation, the largest horizontal error of the lost drone's
+fused fix while it recovers, the closest approach between any two drones after the loss, the
+share of helper frames with the target in view in which it was detected.
+
+Goals (issue 18): >= 9 of 10 land <= 3 m from home; median landing error <= 1.5x the baseline's;
+in every run: first fused fix <= 15 s after the loss, recovery error <= 5 m, separation >= 10 m.
+
+A run takes minutes of wall time, so seeds may be flown in several invocations (``--seeds 0-3``,
+then ``--seeds 4-7`` ...) into one ``-o`` folder: every invocation writes ``seed_<n>.json`` there and
+judges all the seeds the folder holds. Exit 0: every goal met on all ``--runs`` seeds; 1: a goal
+missed; 2: fewer seeds than ``--runs`` flown so far (goals printed, not judged). Last line: headline.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+GOAL_HOME_M = 3.0
+GOAL_HOME_SHARE = 0.9
+GOAL_MEDIAN_RATIO = 1.5
+GOAL_FIRST_FIX_S = 15.0
+GOAL_RECOVERY_ERR_M = 5.0
+GOAL_SEPARATION_M = 10.0
+SCORES = ("landing_error_m", "loss_to_first_fused_fix_s", "max_recovery_error_h_m", "min_separation_m",
+          "detection_share")
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"0-9"``, ``"1,4,7"`` or a mix (``"0-2,5"``) -> sorted unique seeds."""
+    out: set[int] = set()
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        lo, _, hi = part.partition("-")
+        try:
+            a, b = int(lo), int(hi) if hi else int(lo)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"--seeds: {part!r} is not a seed or a range like 0-9") from None
+        if a < 0 or b < a:
+            raise argparse.ArgumentTypeError(f"--seeds: {part!r} is not a non-negative, increasing range")
+        out.update(range(a, b + 1))
+    if not out:
+        raise argparse.ArgumentTypeError("--seeds: no seed given")
+    return sorted(out)
+
+
+def fly_one(seed: int, healthy: bool, args: argparse.Namespace) -> dict:
+    """One run (the recovery, or with ``healthy`` its baseline); its scores, JSON-ready."""
+    from skyfix.crps.recovery import RecoveryConfig, run_recovery
+
+    kind = "baseline" if healthy else "recovery"
+    kwargs = {"seed": seed, "healthy": healthy,
+              "output": None if args.no_files else args.output / f"seed_{seed}" / kind}
+    if args.speed is not None:
+        kwargs["speed"] = args.speed
+    t0 = time.monotonic()
+    stage = [""]
+
+    def progress(what: str, frac: float) -> None:
+        if what != stage[0] and args.verbose:
+            print(f"    seed {seed} {kind}: {what} ({frac:.0%}, {time.monotonic() - t0:.0f} s)", flush=True)
+        stage[0] = what
+
+    res = run_recovery(RecoveryConfig(**kwargs), progress=progress)
+    return {**{k: _num(getattr(res, k)) for k in SCORES}, "outcome": res.outcome,
+            "wall_s": time.monotonic() - t0, "figures": {k: _num(v) for k, v in res.figures.items()},
+            "timeline": [[round(t, 2), what] for t, what in res.timeline]}
+
+
+def fly_seed(seed: int, args: argparse.Namespace) -> dict:
+    """The recovery and its healthy-GNSS baseline for one seed."""
+    return {"seed": seed, "speed": args.speed, "recovery": fly_one(seed, False, args),
+            "baseline": fly_one(seed, True, args)}
+
+
+def _num(x) -> float | None:
+    """JSON-safe float (NaN -> None)."""
+    try:
+        x = float(x)
+    except (TypeError, ValueError):
+        return None
+    return x if math.isfinite(x) else None
+
+
+def _f(x: float | None, fmt: str = ".2f") -> str:
+    return "  n/a" if x is None else format(x, fmt)
+
+
+def print_run(r: dict) -> None:
+    rec, base = r["recovery"], r["baseline"]
+    print(f"  seed {r['seed']:>2}: landing {_f(rec['landing_error_m'])} m (healthy RTL {_f(base['landing_error_m'])} m), "
+          f"loss->first fused fix {_f(rec['loss_to_first_fused_fix_s'], '.1f')} s, "
+          f"max recovery error {_f(rec['max_recovery_error_h_m'])} m, "
+          f"closest approach {_f(rec['min_separation_m'], '.1f')} m, "
+          f"target detected in {_f(None if rec['detection_share'] is None else 100 * rec['detection_share'], '.0f')} % "
+          f"of helper frames with it in view; {rec['outcome']} "
+          f"(wall {rec['wall_s']:.0f} + {base['wall_s']:.0f} s)", flush=True)
+
+
+def judge(records: list[dict], runs_wanted: int) -> tuple[list[tuple[str, bool, str]], str]:
+    """Goal lines (name, met, figures) over ``records`` and the headline."""
+    rec = [r["recovery"] for r in records]
+    n = len(rec)
+
+    def vals(key: str, src=rec) -> np.ndarray:
+        return np.array([np.nan if x[key] is None else x[key] for x in src], float)
+
+    landing, healthy = vals("landing_error_m"), vals("landing_error_m", [r["baseline"] for r in records])
+    home = int(np.sum(landing <= GOAL_HOME_M))
+    med, med_h = float(np.nanmedian(landing)) if n else math.nan, float(np.nanmedian(healthy)) if n else math.nan
+    ratio = med / med_h if med_h > 0 else math.inf
+    first, err, sep = vals("loss_to_first_fused_fix_s"), vals("max_recovery_error_h_m"), vals("min_separation_m")
+    det = vals("detection_share")
+    # a missing score (NaN: no fused fix at all, nothing recorded) counts as a miss
+    goals = [
+        (f">= {GOAL_HOME_SHARE:.0%} of runs land <= {GOAL_HOME_M:.0f} m from home",
+         home >= math.ceil(GOAL_HOME_SHARE * n), f"{home} of {n}"),
+        (f"median landing error <= {GOAL_MEDIAN_RATIO}x the healthy-GNSS RTL's", ratio <= GOAL_MEDIAN_RATIO,
+         f"{med:.2f} m vs {med_h:.2f} m = {ratio:.2f}x"),
+        (f"loss -> first fused fix <= {GOAL_FIRST_FIX_S:.0f} s in every run", bool(np.all(first <= GOAL_FIRST_FIX_S)),
+         f"worst {np.nanmax(first) if np.isfinite(first).any() else math.nan:.1f} s, "
+         f"{int(np.sum(first <= GOAL_FIRST_FIX_S))} of {n}"),
+        (f"largest horizontal error while recovering <= {GOAL_RECOVERY_ERR_M:.0f} m in every run",
+         bool(np.all(err <= GOAL_RECOVERY_ERR_M)),
+         f"worst {np.nanmax(err) if np.isfinite(err).any() else math.nan:.2f} m, "
+         f"{int(np.sum(err <= GOAL_RECOVERY_ERR_M))} of {n}"),
+        (f"closest approach between drones >= {GOAL_SEPARATION_M:.0f} m in every run",
+         bool(np.all(sep >= GOAL_SEPARATION_M)),
+         f"closest {np.nanmin(sep) if np.isfinite(sep).any() else math.nan:.1f} m, "
+         f"{int(np.sum(sep >= GOAL_SEPARATION_M))} of {n}"),
+    ]
+    complete = n >= runs_wanted
+    all_met = complete and all(ok for _, ok, _ in goals)
+    verdict = "all goals met" if all_met else (
+        f"{sum(not ok for _, ok, _ in goals)} goal(s) missed" if complete else f"only {n} of {runs_wanted} seeds flown")
+    headline = (f"recovery: {home}/{n} landed <= {GOAL_HOME_M:.0f} m from home, median landing {med:.2f} m "
+                f"= {ratio:.2f}x healthy RTL ({med_h:.2f} m), worst first fix "
+                f"{np.nanmax(first) if np.isfinite(first).any() else math.nan:.1f} s, worst recovery error "
+                f"{np.nanmax(err) if np.isfinite(err).any() else math.nan:.2f} m, closest approach "
+                f"{np.nanmin(sep) if np.isfinite(sep).any() else math.nan:.1f} m, median detection "
+                f"{100 * np.nanmedian(det) if np.isfinite(det).any() else math.nan:.0f} %: {verdict}")
+    return goals, headline
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seeds", type=parse_seeds, default=None,
+                    help="seeds to fly now, e.g. 0-9 or 0,3,5 (default 0-9; --quick: 0-1)")
+    ap.add_argument("--runs", type=int, default=10, help="seeds the goals are judged on (default 10)")
+    ap.add_argument("--quick", action="store_true", help="two seeds, no files: a smoke test of the whole road")
+    ap.add_argument("--speed", type=float, default=None,
+                    help="simulated seconds per wall second (default: RecoveryConfig's)")
+    ap.add_argument("-o", "--output", type=Path, default=Path("benchmarks/out/recovery"),
+                    help="folder for seed_<n>.json and each run's files (default benchmarks/out/recovery)")
+    ap.add_argument("--no-files", action="store_true", help="write only seed_<n>.json, not the runs' logs and plots")
+    ap.add_argument("--judge-only", action="store_true", help="fly nothing: judge the seeds already in -o")
+    ap.add_argument("-v", "--verbose", action="store_true", help="print each run's stages")
+    args = ap.parse_args(argv)
+    if args.speed is not None and not (args.speed > 0 and math.isfinite(args.speed)):
+        ap.error(f"--speed must be > 0, got {args.speed}")
+    if args.quick:  # its own folder: quick runs never mix into the judged set
+        args.no_files, args.output = True, args.output / "quick"
+        args.seeds = args.seeds or [0, 1]
+    seeds = args.seeds if args.seeds is not None else list(range(10))
+    args.output.mkdir(parents=True, exist_ok=True)
+
+    print(f"load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    if not args.judge_only:
+        print(f"flying seeds {seeds} (recovery, then the healthy-GNSS RTL of the same drone):", flush=True)
+        for seed in seeds:
+            record = fly_seed(seed, args)
+            (args.output / f"seed_{seed}.json").write_text(json.dumps(record, indent=1))
+            print_run(record)
+    records = sorted((json.loads(p.read_text()) for p in args.output.glob("seed_*.json")), key=lambda r: r["seed"])
+    print(f"all seeds in {args.output} ({len(records)}):")
+    for r in records:
+        print_run(r)
+    goals, headline = judge(records, 2 if args.quick else args.runs)
+    for name, ok, figures in goals:
+        print(f"  goal {name}: {'MET' if ok else 'NOT MET'} ({figures})")
+    print(f"load average at end: {os.getloadavg()[0]:.1f}")
+    print(headline)
+    if len(records) < (2 if args.quick else args.runs):
+        return 2
+    return 0 if all(ok for _, ok, _ in goals) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
