@@ -194,30 +194,67 @@ def _enu(frame: LocalFrame, photo: Photo) -> np.ndarray:
     return frame.to_enu_points(np.array([[photo.gps_lat_deg, photo.gps_lon_deg, photo.gps_alt_amsl_m]]))[0]
 
 
-def _median_depth(rec, image) -> float:
-    """Median depth (model units) of the 3-D points ``image`` observes in ``rec``; NaN if none."""
+def _ground_plane(rec, image) -> tuple[np.ndarray, np.ndarray] | None:
+    """(point, unit normal) of the plane through the 3-D points ``image`` observes in ``rec``
+    (least squares, refitted without points more than 3 MADs off it), or None with < 10 points."""
     ids = [p.point3D_id for p in image.points2D if p.has_point3D()]
-    if not ids:
-        return float("nan")
+    if len(ids) < 10:
+        return None
     xyz = np.array([rec.points3D[i].xyz for i in ids])
-    m = np.asarray(image.cam_from_world().matrix())
-    return float(np.median(xyz @ m[2, :3] + m[2, 3]))
+    for _ in range(2):
+        centre = xyz.mean(axis=0)
+        normal = np.linalg.svd(xyz - centre)[2][2]
+        off = np.abs((xyz - centre) @ normal)
+        xyz = xyz[off <= 3.0 * 1.4826 * np.median(off) + 1e-9]
+    return centre, normal if normal[2] > 0 else -normal
+
+
+def _pose_on_partner_ground(pair_rec, pair_new, pair_partner, main_partner, camera, plane, min_inliers: int):
+    """``pair_new``'s cam_from_world in the main model: each point of the two-photo model is
+    re-made as the partner's ray (main-model pose) meeting the ground ``plane``, then
+    absolute pose (P3P RANSAC + refinement) from ``pair_new``'s observations of them.
+    Returns (``pycolmap.Rigid3d``, inliers) or None."""
+    import pycolmap
+
+    r_world_from_cam = main_partner.cam_from_world().rotation.matrix().T
+    centre = main_partner.projection_center()
+    xy_new, xy_partner = [], []
+    for point in pair_rec.points3D.values():
+        idx = {e.image_id: e.point2D_idx for e in point.track.elements}
+        if pair_new.image_id in idx and pair_partner.image_id in idx:
+            xy_new.append(pair_new.points2D[idx[pair_new.image_id]].xy)
+            xy_partner.append(pair_partner.points2D[idx[pair_partner.image_id]].xy)
+    if len(xy_new) < min_inliers:
+        return None
+    rays = np.hstack((np.asarray(camera.cam_from_img(np.array(xy_partner))), np.ones((len(xy_partner), 1))))
+    rays = rays @ r_world_from_cam.T
+    along = rays @ plane[1]
+    ok = along < -1e-6  # rays going down to the ground
+    t = ((plane[0] - centre) @ plane[1]) / np.where(ok, along, -1.0)
+    ground = centre + rays * t[:, None]
+    found = pycolmap.estimate_and_refine_absolute_pose(np.array(xy_new)[ok], ground[ok], camera)
+    if found is None or found["num_inliers"] < min_inliers:
+        return None
+    return found["cam_from_world"], int(found["num_inliers"])
 
 
 def attach_pair(pair_rec, main_rec, main_georef: ModelGeoref, pair: PairModel, photos: list[Photo],
-                frame: LocalFrame, model_index: int, *, max_offset_m: float = 5.0,
-                gps_shift_enu: dict[str, np.ndarray] | None = None) -> ModelGeoref:
-    """Place ``pair.photo`` with its two-photo model ``pair_rec`` anchored on ``pair.partner``.
+                frame: LocalFrame, model_index: int, *, max_offset_m: float = 5.0, max_vertical_m: float = 12.0,
+                min_inliers: int = 30, gps_shift_enu: dict[str, np.ndarray] | None = None) -> ModelGeoref:
+    """Place ``pair.photo`` from its two-photo model ``pair_rec`` on the partner's ground.
 
-    The similarity takes the partner's rotation and centre from the georeferenced
-    ``main_rec`` (so the partner's pose agrees with the main model exactly) and its scale
-    from the ground: the median depth of the points the partner sees in the main model
-    (metres) over that in the two-photo model. The photo's own GPS is not used to place it,
-    so it is an independent check: the photo counts as placed only when the partner is a
-    GPS inlier of the main model and the photo's centre lies within ``max_offset_m`` of
-    its GPS position (moved by ``gps_shift_enu``, the GPS lag correction, when given).
-    ``pair_rec`` is transformed in place and the
-    partner deregistered from it (it stays in the main model), leaving one posed photo.
+    The partner's pose and its ground come from the georeferenced ``main_rec``: a plane
+    through the main model's points the partner sees. Each point of the two-photo model is
+    re-made where the partner's ray meets that plane, and the photo's pose is the absolute
+    pose (RANSAC, at least ``min_inliers`` inliers) from its observations of them, so the
+    scale and the baseline's direction are metric (a homography's decomposition over flat
+    ground leaves the baseline's tilt loose: on Seneca it put IMG_0460 9.8 m off).
+    The photo's own GPS is not used to place it and checks it: the partner must be a GPS
+    inlier of the main model and the photo's centre within ``max_offset_m`` of its GPS
+    horizontally and ``max_vertical_m`` vertically (GPS heights wander by metres: 3x a
+    4 m sigma), the GPS moved by ``gps_shift_enu`` (the GPS lag correction) when given.
+    ``pair_rec`` is moved in place by the similarity that gives the photo that pose (its
+    scale from the baseline) and the partner is deregistered from it, leaving one photo.
     """
     import pycolmap
 
@@ -236,37 +273,42 @@ def attach_pair(pair_rec, main_rec, main_georef: ModelGeoref, pair: PairModel, p
     if result.reason:
         log.warning("model %d: %s", model_index, result.reason)
         return result
+    pair_new, pair_partner, main_partner = pair_images[pair.photo], pair_images[pair.partner], main_images[pair.partner]
+    plane = _ground_plane(main_rec, main_partner)
+    placed = None if plane is None else _pose_on_partner_ground(
+        pair_rec, pair_new, pair_partner, main_partner, main_rec.cameras[main_partner.camera_id], plane, min_inliers)
+    if placed is None:
+        result.reason = f"{pair.photo}: fewer than {min_inliers} of its points on the ground under {pair.partner}"
+        log.warning("model %d: %s", model_index, result.reason)
+        return result
+    pose, inliers = placed
     shift = gps_shift_enu or {}
     gps_new = _enu(frame, new_p) + shift.get(new_p.name, 0.0)
     gps_partner = _enu(frame, partner_p) + shift.get(partner_p.name, 0.0)
-    pair_new, pair_partner = pair_images[pair.photo], pair_images[pair.partner]
-    depth_main_m = _median_depth(main_rec, main_images[pair.partner])
-    depth_pair = _median_depth(pair_rec, pair_partner)
-    if not (depth_main_m > 0 and depth_pair > 0):
-        result.reason = f"{pair.photo}: no ground depth under {pair.partner} to scale its two-view model"
-        log.warning("model %d: %s", model_index, result.reason)
-        return result
-    # world_main_from_pair: rotation R_main^T R_pair (both cam_from_world), partner centre kept.
-    r_main = main_images[pair.partner].cam_from_world().rotation.matrix()
-    r_pair = pair_partner.cam_from_world().rotation.matrix()
-    rotation = r_main.T @ r_pair
-    scale = depth_main_m / depth_pair
-    translation = main_images[pair.partner].projection_center() - scale * rotation @ pair_partner.projection_center()
-    sim = pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), translation)
-    moved = _apply(sim, pair_new.projection_center()[None, :])[0]
-    offset = moved - gps_new
-    baseline_m = scale * np.linalg.norm(pair_new.projection_center() - pair_partner.projection_center())
-    result.two_view.update({"baseline_m": float(baseline_m), "baseline_gps_m": float(np.linalg.norm(gps_new - gps_partner)),
-                            "offset_m": float(np.linalg.norm(offset))})
-    if np.linalg.norm(offset) > max_offset_m:
-        result.reason = (f"{pair.photo}: two-view model with {pair.partner} puts it {np.linalg.norm(offset):.1f} m "
-                         f"from its GPS (more than {max_offset_m} m); not placed")
+    # world_main_from_pair: the photo's rotation and centre as placed, scale from the baseline.
+    r_pair, r_pose = pair_new.cam_from_world().rotation.matrix(), pose.rotation.matrix()
+    centre_new = -r_pose.T @ pose.translation
+    rotation = r_pose.T @ r_pair
+    scale = float(np.linalg.norm(centre_new - main_partner.projection_center())
+                  / np.linalg.norm(pair_new.projection_center() - pair_partner.projection_center()))
+    sim = pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation),
+                         centre_new - scale * rotation @ pair_new.projection_center())
+    offset = centre_new - gps_new
+    horizontal_m, vertical_m = float(np.linalg.norm(offset[:2])), float(abs(offset[2]))
+    result.two_view.update({"baseline_m": float(np.linalg.norm(centre_new - main_partner.projection_center())),
+                            "baseline_gps_m": float(np.linalg.norm(gps_new - gps_partner)),
+                            "offset_m": float(np.linalg.norm(offset)), "offset_horizontal_m": horizontal_m,
+                            "offset_vertical_m": float(offset[2]), "pose_inliers": inliers})
+    if horizontal_m > max_offset_m or vertical_m > max_vertical_m:
+        result.reason = (f"{pair.photo}: placed from {pair.partner} {horizontal_m:.1f} m horizontally and "
+                         f"{vertical_m:.1f} m vertically from its GPS (limits {max_offset_m:g} m, "
+                         f"{max_vertical_m:g} m); not placed")
         log.warning("model %d: %s", model_index, result.reason)
         return result
     pair_rec.transform(sim)
     pair_rec.deregister_frame(pair_partner.frame_id)
     result.georeferenced = True
-    result.reason = f"registered via two-view model with {pair.partner} ({pair.inliers} inliers)"
+    result.reason = f"registered via two-view model with {pair.partner} ({pair.inliers} inliers, {inliers} on its ground)"
     result.scale = float(sim.scale)
     result.rotation_xyzw = [float(v) for v in sim.rotation.quat]
     result.translation_m = [float(v) for v in sim.translation]

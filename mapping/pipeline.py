@@ -57,7 +57,8 @@ class PipelineConfig:
     spatial_neighbours: int = 12          # GPS neighbours matched per photo in spatial matching
     max_agl_m: float = 120.0              # upper bound of height above ground for the overlap check
     georef_max_error_m: float = 10.0      # RANSAC inlier distance camera centre <-> GPS
-    two_view_max_offset_m: float = 5.0    # a photo placed by a two-view model must be this close to its GPS
+    two_view_max_offset_m: float = 5.0    # a photo placed by a two-view model: this close to its GPS horizontally
+    two_view_max_vertical_m: float = 12.0  # ... and vertically (GPS heights wander: 3x a 4 m sigma)
     ortho_seams: bool = True              # one photo per pixel, graph-cut seams, gains (False: feathered mean)
     seam_band_px: float = 6.0             # blending band across a seam, orthophoto pixels
     blend_power: float = 2.0              # feathered mean only: exponent of the edge-distance weight
@@ -349,7 +350,8 @@ def _attach_pairs(config, project, state, results: list) -> list[str]:
         lag = results[host].gps_lag
         shift = {n: lag["lag_s"] * v for n, v in state.get("velocities", {}).items()} if lag.get("applied") else None
         found = attach_pair(pair_rec, models[host], results[host], pair, state["photos"], frame, len(results),
-                            max_offset_m=config.two_view_max_offset_m, gps_shift_enu=shift)
+                            max_offset_m=config.two_view_max_offset_m,
+                            max_vertical_m=config.two_view_max_vertical_m, gps_shift_enu=shift)
         if not found.georeferenced:
             rejected.append(found.reason)
             continue
