@@ -261,6 +261,15 @@ class WorldCamera:
             self._gimbal.advance(t_s)
             self._gimbal.command(yaw, pitch)
 
+    def set_gimbal_fault(self, fault: GimbalFault | None) -> None:
+        """Schedule (or clear, with None) a gimbal fault during the flight (times: simulation seconds)."""
+        if fault is not None and not isinstance(fault, GimbalFault):
+            raise InputError(f"fault must be a GimbalFault or None, got {type(fault).__name__}")
+        t_s = self.sim.time_s
+        with self._lock:
+            self._gimbal.advance(t_s)
+            self._gimbal.fault = fault
+
     def __call__(self) -> CameraFrame | None:
         """The frame exposed ``latency_s`` ago, delivered now (None before the exposure time exists)."""
         with self.sim.lock:

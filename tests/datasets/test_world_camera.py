@@ -177,6 +177,14 @@ def test_gimbal_fault_takes_the_target_out_of_view_and_back(sim):
     wc()
     assert wc.last_truth.in_view(1)
     assert [keys for _, keys in wc.in_view_log] == [(1,), (), (1,)]
+    wc.set_gimbal_fault(GimbalFault(sim.time_s, 5.0, -60.0))  # scheduled in flight
+    sim.run_steps(50)
+    wc()
+    assert not wc.last_truth.in_view(1)
+    wc.set_gimbal_fault(None)
+    sim.run_steps(50)
+    wc()
+    assert wc.last_truth.in_view(1)
 
 
 def test_latency_stamps_the_exposure_time(sim):
