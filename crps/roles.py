@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from skyfix import geo
 from skyfix.crps.help_protocol import HelpConfig, HelperStatus, HelpRequester, HelpResponder
 from skyfix.crps.messages import Body, Envelope
 from skyfix.crps.vantage import Vantage, VantageConfig, vantage_point
@@ -62,6 +63,7 @@ class RequesterConfig:
     fused_sigma_h_max_m: float = 3.0  # a helper-based fix this tight (1-sigma) is good enough to fly on
     fix_max_age_s: float = 2.0       # an older fused estimate does not count
     hold_timeout_s: float = 90.0     # no usable fix for this long while holding: land
+    land_near_home_m: float = 6.0    # returning home and this close (fused, horizontal) when the fix goes: land
 
 
 @dataclass(frozen=True)
@@ -137,7 +139,17 @@ class RequesterRole:
             elif now_s - self.since_s >= self.cfg.hold_timeout_s:
                 self._set(Mode.LAND, f"no helper fix for {self.cfg.hold_timeout_s:.0f} s", now_s)
         elif self.mode in (Mode.RETURN_HOME, Mode.CONTINUE) and not good:
-            self._set(Mode.HOLD, "helper fix lost", now_s)
+            if self.mode is Mode.RETURN_HOME and self._near_home(fused):
+                # over home and descending, the helpers lose it against the ground: finish the landing
+                self._set(Mode.LAND, "helper fix lost over home", now_s)
+            else:
+                self._set(Mode.HOLD, "helper fix lost", now_s)
+
+    def _near_home(self, fused: Estimate | None) -> bool:
+        if fused is None:
+            return False
+        _, dist_m = geo.inverse(fused.lat_deg, fused.lon_deg, self.home[0], self.home[1])
+        return float(dist_m) <= self.cfg.land_near_home_m
 
     def _setpoint(self, fused: Estimate | None) -> tuple[float, float, float] | None:
         if self.mode is Mode.HOLD and self.last_good is not None:

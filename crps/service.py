@@ -21,6 +21,7 @@ import math
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -60,6 +61,9 @@ class ServiceConfig:
     heartbeat_hz: float = 2.0
     inject: bool = False
     safety: object | None = None  # a drivers SafetyGate installed on the vehicle at every (re)connection
+    help: object | None = None  # a crps.help_loop.HelpSetup: ask for help on GNSS loss, answer others' requests
+    clock: Callable[[], float] | None = None  # the swarm's clock, s (None: UNIX time; a simulator's time in tests)
+    time_of: Callable[[object], float] | None = None  # telemetry record -> clock (None: its reception time)
 
 
 class Service:
@@ -67,13 +71,15 @@ class Service:
 
     def __init__(self, config: ServiceConfig, transport: Transport | None = None) -> None:
         self.cfg = config
-        self.codec = M.SwarmCodec(config.drone_id, config.key, config.roster)
+        self.clock = config.clock or time.time
+        self.codec = M.SwarmCodec(config.drone_id, config.key, config.roster, clock=self.clock)
         self.peers = PeerTable()
         self.outputs = Outputs(config.log_path, config.live, name=f"skyfix {config.drone_id}")
         self.node: Node | None = None
         self.vehicle = None
         self.injector = None
         self.camera = None
+        self.help = None  # the HelpLoop, once fusion has an origin (config.help)
         self.stop = threading.Event()
         self.inbox: queue.Queue[tuple[float, M.Envelope]] = queue.Queue(INBOX_SIZE)
         self.counters = {"mavlink_connects": 0, "mavlink_lost": 0, "inbox_overflow": 0, "sent": 0,
@@ -99,7 +105,7 @@ class Service:
             while not self.stop.is_set():
                 try:
                     self._drain_inbox()
-                    for event in self.peers.check():  # every tick: lost at most 1.5 s + one period after
+                    for event in self.peers.check(self.clock()):  # every tick: lost at most 1.5 s + one period after
                         self._peer_event(event)
                     self._tick()
                     now = time.monotonic()
@@ -123,6 +129,8 @@ class Service:
         self.transport.close()
         if self.camera is not None:
             self.camera.stop()
+        if self.help is not None:
+            self.help.close()
         if self.vehicle is not None:
             self.vehicle.close()
         self.outputs.json("/swarm/dropped", self._drop_report())
@@ -142,7 +150,7 @@ class Service:
             self.codec.dropped["wrong_key_expr"] += 1
             return
         try:
-            self.inbox.put((time.time(), env), timeout=0.5)  # heard now, even if the main loop is busy
+            self.inbox.put((self.clock(), env), timeout=0.5)  # heard now, even if the main loop is busy
         except queue.Full:
             self.counters["inbox_overflow"] += 1
             log.error("peer inbox full for 0.5 s: main loop stalled; message from %s lost", env.sender)
@@ -161,6 +169,8 @@ class Service:
             self._peer_event(event)
         body = env.body
         self.outputs.json(f"/swarm/in/{type(body).__name__}", M.to_builtins(env), env.time_s)
+        if self.help is not None:
+            self.help.receive(env, heard_s)
         if self.node is None:
             return
         try:
@@ -215,7 +225,7 @@ class Service:
         from skyfix.crps.sim_camera import SimCamera
 
         def own():
-            fix = self.node.fix(self.cfg.drone_id, time.time()) if self.node is not None else None
+            fix = self.node.fix(self.cfg.drone_id, self.clock()) if self.node is not None else None
             return None if fix is None else (fix.lat_deg, fix.lon_deg, fix.alt_m)
 
         def peers():
@@ -237,11 +247,15 @@ class Service:
             self.node = Node(self.cfg.drone_id, origin, config=config, make_sink=self.outputs.fusion_sink)
             log.info("fusion origin %.7f, %.7f, %.2f m", *origin)
         if state is not None and state.link_ok:
-            self.node.add_telemetry(self.cfg.drone_id, state, lambda m: m.time_s,
+            self.node.add_telemetry(self.cfg.drone_id, state, self.cfg.time_of or (lambda m: m.time_s),
                                     use_gnss=self.injector is None)
         estimates = self.node.update((self.cfg.drone_id,))  # peers publish their own
-        now = time.time()
+        now = self.clock()
         fix = self.node.fix(self.cfg.drone_id, now)
+        if self.help is None and self.cfg.help is not None and state is not None and state.home is not None:
+            self.help = self.cfg.help.build(self)
+        if self.help is not None:
+            self.help.step(now, state)
         if fix is None:
             return
         own = next((e for e in estimates if e.drone_id == self.cfg.drone_id), self.node.latest[self.cfg.drone_id])
@@ -256,9 +270,13 @@ class Service:
     def _injection(self, vehicle, state, fix) -> None:
         """GPS_INPUT of the fused fix while the drone's own GNSS is lost; stop when it is back."""
         gnss_lost = state is not None and state.gps is not None and state.gps.fix_type < GNSS_OK_FIX_TYPE
+        if self.help is not None and self.help.recovering:
+            gnss_lost = True  # until fusion finds GNSS healthy and consistent again, whatever the receiver says
         if gnss_lost and self.injector is None:
             try:
-                self.injector = vehicle.start_gps_injection(lambda: self.node.fix(self.cfg.drone_id, time.time()))
+                # the message's time stamp is UNIX time (GPS week/ms), whatever the swarm's clock
+                self.injector = vehicle.start_gps_injection(
+                    lambda: self.node.fix(self.cfg.drone_id, self.clock(), time_stamp_s=time.time()))
             except SkyfixError as exc:
                 log.error("cannot inject the fused position: %s", exc)
                 return

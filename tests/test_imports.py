@@ -31,8 +31,8 @@ ALLOWED = {
 }
 #: crps modules above fusion (the swarm system) and the applications on top; the rest is perception.
 CRPS_SYSTEM = {"node", "transport", "messages", "swarm", "outputs", "camera_feed", "cli", "__init__",
-               "help_protocol", "help_agent", "roles", "vantage"}
-CRPS_APPS = {"demo", "service", "serve_cli", "sim_camera"}
+               "help_protocol", "help_agent", "roles", "vantage", "help_loop"}
+CRPS_APPS = {"demo", "service", "serve_cli", "sim_camera", "recovery", "recovery_faults", "recovery_report"}
 
 
 def _layer_of_module(dotted: str) -> str | None:

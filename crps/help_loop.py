@@ -1,0 +1,267 @@
+"""GPS-loss recovery inside ``skyfix serve``: the help agent on the service's loop, its decisions flown.
+
+:class:`HelpLoop` runs :class:`skyfix.crps.help_agent.HelpAgent` from the service's main loop
+(every accepted envelope in, one step per tick with fusion's GNSS health and estimate of this
+drone) and acts on its decisions through :mod:`skyfix.drivers`:
+
+- as the requester (its own GNSS lost or rejected): the service injects the fused position
+  (GPS_INPUT) for as long as the recovery lasts; the autopilot holds (LOITER), then flies the
+  fault response once helpers position it (RTL by default, the mission, or LAND), lands when
+  no helper fix comes; normal again once fusion finds GNSS healthy and consistent (the
+  autopilot keeps the mode it is in: a return home is finished, not undone);
+- as a helper: it flies to the vantage point with guided setpoints (kept >= 10 m from every
+  drone by :func:`skyfix.crps.vantage.vantage_point`), aims the gimbal at the requester's
+  newest fix, and its :class:`skyfix.crps.helper_eye.HelperEye` turns camera frames into
+  relative observations that are signed and published here; on release it resumes the mode
+  it left (its mission).
+
+Autopilot commands block for their acknowledgement, so they run on one worker thread; the
+wanted mode is re-commanded until the autopilot reports it (a lost command, a link drop).
+Times: the service's clock, s. Positions: WGS84, ellipsoidal heights.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from skyfix import geo
+from skyfix.crps import messages as M
+from skyfix.crps.help_agent import HelpAgent
+from skyfix.crps.help_protocol import HelpConfig, HelperStatus
+from skyfix.crps.helper_eye import EyeConfig, HelperEye
+from skyfix.crps.roles import FaultResponse, HelperDecision, Mode, RequesterConfig
+from skyfix.crps.vantage import VantageConfig
+from skyfix.drivers.modes import role_mode
+from skyfix.errors import SkyfixError
+from skyfix.fusion.health import HealthState
+from skyfix.types import GeoFix
+
+log = logging.getLogger(__name__)
+
+RECOMMAND_WALL_S = 2.0  # a wanted mode not reported by the autopilot after this long is commanded again
+GOTO_MOVE_M = 2.0       # a vantage point that moved this far is sent again
+_ROLE_OF = {Mode.HOLD: "hold", Mode.RETURN_HOME: "rtl", Mode.LAND: "land", Mode.CONTINUE: "mission"}
+
+
+@dataclass(frozen=True)
+class HelpSetup:
+    """How a service takes part in GPS-loss recovery (``ServiceConfig.help``). ``camera``: the gimbal
+    camera used to help (None: this drone asks for help but never offers it)."""
+
+    fault_response: str = "return_home"
+    camera: object | None = None
+    eye: EyeConfig = field(default_factory=EyeConfig)
+    requester: RequesterConfig | None = None
+    protocol: HelpConfig | None = None
+    vantage: VantageConfig | None = None
+    min_alt_rel_m: float = 5.0        # a vantage point is never lower than this above home
+    on_frame: object | None = None    # HelperEye's on_frame (a harness scoring the camera), else None
+
+    def build(self, service) -> HelpLoop:
+        return HelpLoop(service, self)
+
+
+class _Actions:
+    """One worker thread for blocking autopilot commands; a newer command of a kind replaces a waiting one."""
+
+    def __init__(self, name: str) -> None:
+        self._pending: dict[str, tuple[str, object]] = {}
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self.busy = False
+        self._thread = threading.Thread(target=self._run, daemon=True, name=name)
+        self._thread.start()
+
+    def submit(self, kind: str, what: str, fn) -> None:
+        with self._lock:
+            self._pending[kind] = (what, fn)
+        self._wake.set()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(timeout=5.0)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(0.5)
+            self._wake.clear()
+            while not self._stop.is_set():
+                with self._lock:
+                    if not self._pending:
+                        break
+                    what, fn = self._pending.pop(next(iter(self._pending)))
+                    self.busy = True
+                try:
+                    fn()
+                except SkyfixError as exc:  # refused, timed out, link down: the loop asks again later
+                    log.warning("%s failed: %s", what, exc)
+                finally:
+                    self.busy = False
+
+
+class HelpLoop:
+    """The help roles of ``service`` (a :class:`skyfix.crps.service.Service` with a node and a vehicle)."""
+
+    def __init__(self, service, setup: HelpSetup) -> None:
+        self.svc, self.setup = service, setup
+        self.id = service.cfg.drone_id
+        home = service.vehicle.state.home
+        self.home = (home.lat_deg, home.lon_deg, home.alt_ellipsoid_m)
+        rcfg = setup.requester or RequesterConfig(fault_response=FaultResponse.parse(setup.fault_response))
+        self.agent = HelpAgent(service.codec, service.transport, service.peers, self.home, service.node.frame,
+                               requester_cfg=rcfg, help_cfg=setup.protocol, vantage_cfg=setup.vantage)
+        self.eye = HelperEye(setup.camera, self.id, lambda t: service.node.fix(self.id, t), service.clock,
+                             setup.eye, on_frame=setup.on_frame) if setup.camera is not None else None
+        self.events: list[tuple[float, str]] = []  # the timeline: (clock s, what happened)
+        self.mode = Mode.NORMAL
+        self.helping: str | None = None
+        self.helpers: tuple[str, ...] = ()
+        self._status = HelperStatus(*self.home, 1.0, localised=False, available=False)
+        self._peer_fix: dict[str, tuple[GeoFix, np.ndarray]] = {}
+        self._want: str | None = None
+        self._want_sent_wall_s = -math.inf
+        self._resume: str | None = None
+        self._goto_enu: np.ndarray | None = None
+        self._actions = _Actions(f"skyfix-help-{self.id}")
+
+    @property
+    def recovering(self) -> bool:
+        """True while this drone flies without its own GNSS (hold, fault response, landing)."""
+        return self.mode is not Mode.NORMAL
+
+    def close(self) -> None:
+        if self.eye is not None:
+            self.eye.close()
+        self._actions.close()
+
+    # -- service hooks ---------------------------------------------------------------------------
+    def receive(self, env: M.Envelope, now_s: float) -> None:
+        """Every accepted envelope (main loop)."""
+        body = env.body
+        if isinstance(body, M.FusedEstimate):
+            try:
+                self._peer_fix[env.sender] = (M.estimate_fix(body, env.sender), np.asarray(body.vel_enu_mps, float))
+            except (SkyfixError, ValueError):
+                pass  # counted by the service's own handling of the same message
+        self.agent.receive(env, now_s, self._status)
+
+    def step(self, now_s: float, state) -> None:
+        """One tick after fusion: decide, act, publish the camera's observations."""
+        node = self.svc.node
+        fused = node.latest.get(self.id)
+        gnss = node.engine.health(self.id).get("gnss") if self.id in node.engine.drone_ids else None
+        self._status = self._my_status(now_s, state, gnss)
+        peers = {p.drone_id: (p.lat_deg, p.lon_deg, p.alt_m) for p in self.svc.peers.snapshot()
+                 if not p.lost and math.isfinite(p.lat_deg) and math.isfinite(p.alt_m)}
+        decisions = self.agent.step(now_s, gnss, fused, self._status, peers)
+        self._as_requester(now_s, decisions.requester)
+        self._as_helper(now_s, decisions.helper)
+        if self.eye is not None:
+            for obs in self.eye.take():
+                self.svc._publish(M.relative_message(obs))
+        self._command_mode(state)
+
+    # -- decisions -> autopilot ------------------------------------------------------------------
+    def _my_status(self, now_s: float, state, gnss) -> HelperStatus:
+        fix = self.svc.node.fix(self.id, now_s)
+        battery = state.battery.remaining_pct / 100.0 if state is not None and state.battery is not None \
+            and math.isfinite(state.battery.remaining_pct) else 0.0
+        if fix is None:
+            return HelperStatus(*self.home, battery, localised=False, available=False)
+        airborne = state is not None and state.armed and state.position is not None \
+            and state.position.alt_rel_m > 2.0
+        localised = gnss is not None and gnss.state is HealthState.OK and fix.sigma_horizontal_m <= 3.0
+        return HelperStatus(fix.lat_deg, fix.lon_deg, fix.alt_m, battery, localised=localised,
+                            available=self.eye is not None and airborne)
+
+    def _event(self, now_s: float, text: str) -> None:
+        self.events.append((now_s, text))
+        log.info("%s: %s", self.id, text)
+        self.svc.outputs.json("/help/event", {"time_s": now_s, "drone": self.id, "event": text}, now_s)
+
+    def _as_requester(self, now_s: float, dec) -> None:
+        if dec.mode is not self.mode:
+            self._event(now_s, f"{dec.mode.value} ({dec.reason})")
+            self.mode = dec.mode
+            role = _ROLE_OF.get(dec.mode)
+            self._want = None if role is None else role_mode(self._flavour(), role)
+            self._want_sent_wall_s = -math.inf
+        if dec.helpers != self.helpers:
+            self.helpers = dec.helpers
+            self._event(now_s, f"helpers assigned: {', '.join(dec.helpers) or 'none'}")
+
+    def _as_helper(self, now_s: float, dec: HelperDecision) -> None:
+        vehicle = self.svc.vehicle
+        if dec.helping != self.helping:
+            if dec.helping is not None:
+                self._event(now_s, f"helping {dec.helping}")
+                if self.helping is None and vehicle is not None:
+                    self._resume = vehicle.state.mode
+                self._want = None
+            else:
+                self._event(now_s, f"released by {self.helping}, back to {self._resume or 'its mission'}")
+                self._want, self._want_sent_wall_s = self._resume, -math.inf
+                self._goto_enu = None
+            self.helping = dec.helping
+            if self.eye is not None and dec.helping is None:
+                self.eye.set_target(None)
+        if dec.helping is None or vehicle is None:
+            return
+        if dec.vantage is not None:
+            v = dec.vantage.enu_m
+            if self._goto_enu is None or float(np.linalg.norm(v - self._goto_enu)) > GOTO_MOVE_M:
+                self._goto_enu = v.copy()
+                lat, lon, alt = (float(c) for c in self.svc.node.frame.to_geodetic(*v))
+                alt_rel = max(alt - self.home[2], self.setup.min_alt_rel_m)
+                self._actions.submit("move", f"{self.id} goto vantage",
+                                     lambda: vehicle.goto(lat, lon, alt_rel))
+        self._aim(now_s, dec.helping, dec.target)
+
+    def _aim(self, now_s: float, target_id: str, target_pos) -> None:
+        """Gimbal at the target's newest fix (moved to now with its velocity); the eye looks around it."""
+        if self.eye is None:
+            return
+        own = self.svc.node.fix(self.id, now_s)
+        known = self._peer_fix.get(target_id)
+        if known is not None:
+            fix, vel = known
+            frame = geo.LocalFrame(fix.lat_deg, fix.lon_deg, fix.alt_m)
+            dt = max(0.0, now_s - fix.time_s)
+            lat, lon, alt = (float(c) for c in frame.to_geodetic(*(vel * dt)))
+            prior = GeoFix(lat, lon, alt, fix.cov_enu_m2, now_s, fix.source_id)
+        elif target_pos is not None:
+            prior = GeoFix(*target_pos, np.diag([25.0, 25.0, 9.0]), now_s, f"request:{target_id}")
+        else:
+            return
+        if own is not None:
+            az_deg, dist_m = geo.inverse(own.lat_deg, own.lon_deg, prior.lat_deg, prior.lon_deg)
+            pitch_deg = math.degrees(math.atan2(prior.alt_m - own.alt_m, max(float(dist_m), 1e-3)))
+            self.eye.point(float(az_deg), pitch_deg)
+        self.eye.set_target(target_id, prior)
+
+    def _command_mode(self, state) -> None:
+        """Command the wanted mode until the autopilot reports it."""
+        vehicle = self.svc.vehicle
+        want = self._want
+        if want is None or vehicle is None or state is None or not state.link_ok:
+            return
+        if state.mode == want:
+            if not self.recovering:
+                self._want = None  # back on its mission: the mission's own mode changes are its business
+            return
+        if time.monotonic() - self._want_sent_wall_s < RECOMMAND_WALL_S or self._actions.busy:
+            return
+        self._want_sent_wall_s = time.monotonic()
+        self._actions.submit("mode", f"{self.id} mode {want}", lambda: vehicle.set_mode(want))
+
+    def _flavour(self) -> str:
+        vehicle = self.svc.vehicle
+        return vehicle.autopilot if vehicle is not None and vehicle.autopilot in ("ardupilot", "px4") else "ardupilot"

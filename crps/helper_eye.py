@@ -1,0 +1,180 @@
+"""A helper's camera in GPS-loss recovery: point the gimbal, detect and range the target, observe.
+
+While its drone helps, :class:`HelperEye` grabs frames from a gimbal camera (``camera()``
+returns a frame with ``image`` uint8 (H, W), ``t_s`` exposure time on the swarm's clock,
+``yaw_deg``/``pitch_deg`` the stabilised gimbal's earth-frame attitude as the gimbal reports
+it, ``camera`` its :class:`skyfix.camera.Camera`; ``camera.point(yaw_deg, pitch_deg)`` aims
+it) on a worker thread and processes the pixels as a real camera's: the helper's own fused
+pose at the exposure, a search window from the target's last fix (:func:`prior_window`),
+the silhouette tracker with the model fit, the aspect check, and :func:`observe` with the
+helper's own position covariance. Observations wait in a queue for the service's main loop,
+which signs and publishes them (:meth:`take`). Nothing here reads any truth.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from skyfix.camera import Camera, CameraPose
+from skyfix.crps.detection import Detection
+from skyfix.crps.fit import SilhouetteFit
+from skyfix.crps.model import DroneModel, shape_table
+from skyfix.crps.observation import observe, shape_consistent
+from skyfix.crps.prior import PriorWindow, prior_gate, prior_window
+from skyfix.crps.silhouette import SilhouetteDetector
+from skyfix.crps.track import Tracker
+from skyfix.errors import SkyfixError
+from skyfix.types import GeoFix, RelativeObservation
+
+log = logging.getLogger(__name__)
+
+OBS_QUEUE = 64
+
+
+@dataclass(frozen=True)
+class EyeConfig:
+    """Helper camera processing (rates on the swarm's clock)."""
+
+    frame_hz: float = 5.0              # frames taken while helping, per second of the swarm's clock
+    speed: float = 1.0                 # swarm-clock seconds per wall second (a simulator run faster)
+    target_span_m: float = 0.5         # rotor tip to tip of the drone helped
+    target_arms: int = 4
+    attitude_sigma_deg: float = 0.5    # 1-sigma pointing error of the reported gimbal attitude
+    prior_sigma_m: float = 2.0         # added to the prior's sigma: the target moves, the fix lags
+
+
+class _GatedDetector:
+    """The silhouette detector searching inside the prior window, keeping what falls in its gate."""
+
+    def __init__(self) -> None:
+        self.base = SilhouetteDetector()
+        self.window: PriorWindow | None = None
+
+    def __call__(self, image: np.ndarray, roi=None) -> list[Detection]:
+        window = self.window
+        if roi is None and window is not None:
+            roi = window.roi(image.shape[1], image.shape[0])
+            if roi is None:
+                return []  # the prior is outside this image
+        found = self.base(image, roi)
+        return found if window is None else prior_gate(window, found)
+
+
+class HelperEye:
+    """The camera pipeline of helper ``drone_id``; ``own_fix(t_s)`` is its fused GeoFix at ``t_s``
+    (with covariance) or None; ``clock()`` the swarm's clock."""
+
+    def __init__(self, camera, drone_id: str, own_fix: Callable[[float], GeoFix | None],
+                 clock: Callable[[], float], cfg: EyeConfig | None = None,
+                 on_frame: Callable[[object, str, bool], None] | None = None) -> None:
+        """``on_frame(frame, target_id, detected)`` after every processed frame (a harness scores with it)."""
+        self.camera, self.drone_id, self.own_fix, self.clock = camera, str(drone_id), own_fix, clock
+        self.on_frame = on_frame
+        self.cfg = cfg or EyeConfig()
+        self.model = DroneModel(arms=self.cfg.target_arms, span_m=self.cfg.target_span_m)
+        self.frames: list[tuple[float, str, bool]] = []  # (t_s, target id, detected) per processed frame
+        self.observations: queue.Queue[RelativeObservation] = queue.Queue(OBS_QUEUE)
+        self._target: tuple[str, GeoFix] | None = None
+        self._lock = threading.Lock()
+        self._detector = _GatedDetector()
+        self._tracker: Tracker | None = None
+        self._tracker_camera: Camera | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True, name=f"skyfix-eye-{drone_id}")
+        self._thread.start()
+
+    def point(self, yaw_deg: float, pitch_deg: float) -> None:
+        """Aim the gimbal: earth-frame yaw (deg from north, clockwise) and pitch (deg, negative down)."""
+        self.camera.point(float(yaw_deg), float(pitch_deg))
+
+    def set_target(self, target_id: str | None, prior: GeoFix | None = None) -> None:
+        """Look for ``target_id`` around ``prior`` (its last fix); None stops looking."""
+        with self._lock:
+            changed = self._target is None or target_id is None or self._target[0] != target_id
+            self._target = None if target_id is None or prior is None else (str(target_id), prior)
+        if changed:
+            self._tracker = None  # a new target: search afresh
+
+    def take(self) -> list[RelativeObservation]:
+        """The observations made since the last call."""
+        out = []
+        while True:
+            try:
+                out.append(self.observations.get_nowait())
+            except queue.Empty:
+                return out
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(timeout=3.0)
+
+    # -- worker ---------------------------------------------------------------------------------
+    def _run(self) -> None:
+        # the fit's shape table takes seconds to build: before the first frame, not while the target waits
+        shape_table(self.model.scaled_to(1.0))
+        wall_period_s = 1.0 / (self.cfg.frame_hz * self.cfg.speed)
+        while not self._stop.wait(wall_period_s):
+            with self._lock:
+                target = self._target
+            if target is None:
+                continue
+            try:
+                frame = self.camera()
+                if frame is not None:
+                    detected = self._process(frame, *target)
+                    self.frames.append((frame.t_s, target[0], detected))
+                    if self.on_frame is not None:
+                        self.on_frame(frame, target[0], detected)
+            except SkyfixError as exc:  # an unusable frame or pose: logged, the next frame is tried
+                log.warning("helper %s camera: %s", self.drone_id, exc)
+            except Exception:  # noqa: BLE001 - a camera thread must outlive a bug in one frame
+                log.exception("helper %s camera frame failed", self.drone_id)
+
+    def _pose(self, frame) -> tuple[CameraPose, GeoFix] | None:
+        own = self.own_fix(frame.t_s)
+        if own is None:
+            return None
+        pose = CameraPose(own.lat_deg, own.lon_deg, own.alt_m, yaw_deg=float(frame.yaw_deg),
+                          gimbal_pitch_deg=float(frame.pitch_deg), stabilized=True)  # earth-frame gimbal
+        return pose, own
+
+    def _process(self, frame, target_id: str, prior: GeoFix) -> bool:
+        """Whether the target was detected in ``frame`` (its observation queued)."""
+        posed = self._pose(frame)
+        if posed is None:
+            return False
+        pose, own = posed
+        camera = frame.camera
+        if self._tracker is None or self._tracker_camera is not camera:
+            self._tracker = Tracker(self._detector, fit=SilhouetteFit(camera, self.model))
+            self._tracker_camera = camera
+        floor = np.eye(3) * self.cfg.prior_sigma_m ** 2
+        widened = GeoFix(prior.lat_deg, prior.lon_deg, prior.alt_m, prior.cov_enu_m2 + floor,
+                         prior.time_s, prior.source_id)
+        try:
+            self._detector.window = prior_window(camera, pose, widened, attitude_sigma_deg=self.cfg.attitude_sigma_deg,
+                                                 helper_cov_enu_m2=own.cov_enu_m2)
+        except SkyfixError:  # the prior is behind the camera: nothing to look for in this frame
+            return False
+        det = self._tracker.update(frame.image, frame.t_s, pose)
+        if det is None or not shape_consistent(camera, pose, det, self.model):
+            return False
+        obs = observe(camera, pose, det, self.cfg.target_span_m, model=self.model, observer_id=self.drone_id,
+                      target_id=target_id, time_s=frame.t_s, attitude_sigma_deg=self.cfg.attitude_sigma_deg,
+                      observer_cov_enu_m2=own.cov_enu_m2)
+        if not (math.isfinite(obs.range_m) and obs.range_m > 0):
+            return False
+        try:
+            self.observations.put_nowait(obs)
+        except queue.Full:  # the main loop stalled: the oldest observation is worth least
+            self.observations.get_nowait()
+            self.observations.put_nowait(obs)
+        return True

@@ -1,0 +1,317 @@
+"""GPS-loss recovery of one drone by two others, end to end on the simulator: what ``skyfix demo`` flies.
+
+Three simulated ArduPilot copters (:mod:`skyfix.datasets.sim`: wind, correlated GNSS errors on
+every receiver) each run a :class:`skyfix.crps.service.Service` (the ``skyfix serve`` node: MAVLink
+over loopback UDP, fusion, signed swarm messages over the in-process bus, GPS_INPUT injection,
+the help protocol via :class:`skyfix.crps.help_loop.HelpLoop`). Each surveys its own strip; one
+loses its GNSS receiver at a random moment. Its service holds, asks for help, the others fly to
+vantage points, point their gimbal cameras (:class:`skyfix.datasets.sim.world_camera.WorldCamera`,
+rendered from the simulator's truth) at it, detect and range it in the pixels and send relative
+observations; its fusion positions it from them, the injected fix takes it home (RTL) and it lands.
+The harness only flies the missions, schedules the faults and scores against the truth; no
+observation is computed from the truth. Times are simulated seconds (the swarm's clock).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import secrets
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from skyfix import validate
+from skyfix.crps.recovery_faults import Faults, LossyLink
+from skyfix.crps.recovery_report import HOME_RADIUS_M, Recorder, write_outputs
+from skyfix.errors import InputError, SkyfixError
+
+log = logging.getLogger(__name__)
+
+IDS = ("d1", "d2", "d3")
+LOST = 1                 # index of the drone that loses GNSS (d2, the middle strip)
+SPACING_M = 30.0         # between the drones' homes, east
+CRUISE_ALT_M = 15.0      # survey height above home
+STRIP_HALF_WIDTH_M = 6.0
+STRIP_LENGTH_M = 90.0
+SURVEY_LOOPS = 2
+LOSS_WINDOW_S = (15.0, 45.0)  # the loss comes this long after the survey starts (uniform, from the seed)
+
+
+@dataclass(frozen=True)
+class GnssModel:
+    """Errors of every simulated receiver: Gauss-Markov bias (1-sigma m per axis, correlation s) + white noise (m)."""
+
+    bias_sigma_m: float = 0.4
+    bias_tau_s: float = 60.0
+    noise_sigma_m: float = 0.15
+
+
+@dataclass
+class RecoveryConfig:
+    """One recovery run (the faults default off)."""
+
+    seed: int = 0
+    speed: float = 2.0                    # simulated seconds per wall second
+    output: Path | None = None            # folder for trajectory.png, report.json, the MCAP logs; None: none
+    loss_time_s: float | None = None      # GNSS loss, s after the survey starts; None: drawn from the seed
+    wind_mps: float = 3.0                 # mean wind speed (direction from the seed), gusts 20 % of it
+    gnss: GnssModel = field(default_factory=GnssModel)
+    healthy: bool = False                 # no GNSS loss: the same drone flies RTL at the loss time (baseline)
+    fault_response: str = "return_home"
+    helper_dropout_s: float | None = None  # the first assigned helper goes silent this long after the loss
+    swarm_loss_rate: float = 0.0          # share of swarm datagrams lost, every drone, both ways
+    mav_outage_s: float = 0.0             # the lost drone's MAVLink link drops this long, 5 s into its return
+    forged_observation: bool = False      # an impostor without the swarm key sends observations of the lost drone
+    gnss_return_offset_m: float | None = None  # GNSS comes back this far off (east), 25 s after the loss
+    target_leaves_fov: bool = False       # one helper's gimbal looks 90 deg away for 12 s, 10 s after it helps
+    lost_vehicle_url: str | None = None   # an external autopilot (ArduPilot SITL) as the lost drone
+    max_after_loss_s: float = 200.0       # the run ends this long after the loss at the latest
+    camera_px: tuple[int, int] = (960, 720)
+    camera_hfov_deg: float = 50.0
+    frame_hz: float = 4.0
+
+    def __post_init__(self) -> None:
+        validate.positive_scalar("speed", self.speed)
+        if not 0.0 <= float(self.swarm_loss_rate) < 1.0:
+            raise InputError(f"swarm_loss_rate must be in [0, 1), got {self.swarm_loss_rate}")
+        if self.loss_time_s is not None and validate.finite_scalar("loss_time_s", self.loss_time_s) < 0:
+            raise InputError(f"loss_time_s must be >= 0, got {self.loss_time_s}")
+        if validate.finite_scalar("wind_mps", self.wind_mps) < 0:
+            raise InputError(f"wind_mps must be >= 0, got {self.wind_mps}")
+        if validate.finite_scalar("mav_outage_s", self.mav_outage_s) < 0:
+            raise InputError(f"mav_outage_s must be >= 0, got {self.mav_outage_s}")
+
+
+@dataclass
+class RecoveryResult:
+    """What a run measured (truth-based scores). ``outcome``: ``home`` (landed <= 3 m from home),
+    ``landed_elsewhere``, ``holding`` (airborne at the end), ``lost`` (no run to score)."""
+
+    landing_error_m: float
+    loss_to_first_fused_fix_s: float
+    max_recovery_error_h_m: float
+    min_separation_m: float
+    detection_share: float
+    timeline: list[tuple[float, str]]
+    outcome: str
+    files: dict[str, str] = field(default_factory=dict)
+    figures: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {"landing_error_m": self.landing_error_m, "loss_to_first_fused_fix_s": self.loss_to_first_fused_fix_s,
+                "max_recovery_error_h_m": self.max_recovery_error_h_m, "min_separation_m": self.min_separation_m,
+                "detection_share": self.detection_share, "outcome": self.outcome,
+                "timeline": [[round(t, 2), what] for t, what in self.timeline], "figures": self.figures,
+                "files": self.files}
+
+
+def _wind(cfg: RecoveryConfig, rng: np.random.Generator):
+    from skyfix.datasets.sim.wind import WindField
+
+    direction = rng.uniform(0.0, 2.0 * math.pi)
+    mean = (cfg.wind_mps * math.sin(direction), cfg.wind_mps * math.cos(direction), 0.0)
+    return WindField(mean_enu_mps=mean, gust_sigma_mps=0.2 * cfg.wind_mps, seed=cfg.seed)
+
+
+def _apply_gnss_model(sim, model: GnssModel) -> None:
+    """Give every receiver the run's error model (the receiver's attributes, where it has them)."""
+    for server in sim.servers:
+        gps = server.vehicle.gps
+        for name in ("bias_sigma_m", "bias_tau_s", "noise_sigma_m"):
+            if hasattr(gps, name):
+                setattr(gps, name, getattr(model, name))
+            elif getattr(model, name) != getattr(GnssModel(), name):
+                raise NotImplementedError(f"the simulator's GpsReceiver has no {name} yet")
+
+
+def _survey(vehicle, frame, home_enu: np.ndarray):
+    """A lawnmower over the drone's own strip north of its home, twice round, then home (RTL)."""
+    from skyfix.drivers.mission import MissionItem
+
+    e0, n0 = float(home_enu[0]), float(home_enu[1])
+    items = [MissionItem.camera_trigger_distance(10.0)]
+    for _ in range(SURVEY_LOOPS):
+        for de, dn in ((-STRIP_HALF_WIDTH_M, 10.0), (-STRIP_HALF_WIDTH_M, STRIP_LENGTH_M),
+                       (STRIP_HALF_WIDTH_M, STRIP_LENGTH_M), (STRIP_HALF_WIDTH_M, 10.0)):
+            lat, lon, _ = frame.to_geodetic(e0 + de, n0 + dn, 0.0)
+            items.append(MissionItem.waypoint(float(lat), float(lon), CRUISE_ALT_M))
+    items.append(MissionItem.rtl())
+    return items
+
+
+class _Run:
+    """One run's moving parts; :meth:`fly` runs it, :meth:`close` takes it all down."""
+
+    def __init__(self, cfg: RecoveryConfig, progress: Callable[[str, float], None] | None) -> None:
+        from skyfix.datasets.sim import Simulator, SimulatorConfig
+
+        if cfg.lost_vehicle_url is not None:
+            raise NotImplementedError("lost_vehicle_url (an external autopilot as the lost drone) is not wired yet")
+        self.cfg, self.progress = cfg, progress or (lambda _what, _frac: None)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.sim = Simulator(SimulatorConfig(vehicles=len(IDS), speed=cfg.speed, seed=cfg.seed, spacing_m=SPACING_M,
+                                             wind=_wind(cfg, self.rng), params={"GPS2_TYPE": 14})).start()
+        _apply_gnss_model(self.sim, cfg.gnss)
+        self.key = secrets.token_bytes(32)
+        self.faults = Faults(cfg, self)
+        self.recorder = Recorder(self.sim, IDS, LOST)
+        self.services, self.threads, self.cameras = [], [], []
+        self.t_loss: float | None = None
+        self.timeline: list[tuple[float, str]] = []
+
+    def clock(self) -> float:
+        return self.sim.time_s
+
+    def time_of(self, message) -> float:
+        """Telemetry time on the swarm's clock: the simulator's autopilot stamps simulated time."""
+        t = message.autopilot_time_s
+        return t if math.isfinite(t) else self.sim.time_s
+
+    def note(self, what: str) -> None:
+        self.timeline.append((self.sim.time_s, what))
+        log.info("t=%.1f s %s", self.sim.time_s, what)
+
+    def start_services(self) -> None:
+        from skyfix.camera import Camera
+        from skyfix.crps.help_loop import HelpSetup
+        from skyfix.crps.helper_eye import EyeConfig
+        from skyfix.crps.service import Service, ServiceConfig
+        from skyfix.crps.transport import Endpoints, InProcessBus
+        from skyfix.datasets.sim.world_camera import WorldCamera
+
+        cfg = self.cfg
+        self.bus = InProcessBus()
+        camera = Camera.from_fov(*cfg.camera_px, cfg.camera_hfov_deg)
+        for i, drone_id in enumerate(IDS):
+            cam = WorldCamera(self.sim, i, camera, seed=cfg.seed * 10 + i, gimbal_fault=self.faults.gimbal_fault(i))
+            self.cameras.append(cam)
+            eye = EyeConfig(frame_hz=cfg.frame_hz, speed=cfg.speed, target_span_m=cam.model.span_m,
+                            target_arms=cam.model.arms)
+            setup = HelpSetup(fault_response=cfg.fault_response, camera=cam, eye=eye,
+                              on_frame=self.recorder.frame_scorer(i, cam))
+            url = self.faults.mavlink_url(i, self.sim.url(i))
+            scfg = ServiceConfig(drone_id, url, Endpoints((), ()), self.key, roster=IDS, inject=True,
+                                 estimate_hz=5.0 * cfg.speed, help=setup, clock=self.clock, time_of=self.time_of,
+                                 log_path=None if cfg.output is None else Path(cfg.output) / f"{drone_id}.mcap")
+            link = LossyLink(self.bus.attach("skyfix", drone_id), cfg.swarm_loss_rate,
+                             cfg.seed * 1000 + i)
+            service = Service(scfg, transport=link)
+            self.services.append(service)
+            thread = threading.Thread(target=service.run, daemon=True, name=f"skyfix-recovery-{drone_id}")
+            thread.start()
+            self.threads.append(thread)
+
+    def wait(self, what: str, until: Callable[[], bool], sim_timeout_s: float) -> None:
+        """Wait (recording) until ``until()``; SkyfixTimeout-like InputError after ``sim_timeout_s`` simulated."""
+        t_end = self.sim.time_s + sim_timeout_s
+        while not until():
+            if self.sim.time_s > t_end:
+                raise SkyfixError(f"recovery run: timed out waiting for {what}")
+            self.tick()
+            time.sleep(0.05)
+
+    def tick(self) -> None:
+        self.recorder.sample(self.services)
+        self.faults.tick()
+
+    def take_off(self) -> None:
+        def ready() -> bool:
+            return all(s.vehicle is not None and s.vehicle.state.home is not None and s.help is not None
+                       and s.vehicle.state.gps is not None and s.vehicle.state.gps.fix_type >= 3
+                       for s in self.services)
+
+        self.wait("every drone's service up (MAVLink, fusion, help)", ready, 60.0)
+        frame = self.sim.world
+        for i, s in enumerate(self.services):
+            s.vehicle.upload_mission(_survey(s.vehicle, frame, self.sim.vehicle(i).pos_enu_m))
+        self.recorder.homes_now()
+        for s in self.services:
+            s.vehicle.set_mode("GUIDED")
+            s.vehicle.arm()
+            s.vehicle.takeoff(CRUISE_ALT_M, wait=False)
+        self.note("all three drones take off")
+        self.wait("take-off", lambda: all(s.vehicle.state.position is not None and
+                                          s.vehicle.state.position.alt_rel_m > CRUISE_ALT_M - 1.0
+                                          for s in self.services), 60.0)
+        for s in self.services:
+            s.vehicle.start_mission()
+        self.note("surveys start")
+
+    def fly(self) -> RecoveryResult:
+        cfg = self.cfg
+        self.progress("starting services", 0.0)
+        self.start_services()
+        self.take_off()
+        t_survey = self.sim.time_s
+        delay = cfg.loss_time_s if cfg.loss_time_s is not None else float(self.rng.uniform(*LOSS_WINDOW_S))
+        self.progress("surveying", 0.1)
+        self.wait("the loss time", lambda: self.sim.time_s >= t_survey + delay, delay + 10.0)
+        self.t_loss = self.sim.time_s
+        lost = self.services[LOST]
+        if cfg.healthy:
+            lost.vehicle.rtl()
+            self.note(f"{IDS[LOST]} returns home on its own GNSS (baseline)")
+        else:
+            self.faults.lose_gnss(LOST, self.t_loss)
+            self.note(f"{IDS[LOST]} loses its GNSS receiver")
+        self.recorder.t_loss = self.t_loss
+        self.progress("recovering", 0.3)
+
+        def landed() -> bool:
+            st = lost.vehicle.state if lost.vehicle is not None else None
+            done = st is not None and not st.armed and self.sim.truth(LOST)["alt_rel_m"] < 0.3
+            frac = min(1.0, (self.sim.time_s - self.t_loss) / 90.0)
+            self.progress("recovering", 0.3 + 0.65 * frac)
+            return done or self.sim.time_s - self.t_loss > cfg.max_after_loss_s
+
+        self.wait("the lost drone to land", landed, cfg.max_after_loss_s + 10.0)
+        return self.result()
+
+    def result(self) -> RecoveryResult:
+        rec = self.recorder
+        timeline = sorted(self.timeline + [(t, f"{s.cfg.drone_id}: {what}") for s in self.services
+                                           if s.help is not None for t, what in s.help.events])
+        landing_m = rec.landing_error_m()
+        st = self.services[LOST].vehicle.state if self.services[LOST].vehicle is not None else None
+        airborne = st is None or st.armed
+        outcome = "holding" if airborne else ("home" if landing_m <= HOME_RADIUS_M else "landed_elsewhere")
+        return RecoveryResult(landing_m, rec.first_fused_fix_s(), rec.max_recovery_error_m(), rec.min_separation_m(),
+                              rec.detection_share(), timeline, outcome, figures=rec.figures())
+
+    def close(self) -> None:
+        for s in self.services:
+            s.stop.set()
+        for t in self.threads:
+            t.join(timeout=10.0)
+        self.faults.close()
+        self.sim.stop()
+
+
+def run_recovery(cfg: RecoveryConfig, progress: Callable[[str, float], None] | None = None) -> RecoveryResult:
+    """Fly one recovery run; ``progress(stage, fraction)`` is called as it goes. Writes the files into
+    ``cfg.output`` when given (``result.files`` names them)."""
+    if cfg.output is not None:
+        out = Path(cfg.output)
+        if out.exists() and not out.is_dir():
+            raise InputError(f"output {out} exists and is not a folder")
+        out.mkdir(parents=True, exist_ok=True)
+        for name in [f"{d}.mcap" for d in IDS] + ["trajectory.csv", "trajectory.png", "report.json"]:
+            (out / name).unlink(missing_ok=True)  # this run's own files from an earlier run (logs never append)
+    t0 = time.monotonic()
+    run = _Run(cfg, progress)
+    try:
+        result = run.fly()
+    finally:
+        run.close()
+    result.figures["wall_s"] = time.monotonic() - t0
+    result.figures["loss_time_s"] = run.t_loss if run.t_loss is not None else math.nan
+    if cfg.output is not None:
+        result.files = write_outputs(Path(cfg.output), run.recorder, result, [f"{d}.mcap" for d in IDS])
+    if progress is not None:
+        progress("done", 1.0)
+    return result

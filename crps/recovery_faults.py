@@ -1,0 +1,197 @@
+"""Faults of a recovery run (:mod:`skyfix.crps.recovery`): lossy swarm links, a MAVLink drop, a helper
+that goes silent, an impostor without the swarm key, GNSS that comes back off, a gimbal looking away.
+
+Each fault acts where it would in the field: on datagrams (swarm, MAVLink), on the simulated
+receiver, on a service's life; none touches the code under test. Times are simulated seconds.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import random
+import select
+import socket
+import threading
+
+from skyfix.crps.messages import TOPIC_OF, RelativeObs, SwarmCodec
+
+log = logging.getLogger(__name__)
+
+GNSS_BACK_AFTER_S = 25.0    # with gnss_return_offset_m: the receiver reports again this long after the loss
+OUTAGE_INTO_RETURN_S = 5.0  # the MAVLink drop starts this long after the lost drone starts home
+FORGED_PERIOD_S = 0.2
+FOV_FAULT_AFTER_S = 10.0    # a helper's gimbal looks away this long after it starts helping ...
+FOV_FAULT_FOR_S = 12.0      # ... for this long
+
+
+class LossyLink:
+    """A swarm transport whose deliveries to this drone are each lost with probability ``rate``
+    (independent per sender -> receiver message); ``muted`` drops everything both ways."""
+
+    def __init__(self, link, rate: float, seed: int) -> None:
+        self.link, self.rate = link, float(rate)
+        self._rng = random.Random(seed)
+        self._lock = threading.Lock()
+        self.muted = False
+        self.lost = 0
+
+    def _drop(self) -> bool:
+        if self.muted:
+            return True
+        if self.rate <= 0.0:
+            return False
+        with self._lock:
+            lose = self._rng.random() < self.rate
+        self.lost += lose
+        return lose
+
+    def publish(self, topic: str, data: bytes) -> None:
+        if not self.muted:
+            self.link.publish(topic, data)
+
+    def subscribe(self, callback) -> None:
+        self.link.subscribe(lambda key, data: None if self._drop() else callback(key, data))
+
+    def close(self) -> None:
+        self.link.close()
+
+
+class UdpRelay:
+    """A loopback UDP relay between a ground station and a vehicle; ``blocked()`` True drops both ways."""
+
+    def __init__(self, vehicle_addr: tuple[str, int], blocked) -> None:
+        self.vehicle_addr, self.blocked = vehicle_addr, blocked
+        self.gcs_side = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.gcs_side.bind(("127.0.0.1", 0))
+        self.vehicle_side = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.vehicle_side.bind(("127.0.0.1", 0))
+        self._gcs_addr: tuple[str, int] | None = None
+        self.dropped = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True, name="skyfix-mavlink-relay")
+        self._thread.start()
+
+    @property
+    def url(self) -> str:
+        return f"udpout:127.0.0.1:{self.gcs_side.getsockname()[1]}"
+
+    def _run(self) -> None:
+        socks = [self.gcs_side, self.vehicle_side]
+        while not self._stop.is_set():
+            ready, _, _ = select.select(socks, [], [], 0.1)
+            for sock in ready:
+                try:
+                    data, addr = sock.recvfrom(65535)
+                except OSError:
+                    return
+                if sock is self.gcs_side:
+                    self._gcs_addr = addr
+                if self.blocked():
+                    self.dropped += 1
+                    continue
+                if sock is self.gcs_side:
+                    self.vehicle_side.sendto(data, self.vehicle_addr)
+                elif self._gcs_addr is not None:
+                    self.gcs_side.sendto(data, self._gcs_addr)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.gcs_side.close()
+        self.vehicle_side.close()
+
+
+class Faults:
+    """The faults ``cfg`` asks for, scheduled against ``run`` (a :class:`skyfix.crps.recovery._Run`)."""
+
+    def __init__(self, cfg, run) -> None:
+        self.cfg, self.run = cfg, run
+        self.relay: UdpRelay | None = None
+        self.outage: tuple[float, float] | None = None
+        self.dropped_helper: str | None = None
+        self._forger: tuple[SwarmCodec, object] | None = None
+        self._forged_next_s = -math.inf
+        self.forged_sent = 0
+        self._fov_done: set[str] = set()
+        if cfg.target_leaves_fov:
+            raise NotImplementedError("target_leaves_fov needs a gimbal fault settable during the flight")
+
+    def gimbal_fault(self, index: int):
+        return None
+
+    def mavlink_url(self, index: int, url: str) -> str:
+        """The URL the service of vehicle ``index`` uses (through a relay for the lost drone's outage)."""
+        from skyfix.crps.recovery import LOST
+
+        if index != LOST or self.cfg.mav_outage_s <= 0.0:
+            return url
+        self.relay = UdpRelay(self.run.sim.addresses[index], self._mavlink_blocked)
+        return self.relay.url
+
+    def _mavlink_blocked(self) -> bool:
+        return self.outage is not None and self.outage[0] <= self.run.sim.time_s < self.outage[1]
+
+    def lose_gnss(self, index: int, t_s: float) -> None:
+        """The receiver of vehicle ``index`` stops at ``t_s`` (and comes back off, if asked)."""
+        from skyfix.datasets.sim.gps import GpsFault
+
+        offset = self.cfg.gnss_return_offset_m
+        if offset is None:
+            self.run.sim.add_gps_fault(index, GpsFault("loss", t_s))
+            return
+        self.run.sim.add_gps_fault(index, GpsFault("loss", t_s, GNSS_BACK_AFTER_S))
+        self.run.sim.add_gps_fault(index, GpsFault("jump", t_s + GNSS_BACK_AFTER_S,
+                                                   offset_enu_m=(float(offset), 0.0, 0.0)))
+
+    def tick(self) -> None:
+        """Called by the harness a few times per second."""
+        from skyfix.crps.recovery import IDS, LOST
+        from skyfix.crps.roles import Mode
+
+        run, cfg = self.run, self.cfg
+        if run.t_loss is None or cfg.healthy:
+            return
+        now = run.sim.time_s
+        lost = run.services[LOST].help
+        if lost is None:
+            return
+        if cfg.mav_outage_s > 0 and self.outage is None and lost.mode is Mode.RETURN_HOME:
+            start = now + OUTAGE_INTO_RETURN_S
+            self.outage = (start, start + cfg.mav_outage_s)
+            run.note(f"MAVLink link to {IDS[LOST]} will drop for {cfg.mav_outage_s:.0f} s at t={start:.1f} s")
+        if cfg.helper_dropout_s is not None and self.dropped_helper is None and lost.helpers \
+                and now >= run.t_loss + cfg.helper_dropout_s:
+            self._drop_helper(lost.helpers[0])
+        if cfg.forged_observation and now >= self._forged_next_s:
+            self._forged_next_s = now + FORGED_PERIOD_S
+            self._forge(now)
+
+    def _drop_helper(self, helper_id: str) -> None:
+        from skyfix.crps.recovery import IDS
+
+        self.dropped_helper = helper_id
+        service = self.run.services[IDS.index(helper_id)]
+        service.transport.muted = True
+        service.stop.set()
+        self.run.note(f"{helper_id} drops out (its service stops, nothing more is heard from it)")
+
+    def _forge(self, now_s: float) -> None:
+        """An impostor claiming to be d1, without the swarm key: an observation putting the lost drone 40 m off."""
+        from skyfix.crps.recovery import IDS, LOST
+
+        if self._forger is None:
+            codec = SwarmCodec(IDS[0], b"not-the-swarm-key-" + bytes(14), clock=self.run.clock)
+            self._forger = (codec, self.run.bus.attach("skyfix", IDS[0]))
+            self.run.note("an impostor without the swarm key starts sending observations of "
+                          f"{IDS[LOST]} as {IDS[0]}")
+        codec, link = self._forger
+        world = self.run.sim.world  # the impostor claims to look from above the field's origin
+        body = RelativeObs(IDS[LOST], now_s, (1.0, 0.0, 0.0), 40.0, (0.25, 0.0, 0.0, 0.0, 0.25, 0.0, 0.0, 0.0, 0.25),
+                           world.lat0_deg, world.lon0_deg, world.alt0_m + 15.0)
+        link.publish(TOPIC_OF[RelativeObs], codec.encode(body))
+        self.forged_sent += 1
+
+    def close(self) -> None:
+        if self.relay is not None:
+            self.relay.close()
