@@ -4,6 +4,15 @@ Each subsystem contributes its subcommands through a module exposing
 ``register(subparsers)``; that module imports heavy dependencies lazily, inside the
 command function, so ``skyfix --help`` stays fast. A command function takes the parsed
 ``argparse.Namespace`` and returns the process exit code.
+
+Errors have one shape everywhere (:func:`run_command`): a skyfix exception about the
+user's input (:class:`~skyfix.errors.InputError`, :class:`~skyfix.errors.DataError`,
+:class:`~skyfix.errors.ConfigurationError`, :class:`~skyfix.errors.NotAvailableError`) or
+an ``OSError`` on a file the user named is one line on stderr and exit code 2
+(argparse's own code for a bad command line); a failure of the operation itself (link
+lost, timeout, command rejected, estimate impossible) is one line and exit code 1. The
+line is logged (``ERROR skyfix: ...`` on stderr), so ``-q`` keeps it. Tracebacks only
+with ``-v``. ``-v``/``-q`` work before or after the subcommand.
 """
 
 from __future__ import annotations
@@ -12,12 +21,14 @@ import argparse
 import importlib
 import importlib.util
 import logging
+import os
 import sys
+import traceback
 from collections.abc import Sequence
 
 import skyfix
 from skyfix import progress
-from skyfix.errors import SkyfixError
+from skyfix.errors import ConfigurationError, DataError, InputError, NotAvailableError, SkyfixError
 
 log = logging.getLogger("skyfix")
 
@@ -62,36 +73,143 @@ def build_parser() -> argparse.ArgumentParser:
     for name in SUBCOMMAND_MODULES:
         if _module_exists(name):
             importlib.import_module(name).register(subparsers)
+    for _path, sub in iter_parsers(parser):
+        sub.formatter_class = _skyfix_formatter(sub.formatter_class)
+        if sub is not parser:
+            _add_log_flags(sub)
     return parser
 
 
+def iter_parsers(parser: argparse.ArgumentParser, prefix: str = "skyfix"):
+    """Yield ``(command path, parser)`` for ``parser`` and every subcommand at any depth."""
+    yield prefix, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from iter_parsers(sub, f"{prefix} {name}")
+
+
+class _DefaultsMixin:
+    """Help that states each option's default once: appended only when the option has a
+    default and its help does not already mention one; ``%%`` in descriptions shown as ``%``."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if ("default" in text.lower() or action.default in (None, False, argparse.SUPPRESS)
+                or not action.option_strings or isinstance(action, argparse._HelpAction)):
+            return text
+        return text + " (default: %(default)s)"
+
+    def _format_text(self, text: str) -> str:
+        if "%(prog)" not in text:
+            text = text.replace("%%", "%")
+        return super()._format_text(text)
+
+
+def _skyfix_formatter(base: type) -> type:
+    """``base`` (a parser's formatter class) with :class:`_DefaultsMixin`; the plain
+    HelpFormatter for ArgumentDefaultsHelpFormatter, which would add a second default."""
+    if issubclass(base, _DefaultsMixin):
+        return base
+    if issubclass(base, argparse.ArgumentDefaultsHelpFormatter):
+        base = argparse.HelpFormatter
+    return type(f"Skyfix{base.__name__}", (_DefaultsMixin, base), {})
+
+
+def _add_log_flags(parser: argparse.ArgumentParser) -> None:
+    """``-v``/``-q`` after a subcommand too (stored apart, merged in :func:`main`)."""
+    taken = {s for a in parser._actions for s in a.option_strings}
+    if not taken & {"-v", "--verbose"}:
+        parser.add_argument("-v", "--verbose", action="count", dest="sub_verbose", default=argparse.SUPPRESS,
+                            help="more log output (-v: info, -vv: debug; also before the command)")
+    if not taken & {"-q", "--quiet"}:
+        parser.add_argument("-q", "--quiet", action="store_true", dest="sub_quiet", default=argparse.SUPPRESS,
+                            help="only warnings and errors; no progress bars (also before the command)")
+
+
+#: Python loggers of third-party libraries, kept at ERROR unless -v.
+THIRD_PARTY_LOGGERS = ("matplotlib", "PIL", "rasterio", "zenoh", "pycolmap", "urllib3", "asyncio", "websockets",
+                       "mavsdk", "foxglove", "fiona", "numba", "h5py")
+
+
 def configure_logging(verbose: int, quiet: bool) -> None:
-    """Log to stderr at a level chosen by -v/-q (default: warnings and info of skyfix)."""
+    """Log to stderr at a level chosen by -v/-q (default: warnings and info of skyfix).
+
+    Without -v, third-party chatter is silenced: their Python loggers at ERROR, OpenCV's
+    own log at ERROR (OPENCV_LOG_LEVEL, read when cv2 is imported; cv2 is imported lazily by
+    the commands), COLMAP/glog at ERROR (GLOG_minloglevel), zenoh's Rust log off (RUST_LOG).
+    Log lines are written through tqdm so they do not break a progress bar."""
     level = logging.WARNING if quiet else (logging.DEBUG if verbose >= 2 else logging.INFO)
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-    if quiet:
-        progress.set_enabled(False)
-    if verbose < 2:  # third-party chatter only at -vv
-        for noisy in ("matplotlib", "PIL", "rasterio"):
-            logging.getLogger(noisy).setLevel(logging.WARNING)
+    root = logging.getLogger()
+    for h in [h for h in root.handlers if getattr(h, "_skyfix", False)]:
+        root.removeHandler(h)
+    handler = progress.LogHandler(sys.stderr)
+    handler._skyfix = True
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    root.addHandler(handler)
+    root.setLevel(level)
+    progress.set_enabled(False if quiet else None)
+    third_party = logging.DEBUG if verbose >= 2 else (logging.INFO if verbose else logging.ERROR)
+    for noisy in THIRD_PARTY_LOGGERS:
+        logging.getLogger(noisy).setLevel(third_party)
+    if not verbose:
+        os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
+        os.environ.setdefault("GLOG_minloglevel", "2")
+        os.environ.setdefault("RUST_LOG", "error")
+        if "cv2" in sys.modules:
+            try:
+                sys.modules["cv2"].setLogLevel(2)  # cv2.LOG_LEVEL_ERROR
+            except AttributeError:
+                pass
+
+
+#: skyfix exceptions that mean "the input is wrong" (exit 2); other SkyfixErrors exit 1.
+INPUT_ERRORS = (InputError, DataError, ConfigurationError, NotAvailableError)
+
+
+def error_line(exc: BaseException) -> str:
+    """One line for the user: the message (which names the input), without doubled prefixes."""
+    if isinstance(exc, OSError) and not isinstance(exc, SkyfixError) and exc.filename is not None:
+        text = f"{exc.filename}: {exc.strerror or exc}"
+    else:
+        text = str(exc) or type(exc).__name__
+    return " ".join(text.split())
+
+
+def run_command(func, args: argparse.Namespace, verbose: int = 0) -> int:
+    """Run a command function; turn its errors into one line on stderr and an exit code:
+    2 for bad input (skyfix input errors, a file the user named that cannot be read or
+    written), 1 for a failed operation, 130 for Ctrl-C. The traceback only with -v."""
+    try:
+        return int(func(args) or 0)
+    except KeyboardInterrupt:
+        log.error("interrupted")
+        return 130
+    except (SkyfixError, OSError) as exc:
+        bad_input = isinstance(exc, INPUT_ERRORS) or (isinstance(exc, OSError) and not isinstance(exc, SkyfixError))
+        if verbose:
+            traceback.print_exc()
+        log.error("%s", error_line(exc))
+        return 2 if bad_input else 1
+    except Exception as exc:  # a bug in skyfix: still one line, the traceback with -v
+        if verbose:
+            traceback.print_exc()
+        log.error("internal error: %s: %s (a bug: please report it with the output of the same command "
+                  "run with -v)", type(exc).__name__, error_line(exc))
+        return 1
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``skyfix`` console script; returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.verbose += getattr(args, "sub_verbose", 0) or 0
+    args.quiet = args.quiet or getattr(args, "sub_quiet", False)
     configure_logging(args.verbose, args.quiet)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    try:
-        return int(args.func(args) or 0)
-    except SkyfixError as exc:
-        log.error("%s", exc)
-        return 1
-    except KeyboardInterrupt:
-        log.error("interrupted")
-        return 130
+    return run_command(args.func, args, args.verbose)
 
 
 if __name__ == "__main__":

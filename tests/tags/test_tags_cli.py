@@ -59,14 +59,14 @@ def test_locate_reads_camera_files_and_rescales_them(tmp_path, camera, caplog):
     assert fixes["big"] == fixes["hfov"] and fixes["old"] == fixes["hfov"]
     assert abs(fixes["hfov"][0] - fr.x_m) < 0.01
     assert main(["-q", "tags", "locate", str(tmp_path / "frame.png"), "--field", str(field_path),
-                 "--camera", str(tmp_path / "wide.json"), "-o", str(tmp_path / "wide.csv")]) == 1
+                 "--camera", str(tmp_path / "wide.json"), "-o", str(tmp_path / "wide.csv")]) == 2
     assert "wide.json: camera is 1280x720 px but the image is 640x480 px" in caplog.text
 
 
 def test_locate_unknown_field_fails_cleanly(tmp_path):
     cv2.imwrite(str(tmp_path / "grey.png"), np.full((48, 64, 3), 128, np.uint8))
     assert main(["-q", "tags", "locate", str(tmp_path / "grey.png"), "--field", str(tmp_path / "nope.json"),
-                 "--hfov-deg", "60"]) == 1
+                 "--hfov-deg", "60"]) == 2
 
 
 def test_board_and_dimension(tmp_path, capsys):

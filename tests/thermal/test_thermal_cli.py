@@ -71,9 +71,9 @@ def test_simulated_camera_file_is_the_one_format_and_old_files_still_read(flight
 def test_ground_must_be_unambiguous(flight, tmp_path):
     base = ["-q", "thermal", "locate", str(flight / "frames"), "--poses", str(flight / "poses.csv"),
             "--camera", str(flight / "camera.json"), "-o", str(tmp_path / "x.geojson")]
-    assert main(base) == 1
-    assert main([*base, "--ground-alt", "30", "--ground-amsl", "63"]) == 1
-    assert main([*base, "--ground-amsl", "63"]) == 1  # no geoid undulation
+    assert main(base) == 2
+    assert main([*base, "--ground-alt", "30", "--ground-amsl", "63"]) == 2
+    assert main([*base, "--ground-amsl", "63"]) == 2  # no geoid undulation
 
 
 def test_ambiguous_pose_columns_are_refused(flight, tmp_path):
@@ -81,7 +81,7 @@ def test_ambiguous_pose_columns_are_refused(flight, tmp_path):
     (tmp_path / "poses.csv").write_text(csv)
     rc = main(["-q", "thermal", "locate", str(flight / "frames"), "--poses", str(tmp_path / "poses.csv"),
                "--camera", str(flight / "camera.json"), "--ground-alt", "30", "-o", str(tmp_path / "x.geojson")])
-    assert rc == 1
+    assert rc == 2
 
 
 @pytest.mark.parametrize("sub", [[], ["detect"], ["locate"], ["simulate"]])
@@ -123,7 +123,7 @@ def test_mountain_flight_joint_locate_outputs_and_dem_coverage(tmp_path, capsys,
     assert len(cal["boresight_deg"]) == 3
     assert (out.parent / "fires_map.png").stat().st_size > 5000
     # A DEM that does not cover the flight: one error line naming it (skyfix's CLI exit
-    # status for a refused input is 1).
+    # status for a refused input is 2).
     import rasterio
     from rasterio.transform import from_origin
 
@@ -132,6 +132,6 @@ def test_mountain_flight_joint_locate_outputs_and_dem_coverage(tmp_path, capsys,
                        transform=from_origin(100000.0, 5000000.0, 10.0, 10.0)) as dst:
         dst.write(np.full((20, 20), 500.0, np.float32), 1)
     caplog.clear()
-    assert main(common + ["--dem", str(far)]) == 1
+    assert main(common + ["--dem", str(far)]) == 2
     errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
     assert len(errors) == 1 and "does not cover the flight" in errors[0] and "poses.csv" in errors[0]
