@@ -86,4 +86,4 @@ def test_vehicle_cli_flies_a_mission_and_reports_refusals(tmp_path, capsys, capl
         assert capsys.readouterr().out.strip() == "RTL_ALT 2000"
         assert main(["-q", "vehicle", "rtl", url, "--wait"]) == 0
         assert not sim.vehicle(0).armed and sim.truth(0)["alt_rel_m"] < 0.5
-        assert main(["-q", "vehicle", "mission", "upload", url, str(tmp_path / "missing.json")]) == 1
+        assert main(["-q", "vehicle", "mission", "upload", url, str(tmp_path / "missing.json")]) == 2  # bad input: exit 2

@@ -42,7 +42,7 @@ def test_lens_correct_writes_photos_report_and_camera(tmp_path, capsys):
     cam = json.loads((out / "camera.json").read_text())
     assert cam["width"] == 1200 and cam["fx_px"] == pytest.approx(925.089 / 1.22, rel=1e-4)
     assert "skipped" in capsys.readouterr().out
-    assert main(["-q", "lens", "correct", str(src), str(out), "--barrel", "0.1 -0.32"]) == 1  # bad coefficients
+    assert main(["-q", "lens", "correct", str(src), str(out), "--barrel", "0.1 -0.32"]) == 2  # bad coefficients: input error
 
 
 def test_lens_convert(tmp_path, capsys):
@@ -78,7 +78,7 @@ def test_plan_polygon_reports_coverage(tmp_path):
     assert cov["uncovered_m2"] == pytest.approx(0.0, abs=1e-6)
     assert cov["forward_overlap_min"] > 0.799 and cov["side_overlap_min"] > 0.699
     assert main(["-q", "plan", "polygon", "--polygon", poly, "--hfov", "70", "--size", "4000x3000", "--alt", "50",
-                 "--side", "1.0", "-o", str(out)]) == 1
+                 "--side", "1.0", "-o", str(out)]) == 2  # out-of-range overlap: input error
 
 
 def test_lens_calibrate_from_rendered_board_photos(tmp_path, capsys):
