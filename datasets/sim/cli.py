@@ -55,23 +55,44 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_sim(args: argparse.Namespace) -> int:
+    """The ``skyfix sim`` command: exit 0 when stopped, 2 on a bad argument (one line)."""
+    try:
+        sim, cfg = _build(args)
+    except InputError as exc:
+        sys.stderr.write(f"skyfix sim: error: {exc}\n")
+        return 2
+    return _serve(sim, cfg, args)
+
+
+def _build(args: argparse.Namespace):
     from skyfix.datasets.sim import Simulator, SimulatorConfig, WindField
 
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise InputError(f"--duration must be a positive number of seconds, got {args.duration:g}")
     speed, from_deg = _floats(args.wind, 2, "--wind")
     to_rad = math.radians(from_deg + 180.0)
     wind = WindField((speed * math.sin(to_rad), speed * math.cos(to_rad), 0.0), gust_sigma_mps=args.gusts)
     params = {}
     for item in args.param:
-        name, _, value = item.partition("=")
-        params[name.strip().upper()] = _floats(value, 1, f"--param {name}")[0]
+        name, eq, value = item.partition("=")
+        name = name.strip().upper()
+        if not eq or not name:
+            raise InputError(f"--param must be NAME=VALUE, got {item!r}")
+        if name in params:
+            raise InputError(f"--param {name} is given twice")
+        params[name] = _floats(value, 1, f"--param {name}")[0]
     cfg = SimulatorConfig(vehicles=args.vehicles, flavour=args.flavour, base_port=args.base_port,
                           home=_floats(args.home, 3, "--home") if args.home else None, speed=args.speed,
                           loss_rate=args.loss, wind=wind, params=params,
                           legacy_params=args.legacy_params)
     faults = [_gps_fault(spec, cfg.vehicles) for spec in args.gps_fault]
-    sim = Simulator(cfg)
+    sim = Simulator(cfg)  # unknown --param names are refused here (InputError)
     for index, fault in faults:
         sim.add_gps_fault(index, fault)
+    return sim, cfg
+
+
+def _serve(sim, cfg, args: argparse.Namespace) -> int:
     out = sys.stdout
     out.write(f"skyfix sim: {cfg.vehicles} {cfg.flavour} vehicle(s) on 127.0.0.1 at {cfg.speed:g}x "
               f"real time\n")

@@ -119,9 +119,12 @@ class VehicleServer:
         if to is not None:
             targets = [to]
         else:
+            # the configured GCS address always gets telemetry, as ArduPilot's udpclient output
+            # (SITL --serialN udpclient:HOST:PORT) does, however long that GCS stays silent;
+            # other senders are answered while they were heard in the last 10 s
             now = time.monotonic()
-            targets = [a for a, seen in self.peers.items() if now - seen < 10.0]
-            if self.gcs_address and self.gcs_address not in self.peers:
+            targets = [a for a, seen in self.peers.items() if now - seen < 10.0 and a != self.gcs_address]
+            if self.gcs_address:
                 targets.append(self.gcs_address)
         for addr in targets:
             if self.loss_rate and self._rng.random() < self.loss_rate:

@@ -20,6 +20,7 @@ import numpy as np
 from skyfix.datasets.sim.gps import GpsReading, GpsReceiver
 from skyfix.datasets.sim.wind import WindField
 from skyfix.drivers.modes import ARDUCOPTER_MODES, PX4_MODES
+from skyfix.errors import InputError
 from skyfix.geo import LocalFrame
 
 G_MPS2 = 9.80665
@@ -150,6 +151,10 @@ class SimVehicle:
             self.params = {ARDUPILOT_LEGACY_NAMES.get(k, k): v for k, v in self.params.items()}
             self.params["SIM_GPS_DISABLE"] = 0
         self.params["MAV_SYS_ID" if self.flavour == "px4" else "SYSID_THISMAV"] = config.system_id
+        unknown = sorted(set(config.params) - set(self.params))
+        if unknown:  # a typo would otherwise be kept and never read
+            raise InputError(f"unknown {self.flavour} parameter(s) {', '.join(unknown)}; the simulator "
+                             f"knows {', '.join(sorted(self.params))}")
         self.params.update(config.params)
         self.t_s = 0.0
         self.pos_enu_m = np.array(config.start_enu_m, dtype=float)

@@ -45,8 +45,56 @@ def test_sim_cli_serves_and_stops_on_ctrl_c(udp_port, capsys):
 
 
 def test_sim_cli_rejects_bad_fault(capsys):
-    assert main(["-q", "sim", "--gps-fault", "9:loss:0", "--duration", "0.1"]) == 1
-    assert main(["-q", "sim", "--gps-fault", "1:meteor:0", "--duration", "0.1"]) == 1
+    assert main(["-q", "sim", "--gps-fault", "9:loss:0", "--duration", "0.1"]) == 2
+    assert main(["-q", "sim", "--gps-fault", "1:meteor:0", "--duration", "0.1"]) == 2
+
+
+@pytest.mark.parametrize(("args", "named"), [
+    (["--param", "NOT_A_PARAM=3"], "NOT_A_PARAM"),
+    (["--param", "GPS1_TYPE=1", "--param", "gps1_type=14"], "--param GPS1_TYPE is given twice"),
+    (["--param", "GPS1_TYPE"], "--param must be NAME=VALUE"),
+    (["--duration", "-3"], "--duration"),
+    (["--duration", "nan"], "--duration"),
+    (["--flavour", "px4", "--param", "GPS1_TYPE=14"], "unknown px4 parameter(s) GPS1_TYPE"),
+])
+def test_sim_cli_bad_arguments_are_one_line_errors(args, named):
+    out = subprocess.run([sys.executable, "-m", "skyfix", "sim", *args], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("skyfix sim: error:") and named in lines[0]
+    assert "Traceback" not in out.stderr and out.stdout == ""
+
+
+def test_sim_keeps_sending_to_a_silent_udpin_ground_station(udp_port):
+    """ArduPilot's udpclient output sends to the configured address whether or not anything
+    answers; the simulator once stopped 10 s after the ground station's last packet."""
+    import socket
+
+    from skyfix.datasets.sim import Simulator, SimulatorConfig
+
+    gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    gcs.bind(("127.0.0.1", udp_port))
+    gcs.settimeout(2.0)
+    try:
+        with Simulator(SimulatorConfig(vehicles=1, base_port=udp_port)) as sim:
+            data, addr = gcs.recvfrom(4096)
+            gcs.sendto(data, addr)  # the ground station speaks once (any MAVLink will do)...
+            server, me = sim.servers[0], ("127.0.0.1", udp_port)
+            deadline = time.monotonic() + 5.0
+            while me not in server.peers and time.monotonic() < deadline:
+                time.sleep(0.01)
+            server.peers[me] -= 11.0  # ...and has been silent for 11 s since
+            while True:  # drain what was sent before
+                gcs.settimeout(0.05)
+                try:
+                    gcs.recvfrom(4096)
+                except TimeoutError:
+                    break
+            gcs.settimeout(2.0)
+            assert gcs.recvfrom(4096)[0]  # telemetry still arrives
+    finally:
+        gcs.close()
 
 
 def test_vehicle_cli_unreachable_exits_1(udp_port, capsys):
