@@ -126,6 +126,6 @@ def test_cli_range_writes_png_and_json(tmp_path):
 def test_cli_bad_camera_is_a_clear_error(tmp_path, caplog):
     img = tmp_path / "frame.png"
     cv2.imwrite(str(img), np.full((64, 64), 180, np.uint8))
-    assert main(["crps", "range", str(img), "--camera", "wide", "--size-m", "0.5"]) == 1
+    assert main(["crps", "range", str(img), "--camera", "wide", "--size-m", "0.5"]) == 2
     assert "--camera" in caplog.text
-    assert main(["crps", "range", str(tmp_path / "missing.png"), "--camera", "80", "--size-m", "0.5"]) == 1
+    assert main(["crps", "range", str(tmp_path / "missing.png"), "--camera", "80", "--size-m", "0.5"]) == 2
