@@ -61,10 +61,16 @@ def run_replay(args: argparse.Namespace) -> int:
     if not args.ellipse_every_s > 0:
         raise InputError(f"--ellipse-every-s must be > 0, got {args.ellipse_every_s}")
     out = args.out if args.out is not None else args.log.with_name(args.log.stem + "_replay")
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"-o {out}: exists and is not a directory")
     result = replay(args.log, every_update=args.every)
     if not result.fused:
         raise InputError(f"{args.log}: no drone was ever localised ({result.n_records} records)")
+    unknown = sorted(set(args.drone or ()) - set(result.fused))
+    if unknown:
+        raise InputError(f"--drone {' '.join(unknown)}: no such drone localised in {args.log} "
+                         f"(drones: {', '.join(sorted(result.fused))})")
+    out.mkdir(parents=True, exist_ok=True)
     csv_path = out / "estimates.csv"
     with open(csv_path, "w", newline="") as f:
         w = csv.writer(f)

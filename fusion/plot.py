@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from skyfix.errors import InputError
 from skyfix.fusion.replay import ReplayResult, horizontal_errors_m
 
 _CHI2_2DOF_95 = 5.991464547107979  # scipy.stats.chi2.ppf(0.95, 2)
@@ -29,7 +30,10 @@ def plot_replay(result: ReplayResult, path: str | Path, *, drones: list[str] | N
     import matplotlib.pyplot as plt
 
     path = Path(path)
-    ids = [d for d in (drones or sorted(result.fused)) if d in result.fused]
+    unknown = sorted(set(drones or ()) - set(result.fused))
+    if unknown:
+        raise InputError(f"drones {unknown} are not in the replay (drones: {sorted(result.fused)})")
+    ids = list(drones or sorted(result.fused))
     has_truth = any(result.truth_enu_m.get(d) for d in ids)
     fig = plt.figure(figsize=(15, 8) if has_truth else (10, 8))
     ax = fig.add_subplot(1, 2, 1) if has_truth else fig.add_subplot(1, 1, 1)
@@ -62,7 +66,8 @@ def plot_replay(result: ReplayResult, path: str | Path, *, drones: list[str] | N
     ax.set_ylabel("north (m)")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="best", fontsize=8)
     ax.set_title(f"fused tracks, 95 % ellipses every {ellipse_every_s:g} s\n"
                  f"origin {result.origin[0]:.6f}, {result.origin[1]:.6f}")
     if has_truth:

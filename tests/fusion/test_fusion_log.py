@@ -100,3 +100,9 @@ def test_cli_replay_writes_csv_geojson_and_png(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "horizontal error vs truth" in printed
     assert main(["-q", "fusion", "replay", str(tmp_path / "nope.jsonl")]) != 0
+    # a drone that is not in the log: one line naming it, exit 2, nothing written
+    capsys.readouterr()
+    assert main(["-q", "fusion", "replay", str(path), "-o", str(tmp_path / "z"), "--drone", "Z"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--drone Z" in err[0] and "A, B" in err[0] and "Traceback" not in err[0]
+    assert not (tmp_path / "z").exists()
