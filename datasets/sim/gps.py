@@ -61,22 +61,31 @@ class GpsReading:
 
 
 class GpsReceiver:
-    """A u-blox-like receiver: slowly varying bias (Gauss-Markov, 0.4 m, 60 s) + 0.15 m noise."""
+    """A u-blox-like receiver: a slowly varying bias per axis (first-order Gauss-Markov,
+    stationary sigma ``bias_sigma_m``, correlation time ``bias_tau_s``) plus white noise
+    of ``noise_sigma_m``, all in metres, ENU. The attributes may be changed between steps
+    (a scenario with larger correlated errors); the bias keeps its current value."""
 
-    def __init__(self, seed: int = 0) -> None:
+    def __init__(self, seed: int = 0, *, bias_sigma_m: float = 0.4, bias_tau_s: float = 60.0,
+                 noise_sigma_m: float = 0.15) -> None:
         self.faults: list[GpsFault] = []
         self.disabled = False
         self.glitch_enu_m = np.zeros(3)
+        self.bias_sigma_m = float(bias_sigma_m)
+        self.bias_tau_s = validate.positive_scalar("bias_tau_s", bias_tau_s)
+        self.noise_sigma_m = float(noise_sigma_m)
+        if not (self.bias_sigma_m >= 0 and self.noise_sigma_m >= 0):
+            raise InputError(f"GpsReceiver sigmas must be >= 0, got bias {bias_sigma_m}, noise {noise_sigma_m}")
         self._rng = np.random.default_rng(seed)
         self._bias = np.zeros(3)
 
     def step(self, dt_s: float) -> None:
-        phi = math.exp(-dt_s / 60.0)
-        self._bias = phi * self._bias + 0.4 * math.sqrt(1 - phi * phi) * self._rng.standard_normal(3)
+        phi = math.exp(-dt_s / self.bias_tau_s)
+        self._bias = phi * self._bias + self.bias_sigma_m * math.sqrt(1 - phi * phi) * self._rng.standard_normal(3)
 
     def read(self, t_s: float, true_pos_enu_m: np.ndarray, true_vel_enu_mps: np.ndarray) -> GpsReading:
         """The fix at simulation time ``t_s`` for the vehicle's true state."""
-        pos = true_pos_enu_m + self._bias + 0.15 * self._rng.standard_normal(3) + self.glitch_enu_m
+        pos = true_pos_enu_m + self._bias + self.noise_sigma_m * self._rng.standard_normal(3) + self.glitch_enu_m
         # a healthy receiver: HDOP 1.2 / VDOP 1.9 with 14 satellites (as SITL's u-blox reports),
         # accuracies in metres that are not the DOPs (a client mixing them up is visibly wrong)
         eph, epv, sats, fix, hdop, vdop = 0.8, 1.2, 14, 3, 1.2, 1.9

@@ -43,7 +43,7 @@ _BEHAVIOUR = {
 _NEEDS_POSITION = {"guided", "mission", "rtl", "hold", "takeoff"}
 
 ARDUPILOT_PARAMS: dict[str, float] = {
-    "SYSID_THISMAV": 1, "GPS1_TYPE": 1, "GPS2_TYPE": 0, "GPS_AUTO_SWITCH": 1,
+    "SYSID_THISMAV": 1, "GPS1_TYPE": 1, "GPS2_TYPE": 0, "GPS_AUTO_SWITCH": 1, "GPS_PRIMARY": 0,
     "EK3_SRC1_POSXY": 3, "EK3_SRC1_VELXY": 3, "EK3_SRC1_POSZ": 1, "VISO_TYPE": 0,
     "WPNAV_SPEED": 500, "WPNAV_SPEED_UP": 250, "WPNAV_SPEED_DN": 150, "WPNAV_RADIUS": 200,
     "RTL_ALT": 1500, "LAND_SPEED": 50, "DISARM_DELAY": 10, "FS_EKF_ACTION": 1,
@@ -54,7 +54,7 @@ ARDUPILOT_PARAMS: dict[str, float] = {
 #: Integer parameters (the rest are REAL32): ArduPilot sends them as floats (C cast),
 #: PX4 copies the INT32's bytes into the float (byte-wise encoding).
 INT_PARAMS: frozenset[str] = frozenset({
-    "SYSID_THISMAV", "GPS1_TYPE", "GPS_TYPE", "GPS2_TYPE", "GPS_AUTO_SWITCH", "EK3_SRC1_POSXY",
+    "SYSID_THISMAV", "GPS1_TYPE", "GPS_TYPE", "GPS2_TYPE", "GPS_AUTO_SWITCH", "GPS_PRIMARY", "EK3_SRC1_POSXY",
     "EK3_SRC1_VELXY", "EK3_SRC1_POSZ", "VISO_TYPE", "RTL_ALT", "FS_EKF_ACTION", "BATT_CAPACITY",
     "ARMING_CHECK", "SIM_GPS1_ENABLE", "SIM_GPS_DISABLE", "DISARM_DELAY",
     "MAV_SYS_ID", "EKF2_GPS_CTRL", "EKF2_EV_CTRL", "EKF2_HGT_REF", "SIM_GPS_BLOCK"})
@@ -301,6 +301,16 @@ class SimVehicle:
                 out.append("real")
         return out
 
+    def _fix_instances(self) -> list[str]:
+        """The receivers the estimator may use, in priority order. ArduPilot with
+        GPS_AUTO_SWITCH 0 uses only the GPS_PRIMARY instance (0: GPS1, 1: GPS2), so a
+        companion can pin its GPS_INPUT while the real receiver is back but distrusted."""
+        instances = self._gps_instances()
+        if self.flavour == "ardupilot" and int(self.param("GPS_AUTO_SWITCH")) == 0 and instances:
+            primary = int(self.param("GPS_PRIMARY"))
+            return instances[primary:primary + 1]
+        return instances
+
     def uses_vision(self) -> bool:
         if self.flavour == "px4":
             return bool(int(self.param("EKF2_EV_CTRL")) & 1)
@@ -331,10 +341,14 @@ class SimVehicle:
                 return v.residual_enu_m, v.eph_m
             if self.flavour == "ardupilot":
                 return None
-        for inst in self._gps_instances():
+        # the first healthy instance in priority order is the only one used (ArduPilot's
+        # primary GPS), never a blend of both: between its 5 Hz fixes nothing else is fused
+        for inst in self._fix_instances():
             if inst == "real":
                 r = self.last_gps
-                if r is not None and r.fix_type >= 3 and r.satellites >= 6 and self._gps_fresh:
+                if r is not None and r.fix_type >= 3 and r.satellites >= 6:
+                    if not self._gps_fresh:
+                        return np.full(3, np.nan), 0.0  # good source, no new sample this step
                     self._gps_fresh = False
                     return r.pos_enu_m - self.pos_enu_m, r.eph_m
             else:
@@ -350,7 +364,7 @@ class SimVehicle:
         """True when a position source currently delivers (used by arming and mode checks)."""
         if self.uses_vision() and self.vision is not None and self.t_s - self.vision.time_s < 0.5:
             return True
-        for inst in self._gps_instances():
+        for inst in self._fix_instances():
             if inst == "real":
                 r = self.gps.read(self.t_s, self.pos_enu_m, self.vel_enu_mps)
                 if r.fix_type >= 3 and r.satellites >= 6:

@@ -131,3 +131,34 @@ def test_a_duplicate_item_is_refused_but_the_upload_goes_on(sim):
         assert len(sim.vehicle(0).mission) == 2
     finally:
         master.close()
+
+
+def test_gps_primary_pinned_with_auto_switch_off():
+    """ArduPilot's GPS_AUTO_SWITCH 0 + GPS_PRIMARY 1: the EKF follows the second (GPS_INPUT)
+    instance even while the real receiver is healthy; with auto switch on it follows GPS1."""
+    from skyfix.drivers.vehicle import Vehicle
+
+    with Simulator(SimulatorConfig(vehicles=1, speed=5.0, params={"GPS2_TYPE": 14})) as sim:
+        v = Vehicle.connect(sim.url(0), timeout_s=5.0)
+        try:
+            v.wait_until(lambda s: s.position is not None and s.home is not None, 10.0)
+            t = sim.truth(0)
+            north_m = 25.0  # the injected position is 25 m north of the truth
+
+            def inject_for(wall_s: float) -> None:
+                end = time.monotonic() + wall_s
+                while time.monotonic() < end:
+                    v.inject_gps(t["lat_deg"] + north_m / 111_320.0, t["lon_deg"], t["alt_amsl_m"], h_acc_m=0.5)
+                    time.sleep(0.02)
+
+            inject_for(1.0)
+            assert sim.truth(0)["est_error_m"] < 2.0  # auto switch: the healthy GPS1 wins
+            v.set_param("GPS_AUTO_SWITCH", 0)
+            v.set_param("GPS_PRIMARY", 1)
+            inject_for(2.0)
+            assert math.isclose(sim.truth(0)["est_error_m"], north_m, abs_tol=2.0)
+            v.set_param("GPS_PRIMARY", 0)  # back to the real receiver
+            inject_for(2.0)
+            assert sim.truth(0)["est_error_m"] < 2.0
+        finally:
+            v.close()
