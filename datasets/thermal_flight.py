@@ -21,7 +21,7 @@ from skyfix import validate
 from skyfix.camera import Camera, CameraPose
 from skyfix.camera_io import save_camera
 from skyfix.datasets.thermal_scene import ThermalScene, ThermalSensor, to_display
-from skyfix.errors import GeometryError
+from skyfix.errors import GeometryError, InputError
 from skyfix.geo import LocalFrame
 from skyfix.thermal.io import POSE_COLUMNS
 
@@ -85,6 +85,29 @@ def write_poses_csv(path: str | Path, rows: list[tuple[str, float, CameraPose]])
             writer.writerow([name, t, p.lat, p.lon, p.alt_m, p.roll_deg, p.pitch_deg, p.yaw_deg,
                              p.gimbal_pitch_deg, p.gimbal_roll_deg, p.gimbal_yaw_deg, int(p.stabilized)])
     return Path(path)
+
+
+#: Files a written flight consists of (besides ``frames/``).
+FLIGHT_FILES = ("poses.csv", "camera.json", "truth.json", "dem.tif")
+
+
+def prepare_flight_dir(out_dir: str | Path, *, overwrite: bool = False) -> Path:
+    """Make ``out_dir`` ready for a new flight: a folder that already holds one (frames or
+    flight files) is refused, so old frames never sit next to new poses, unless
+    ``overwrite``, which deletes that flight's files first (nothing else in the folder)."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"output folder {out} is a file")
+    frames = out / "frames"
+    old = [p for p in frames.iterdir() if p.is_file()] if frames.is_dir() else []
+    old += [out / name for name in FLIGHT_FILES if (out / name).is_file()]
+    if old and not overwrite:
+        raise InputError(f"output folder {out} already holds a flight ({len(old)} files, e.g. {old[0].name}); "
+                         "choose an empty folder or pass --overwrite to replace it")
+    for p in old:
+        p.unlink()
+    frames.mkdir(parents=True, exist_ok=True)
+    return out
 
 
 def write_flight(out_dir: str | Path, scene: ThermalScene, camera: Camera, flight: list[FlightFrame],

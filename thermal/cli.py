@@ -165,6 +165,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--lon", type=float, default=-73.9191, help="scene longitude, deg")
     p.add_argument("--ground-alt", type=float, default=30.0, help="scene ground ellipsoidal height, m")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a flight already in OUT_DIR (refused without it, so old frames never mix "
+                        "with new poses)")
     p.add_argument("--mountain", choices=("orbit", "pass"), default=None,
                    help="instead: a flight over a seeded mountain (2 km, central Corsica) with a consumer "
                         "drone's pose errors (correlated GNSS, attitude drift, boresight, clock offset); writes "
@@ -234,7 +237,7 @@ def run_detect(args: argparse.Namespace) -> int:
     import warnings
 
     from skyfix.camera_io import load_camera
-    from skyfix.errors import DataError, SkyfixError
+    from skyfix.errors import DataError, InputError, SkyfixError
     from skyfix.progress import progress
     from skyfix.thermal.detect import RelativeTemperatureWarning, detect_hotspots
     from skyfix.thermal.geolocate import geolocate_many
@@ -247,6 +250,8 @@ def run_detect(args: argparse.Namespace) -> int:
     feats, last = [], None
     warned = False
     for path in progress(args.frames, desc="thermal detect", unit="frame"):
+        if not path.is_file():
+            raise InputError(f"frame {path} does not exist" if not path.exists() else f"frame {path} is not a file")
         if path.name not in by_name:
             raise DataError(f"frame {path.name} has no row in {args.pose}")
         t, pose = by_name[path.name]
@@ -288,17 +293,19 @@ def run_locate(args: argparse.Namespace) -> int:
     import warnings
 
     from skyfix.camera_io import load_camera
-    from skyfix.errors import SkyfixError
+    from skyfix.errors import DataError, SkyfixError
     from skyfix.progress import progress
     from skyfix.thermal.detect import RelativeTemperatureWarning, detect_hotspots
     from skyfix.thermal.ground import DemGround
-    from skyfix.thermal.io import fires_geojson, frame_path, read_frame, write_fires_csv
+    from skyfix.thermal.io import fires_geojson, match_frames, read_frame, write_fires_csv
     from skyfix.thermal.report import fires_map_png
     from skyfix.thermal.tracker import FireTracker, TrackerSettings
 
     camera = load_camera(args.camera)
     ground = _ground(args)
     rows = _load_rows(args.poses, args.geoid_undulation)
+    matched, _ = match_frames(args.frames_dir, rows, args.poses)
+    rows = [(path.name, t, pose) for path, t, pose in matched]
     settings = TrackerSettings(min_observations=args.min_observations, threshold=args.threshold,
                                palette=args.palette, min_area_px=args.min_area,
                                kelvin_per_count=args.kelvin_per_count)
@@ -308,8 +315,7 @@ def run_locate(args: argparse.Namespace) -> int:
     last, track, detections = None, [], []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RelativeTemperatureWarning)
-        for name, t, pose in progress(rows, desc="thermal locate", unit="frame"):
-            path = frame_path(args.frames_dir, name)
+        for path, t, pose in progress(matched, desc="thermal locate", unit="frame"):
             try:
                 spots = detect_hotspots(read_frame(path), threshold=args.threshold, palette=args.palette,
                                         min_area_px=args.min_area, kelvin_per_count=args.kelvin_per_count)
@@ -324,6 +330,8 @@ def run_locate(args: argparse.Namespace) -> int:
                 last = (path, spots, seen)
     if caught:
         log.warning("%s", caught[0].message)
+    if not detections:
+        raise DataError(f"no frame in {args.frames_dir} could be read ({len(matched)} tried; see the warnings)")
     args.output.parent.mkdir(parents=True, exist_ok=True)
     fires = _joint_fires(args, camera, rows, detections, ground) if args.joint else tracker.fires
     args.output.write_text(json.dumps(fires_geojson(fires, track=np.array(track)), indent=1))
@@ -418,7 +426,7 @@ def _map_png(path: Path, tracker, track_latlon: np.ndarray) -> None:
 def run_simulate(args: argparse.Namespace) -> int:
     """``skyfix thermal simulate``."""
     from skyfix.camera import Camera
-    from skyfix.datasets.thermal_flight import orbit, write_flight
+    from skyfix.datasets.thermal_flight import orbit, prepare_flight_dir, write_flight
     from skyfix.datasets.thermal_scene import ThermalScene, ThermalSensor, random_fires
     from skyfix.errors import InputError
     from skyfix.geo import LocalFrame
@@ -430,6 +438,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         raise InputError(f"--size must look like 640x512, got {args.size!r}") from None
     if args.fires < 0 or args.frames < 1:
         raise InputError("--fires must be >= 0 and --frames >= 1")
+    prepare_flight_dir(args.out_dir, overwrite=args.overwrite)
     if args.mountain:
         return _simulate_mountain(args, Camera.from_fov(width, height, args.hfov))
     rng = np.random.default_rng(args.seed)

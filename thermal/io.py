@@ -15,14 +15,18 @@ Ambiguous names such as ``alt`` or ``gimbal_yaw`` are refused.
 from __future__ import annotations
 
 import csv
+import logging
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from skyfix.camera import CameraPose
-from skyfix.errors import DataError
+from skyfix.errors import DataError, InputError
+from skyfix.imagefile import read_image
 from skyfix.thermal.pose import camera_pose
+
+log = logging.getLogger(__name__)
 
 POSE_COLUMNS = ("frame", "time_s", "lat_deg", "lon_deg", "alt_ellipsoid_m", "roll_deg", "pitch_deg",
                 "yaw_deg", "gimbal_pitch_deg", "gimbal_roll_deg", "gimbal_yaw_body_deg", "stabilized")
@@ -77,9 +81,7 @@ def read_frame(path: str | Path) -> np.ndarray:
             return np.load(path)
         except (OSError, ValueError) as exc:
             raise DataError(f"cannot read frame {path}: {exc}") from None
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise DataError(f"cannot read frame {path}")
+    img = read_image(path, what="frame")
     if img.ndim == 3:
         img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2RGB)
     return img
@@ -165,3 +167,40 @@ def write_fires_csv(path: str | Path, fires) -> Path:
 def frame_path(frames_dir: str | Path, name: str) -> Path:
     """Where frame ``name`` (from the pose CSV) lives in ``frames_dir``."""
     return Path(frames_dir) / Path(name).name
+
+
+#: File name endings read as frames.
+FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".jpg", ".jpeg", ".pgm")
+
+
+def match_frames(frames_dir: str | Path, rows: list, pose_file: str | Path) -> tuple[list, list[str]]:
+    """The pose rows whose frame is in ``frames_dir``, as ``(path, time_s, pose)``, and
+    the names of the frames in the folder that have no pose row.
+
+    Raises :class:`InputError` naming the folder when it is missing, not a folder or holds
+    no frame file, and naming the pose file when none of its frames is in the folder.
+    Rows whose frame file is missing are logged (named) and left out."""
+    folder = Path(frames_dir)
+    if not folder.exists():
+        raise InputError(f"frames folder {folder} does not exist")
+    if not folder.is_dir():
+        raise InputError(f"frames folder {folder} is not a folder")
+    on_disk = {p.name for p in folder.iterdir() if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES}
+    if not on_disk:
+        raise InputError(f"frames folder {folder} holds no frame ({', '.join(FRAME_SUFFIXES)})")
+    matched = [(frame_path(folder, name), t, pose) for name, t, pose in rows if Path(name).name in on_disk]
+    missing = [Path(name).name for name, _, _ in rows if Path(name).name not in on_disk]
+    if not matched:
+        raise InputError(f"none of the {len(rows)} frames listed in {pose_file} is in {folder}")
+    if missing:
+        log.warning("%d frame(s) listed in %s are not in %s and are left out: %s", len(missing), pose_file,
+                    folder, _names(missing))
+    unposed = sorted(on_disk - {Path(name).name for name, _, _ in rows})
+    if unposed:
+        log.warning("%d frame(s) in %s have no row in %s and are left out: %s", len(unposed), folder, pose_file,
+                    _names(unposed))
+    return matched, unposed
+
+
+def _names(names: list[str], shown: int = 5) -> str:
+    return ", ".join(names[:shown]) + (f" and {len(names) - shown} more" if len(names) > shown else "")

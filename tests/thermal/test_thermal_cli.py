@@ -135,3 +135,43 @@ def test_mountain_flight_joint_locate_outputs_and_dem_coverage(tmp_path, capsys,
     assert main(common + ["--dem", str(far)]) == 2
     errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
     assert len(errors) == 1 and "does not cover the flight" in errors[0] and "poses.csv" in errors[0]
+
+
+def _locate(frames_dir, flight, out):
+    return main(["-q", "thermal", "locate", str(frames_dir), "--poses", str(flight / "poses.csv"),
+                 "--camera", str(flight / "camera.json"), "--ground-alt", "30", "-o", str(out)])
+
+
+def test_locate_refuses_a_folder_without_frames(flight, tmp_path, caplog):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "text").mkdir()
+    (tmp_path / "text" / "notes.txt").write_text("no frames here")
+    for folder, said in (("missing", "does not exist"), ("empty", "holds no frame"), ("text", "holds no frame")):
+        caplog.clear()
+        assert _locate(tmp_path / folder, flight, tmp_path / "x.geojson") == 2
+        errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+        assert len(errors) == 1 and said in errors[0] and folder in errors[0]
+    assert not (tmp_path / "x.geojson").exists()
+
+
+def test_locate_names_frames_without_pose_rows_and_missing_frames(flight, tmp_path, caplog):
+    import shutil
+
+    frames = tmp_path / "frames"
+    shutil.copytree(flight / "frames", frames)
+    (frames / "00001.png").unlink()
+    shutil.copy(frames / "00002.png", frames / "stray.png")
+    assert _locate(frames, flight, tmp_path / "x.geojson") == 0
+    said = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any("listed in" in m and "are not in" in m and "00001.png" in m for m in said)
+    assert not any("no row" in m and "00001.png" in m for m in said)  # a missing file is not a missing row
+    assert any("have no row in" in m and "stray.png" in m for m in said)
+
+
+def test_simulate_refuses_a_used_folder_unless_overwrite(tmp_path):
+    args = ["-q", "thermal", "simulate", str(tmp_path), "--fires", "1", "--frames", "2", "--size", "160x128"]
+    assert main(args) == 0
+    (tmp_path / "frames" / "99999.png").write_bytes(b"old")
+    assert main(args) == 2
+    assert main([*args, "--overwrite"]) == 0
+    assert sorted(p.name for p in (tmp_path / "frames").iterdir()) == ["00000.png", "00001.png"]
