@@ -10,7 +10,7 @@ log = logging.getLogger("skyfix.tags")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("tags", help="fiducial floor tags: generate, dimension, locate",
+    p = subparsers.add_parser("tags", help="fiducial floor tags: generate, board, dimension, locate",
                               description="Coloured-tile tags and AprilTag/ArUco boards for localising a "
                                           "drone with a downward camera where GPS is absent.")
     sub = p.add_subparsers(dest="tags_command", metavar="SUBCOMMAND", title="subcommands")
@@ -54,6 +54,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     d.add_argument("--height", type=int, default=480, help="image height, px (default 480)")
     d.add_argument("--hfov-deg", type=float, default=60.0, help="horizontal field of view, degrees (default 60)")
     d.add_argument("--tilt-deg", type=float, default=15.0, help="largest roll/pitch, degrees (default 15)")
+    d.add_argument("--max-colors", type=int, default=6, help="most tile colours to consider (default 6)")
     d.set_defaults(func=_dimension)
 
     loc = sub.add_parser("locate", help="localise frames over a field: CSV of fixes + annotated PNGs",
@@ -77,11 +78,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _generate(args: argparse.Namespace) -> int:
+    from skyfix.progress import bar
     from skyfix.tags.field import TagField
 
-    field = TagField.generate(args.rows, args.cols, colors=args.colors, tiles=args.tiles, tile_m=args.tile_m,
-                              gap_m=args.gap_m, spacing_m=args.spacing_m, time_limit_s=args.time_limit_s,
-                              seed=args.seed)
+    with bar(desc="tags generate (placement search)", total=100, unit="%") as b:
+        field = TagField.generate(args.rows, args.cols, colors=args.colors, tiles=args.tiles, tile_m=args.tile_m,
+                                  gap_m=args.gap_m, spacing_m=args.spacing_m, time_limit_s=args.time_limit_s,
+                                  seed=args.seed, on_progress=lambda f: b.update(int(100 * f) - b.n))
+    _output_folder(args.output)
     out = field.save(args.output)
     png = field.write_png(out.with_suffix(".png"), args.dpi)
     svg = field.write_svg(out.with_suffix(".svg"))
@@ -96,10 +100,20 @@ def _board(args: argparse.Namespace) -> int:
     from skyfix.tags.aruco import ArucoField
 
     board = ArucoField(args.dictionary, args.rows, args.cols, args.marker_m, args.spacing_m)
+    _output_folder(args.output)
     out = board.save(args.output)
     png = board.write_png(out.with_suffix(".png"), args.dpi)
     print(f"wrote {out}, {png}")
     return 0
+
+
+def _output_folder(path: Path) -> None:
+    """Create the folder of an output file (an -o into a new folder is what the user asked for)."""
+    from skyfix.errors import InputError
+
+    if path.is_dir():
+        raise InputError(f"-o {path} is a folder; name the JSON file to write")
+    path.parent.mkdir(parents=True, exist_ok=True)
 
 
 def _dimension(args: argparse.Namespace) -> int:
@@ -111,7 +125,7 @@ def _dimension(args: argparse.Namespace) -> int:
 
     cam = Camera.from_fov(args.width, args.height, args.hfov_deg)
     dim = dimension(args.area_m[0], args.area_m[1], cam, args.min_height_m, args.max_height_m,
-                    tilt_deg=args.tilt_deg)
+                    tilt_deg=args.tilt_deg, max_colors=args.max_colors)
     print(json.dumps(asdict(dim), indent=1))
     return 0
 
@@ -143,6 +157,7 @@ def _locate(args: argparse.Namespace) -> int:
     import cv2
 
     from skyfix.errors import DataError, InputError, SkyfixError
+    from skyfix.imagefile import read_image
     from skyfix.progress import progress
     from skyfix.tags.aruco import ArucoField, locate_aruco
     from skyfix.tags.locate import locate_tiles
@@ -154,17 +169,27 @@ def _locate(args: argparse.Namespace) -> int:
     prior = None if args.roll_deg is None else AttitudePrior(args.roll_deg, args.pitch_deg, args.attitude_sigma_deg)
     ann_dir = args.annotated_dir or args.output.parent
     ann_dir.mkdir(parents=True, exist_ok=True)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
     cols = ["image", "status", "x_m", "y_m", "z_m", "yaw_deg", "sigma_xy_m", "sigma_yaw_deg", "n_tags",
             "rejected", "ambiguity", "motion_blur_px", "flags", "detail"]
-    n_ok = 0
+    n_ok = n_unreadable = 0
+    first_unreadable = ""
+    for path in args.images:  # a mistyped name is an error before any work
+        if not path.is_file():
+            raise InputError(f"image {path} does not exist" if not path.exists() else f"image {path} is not a file")
     with args.output.open("w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=cols)
         writer.writeheader()
-        for path in progress(args.images, desc="locate", unit="frame"):
-            bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        for path in progress(args.images, desc="tags locate", unit="frame"):
             row = {"image": str(path)}
-            if bgr is None:
-                writer.writerow({**row, "status": "unreadable", "detail": "not an image OpenCV can read"})
+            try:
+                bgr = read_image(path, cv2.IMREAD_COLOR)
+            except DataError as exc:
+                if len(args.images) > 1:
+                    log.warning("%s", exc)
+                first_unreadable = first_unreadable or str(exc)
+                n_unreadable += 1
+                writer.writerow({**row, "status": "unreadable", "detail": str(exc)})
                 continue
             rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
             camera = _camera(args, rgb.shape[1], rgb.shape[0])
@@ -185,6 +210,9 @@ def _locate(args: argparse.Namespace) -> int:
                              "motion_blur_px": f"{fix.motion_blur_px:.2f}", "flags": " ".join(fix.flags),
                              "detail": ""})
             cv2.imwrite(str(ann_dir / f"{path.stem}_tags.png"), _annotate(bgr, fix, "", field, camera))
+    if n_unreadable == len(args.images):
+        raise DataError(first_unreadable if len(args.images) == 1
+                        else f"none of the {len(args.images)} images could be read ({first_unreadable}; ...)")
     log.info("%d of %d frames localised; wrote %s", n_ok, len(args.images), args.output)
     print(f"{n_ok}/{len(args.images)} frames localised -> {args.output}")
     return 0 if n_ok else 1

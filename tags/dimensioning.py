@@ -75,7 +75,7 @@ def dimension(area_x_m: float, area_y_m: float, camera: Camera, min_height_m: fl
         raise InputError(f"no (colours, tiles) pair works: tiles of {tile_m:.3f} m (>= {min_tile_px} px at "
                          f"{h1} m) at {spacing:.3f} m spacing ({tags_across} tags across at {h0} m) allow "
                          f"n in {fits} but the area needs {n_tags} distinct tags with <= {max_colors} "
-                         "colours; split the area, raise max_colors or narrow the height range")
+                         "colours; split the area, raise max_colors (CLI: --max-colors) or narrow the height range")
     front = []
     for c, n in sorted(admissible, key=lambda p: (p[1], p[0])):
         if not any(c2 <= c and n2 <= n and (c2, n2) != (c, n) for c2, n2 in admissible):

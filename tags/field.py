@@ -70,17 +70,19 @@ class TagField:
     def generate(cls, rows: int, cols: int, *, colors: int = 6, tiles: int = 4,
                  tile_m: float = 0.05, gap_m: float = 0.01, offset_m: float | None = None,
                  spacing_m: float = 0.4, origin_xy_m: tuple[float, float] = (0.0, 0.0),
-                 time_limit_s: float = 5.0, max_iterations: int = 400_000, seed: int = 0) -> TagField:
+                 time_limit_s: float = 5.0, max_iterations: int = 400_000, seed: int = 0,
+                 on_progress=None) -> TagField:
         """Optimise a placement (:func:`~skyfix.tags.placement.optimise_placement`) and
         build the field; ``placement`` holds the objective against random placement.
 
         The optimiser stops at ``time_limit_s`` or ``max_iterations`` moves, whichever
         comes first: bound the moves (and give time to spare) for a field that is the
-        same on every machine for a given ``seed``."""
+        same on every machine for a given ``seed``. ``on_progress(fraction)``: see
+        :func:`~skyfix.tags.placement.optimise_placement`."""
         codec = TileCodec(colors=colors, tiles=tiles)
         geometry = TagGeometry(tiles, tile_m, gap_m, 0.5 * tile_m if offset_m is None else offset_m)
         values, report = optimise_placement(codec, rows, cols, time_limit_s=time_limit_s,
-                                            max_iterations=max_iterations, seed=seed)
+                                            max_iterations=max_iterations, seed=seed, on_progress=on_progress)
         return cls(codec, geometry, spacing_m, values, origin_xy_m, report)
 
     @property

@@ -70,10 +70,11 @@ class _Distance:
 
 def optimise_placement(codec: TileCodec, rows: int, cols: int, *, time_limit_s: float = 5.0,
                        max_iterations: int = 400_000, random_trials: int = 20,
-                       seed: int = 0) -> tuple[np.ndarray, PlacementReport]:
+                       seed: int = 0, on_progress=None) -> tuple[np.ndarray, PlacementReport]:
     """Values ``(rows, cols)`` (row 0 south) maximising adjacent colour distance, and a report.
 
     Stops after ``time_limit_s`` seconds or ``max_iterations`` moves, whichever is first.
+    ``on_progress(fraction)``, when given, is called as the search advances (0 to 1).
     """
     for name, v in (("rows", rows), ("cols", cols)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
@@ -114,6 +115,8 @@ def optimise_placement(codec: TileCodec, rows: int, cols: int, *, time_limit_s: 
     for iteration in range(1, max_iterations + 1):
         if iteration % 256 == 0:
             frac = max(iteration / max_iterations, (time.perf_counter() - start) / time_limit_s)
+            if on_progress is not None:
+                on_progress(min(frac, 1.0))
             if frac >= 1.0:
                 break
         temp = temp0 * (temp1 / temp0) ** frac
