@@ -53,9 +53,17 @@ def _module_exists(name: str) -> bool:
         return False
 
 
+class SkyfixArgumentParser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line naming the command and where to
+    look (argparse prints the whole usage block first); subcommands inherit it."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser, with every available subcommand registered."""
-    parser = argparse.ArgumentParser(
+    parser = SkyfixArgumentParser(
         prog="skyfix",
         description=(
             "skyfix keeps drones localised and turns their imagery into maps: thermal "
