@@ -37,8 +37,9 @@ GOALS = {"outage_rmse_m": 2.0, "ekf_ratio": 0.9, "nees_lo": 0.85, "nees_hi": 0.9
 
 
 def correlated_section(engine_cls, seeds, duration_s: float, lag_s: float | None, run_skyfix, nees_of
-                       ) -> tuple[dict[str, bool], str]:
-    """Run skyfix and both joint EKFs on every seed; print figures; return (goals, headline)."""
+                       ) -> tuple[dict[str, bool], str, dict]:
+    """Run skyfix and both joint EKFs on every seed; print figures; return (goals, headline,
+    the pooled outage and NEES figures as a row of the mismatch sweep)."""
     rows = []
     for seed in seeds:
         scen = correlated_scenario(duration_s, seed)
@@ -92,7 +93,7 @@ def _score(scen, tracks, states, sk, nees_of) -> dict:
     return row
 
 
-def _report(rows: list[dict], engine_cls) -> tuple[dict[str, bool], str]:
+def _report(rows: list[dict], engine_cls) -> tuple[dict[str, bool], str, dict]:
     names = list(rows[0]["outage"])
     pooled = {n: np.concatenate([r["outage"][n] for r in rows]) for n in names}
     rmse = {n: _rmse(v) for n, v in pooled.items()}
@@ -139,7 +140,17 @@ def _report(rows: list[dict], engine_cls) -> tuple[dict[str, bool], str]:
                 f"{rmse['joint EKF']:.2f} m ({ratio:.2f}x), NEES {100 * band['skyfix']:.0f} % in band, drift flagged "
                 f"{worst['drift_flag_s']:.1f} s at {worst['drift_err_m']:.1f} m, back < 3 m {worst['drift_back_s']:.1f} s, "
                 f"jump {worst['jump_flag_s']:.1f} s, 30 m return moved {worst['return_move_m']:.2f} m, p99 {p99:.1f} ms")
-    return ok, headline
+    nees_sky = np.concatenate([r["nees"]["skyfix"] for r in rows])
+    return ok, headline, sweep_row(pooled["skyfix"], pooled["joint EKF"], nees_sky)
+
+
+def sweep_row(err_m: np.ndarray, err_ekf_m: np.ndarray, nees: np.ndarray) -> dict:
+    """Outage RMSE of skyfix and the joint EKF (from horizontal errors, m) and skyfix's NEES
+    shares: in the two-sided 95 % band, above it, below it; and its mean."""
+    rmse, rmse_ekf = _rmse(err_m), _rmse(err_ekf_m)
+    return {"rmse": rmse, "rmse_ekf": rmse_ekf, "ratio": rmse / rmse_ekf, "band": _band(nees),
+            "above": float(np.mean(nees > NEES_HI)), "below": float(np.mean(nees < NEES_LO)),
+            "mean": float(np.mean(nees))}
 
 
 def forged_observer(engine_cls) -> tuple[str, bool]:

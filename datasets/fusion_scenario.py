@@ -64,7 +64,12 @@ class NoiseModel:
     gnss_gm_h_sigma_m: float = 0.0
     gnss_gm_v_sigma_m: float = 0.0
     gnss_gm_tau_s: float = 60.0
-    gnss_outlier_frac: float = 0.0  # multipath outliers: this fraction of fixes jumps 5-20 m horizontally
+    gnss_outlier_frac: float = 0.0  # multipath outliers: this fraction of fixes jumps horizontally by
+    gnss_outlier_min_m: float = 5.0  # ... a size uniform in [min, max] m, in a uniform direction
+    gnss_outlier_max_m: float = 20.0
+    # Share of the wandering error's variance common to every receiver (nearby receivers see the
+    # same satellites through the same atmosphere); 0 = independent receivers.
+    gnss_common_frac: float = 0.0
     velocity_rate_hz: float = 10.0
     velocity_sigma_mps: float = 0.1  # white, per axis
     # Bias of the autopilot's velocity when it is not GNSS-aided. Optical flow scaled by a
@@ -435,7 +440,7 @@ def survey_scenario(duration_s: float = 600.0, seed: int = 0, *,
     if outage_mode not in OUTAGE_MODES:
         raise InputError(f"outage_mode must be one of {OUTAGE_MODES}, got {outage_mode!r}")
     rng_root = np.random.SeedSequence(int(seed))
-    rngs = [np.random.default_rng(s) for s in rng_root.spawn(11)]  # 8-10: correlated GNSS errors
+    rngs = [np.random.default_rng(s) for s in rng_root.spawn(12)]  # 8-10: correlated GNSS errors, 11: common part
 
     out_w = None
     if outage is not None:
@@ -467,6 +472,11 @@ def survey_scenario(duration_s: float = 600.0, seed: int = 0, *,
     phases = {"A": 0.0, "B": 0.013, "C": 0.027}
     tabs: dict[str, list[MessageTable]] = {k: [] for k in KINDS}
     biases: dict[str, np.ndarray] = {}
+    common = None
+    if nm.gnss_common_frac > 0.0:  # (times, error (N, 3) ENU) shared by every receiver
+        t_common = _times(dur, nm.gnss_rate_hz, 0.0)
+        common = (t_common, gauss_markov(rngs[11], t_common, np.array(
+            [nm.gnss_gm_h_sigma_m, nm.gnss_gm_h_sigma_m, nm.gnss_gm_v_sigma_m]), nm.gnss_gm_tau_s))
     for i, d in enumerate(DRONE_IDS):
         rng = rngs[i]
         ph = phases[d]
@@ -496,7 +506,7 @@ def survey_scenario(duration_s: float = 600.0, seed: int = 0, *,
                                               "sigma_m": np.full(ta.size, nm.altitude_sigma_m)}))
         # --- GNSS
         tabs["gnss"].append(_gnss(frame, sp, forms, d, i, dur, nm, ph + 0.05, (rng, rngs[8 + i]), out_w, spoofs,
-                                  lat_["gnss"]))
+                                  lat_["gnss"], common))
     for i, d in enumerate(DRONE_IDS[1:], start=1):
         tabs["relative"].append(_relative(frame, sp, forms, d, i, dur, nm, phases[d] + 0.031,
                                           rngs[3 + i], lat_["relative"]))
@@ -534,7 +544,8 @@ def _concat(parts: list[MessageTable]) -> MessageTable:
 
 def _gnss(frame: LocalFrame, sp: SurveyPath, forms: dict[str, Formation], d: str, i: int,
           dur: float, nm: NoiseModel, phase_s: float, rngs: tuple[np.random.Generator, np.random.Generator],
-          out_w: Outage | None, spoofs: tuple[Spoof, ...], latency_s: float) -> MessageTable:
+          out_w: Outage | None, spoofs: tuple[Spoof, ...], latency_s: float,
+          common: tuple[np.ndarray, np.ndarray] | None = None) -> MessageTable:
     rng, rng_gm = rngs  # the correlated part has its own stream: white-only runs stay as they were
     t = _times(dur, nm.gnss_rate_hz, phase_s)
     p, _ = _truth(sp, forms, d, t)
@@ -542,11 +553,15 @@ def _gnss(frame: LocalFrame, sp: SurveyPath, forms: dict[str, Formation], d: str
     noise_local = rng.normal(0.0, 1.0, p.shape) * sig
     gm_sig = np.array([nm.gnss_gm_h_sigma_m, nm.gnss_gm_h_sigma_m, nm.gnss_gm_v_sigma_m])
     if gm_sig.any():
-        noise_local += gauss_markov(rng_gm, t, gm_sig, nm.gnss_gm_tau_s)
+        own = gauss_markov(rng_gm, t, gm_sig, nm.gnss_gm_tau_s)
+        if common is not None:  # same variance, a share of it common to every receiver
+            shared = np.stack([np.interp(t, common[0], common[1][:, j]) for j in range(3)], axis=1)
+            own = np.sqrt(1.0 - nm.gnss_common_frac) * own + np.sqrt(nm.gnss_common_frac) * shared
+        noise_local += own
     outlier = rng_gm.random(t.size) < nm.gnss_outlier_frac
     if outlier.any():
         az = rng_gm.uniform(0.0, 2 * np.pi, int(outlier.sum()))
-        size = rng_gm.uniform(5.0, 20.0, az.size)
+        size = rng_gm.uniform(nm.gnss_outlier_min_m, nm.gnss_outlier_max_m, az.size)
         noise_local[outlier, 0] += size * np.sin(az)
         noise_local[outlier, 1] += size * np.cos(az)
     # Noise is drawn in the ENU axes at the drone; rotate into the frame's axes.
@@ -630,3 +645,21 @@ def correlated_scenario(duration_s: float = 600.0, seed: int = 0, faults: bool =
              Spoof("C", 380.0, 60.0, np.zeros(3), 0.5 * horiz[1]))
     return survey_scenario(duration_s, seed, outage=("A", 150.0, 90.0), spoof=("B", 300.0, 30.0, 50.0),
                            noise=CORRELATED_NOISE, formations=CORRELATED_FORMATIONS, faults=extra)
+
+
+STEP_TIMES_S: dict[str, float] = {"A": 100.0, "B": 170.0, "C": 200.0}  # mismatch_scenario's error steps
+
+
+def mismatch_scenario(duration_s: float, seed: int, noise: NoiseModel, step_m: float = 0.0) -> FusionScenario:
+    """The correlated survey's geometry with GNSS errors drawn from ``noise`` (e.g. another
+    sigma or correlation time than a fusion engine assumes) and one fault: A silent 150-240 s
+    (needs ``duration_s`` >= 240). ``step_m`` > 0: every receiver's error also steps by that
+    much horizontally for the rest of the run (a constellation change), at :data:`STEP_TIMES_S`
+    (B and C during A's outage), in directions drawn from ``seed``."""
+    steps: tuple[Spoof, ...] = ()
+    if step_m > 0.0:
+        az = np.random.default_rng(np.random.SeedSequence([int(seed), 16])).uniform(0.0, 2 * np.pi, 3)
+        steps = tuple(Spoof(d, t0, float(duration_s) - t0, step_m * np.array([np.sin(a), np.cos(a), 0.0]))
+                      for (d, t0), a in zip(STEP_TIMES_S.items(), az, strict=True))
+    return survey_scenario(duration_s, seed, outage=("A", 150.0, 90.0), spoof=None, noise=noise,
+                           formations=CORRELATED_FORMATIONS, faults=steps)

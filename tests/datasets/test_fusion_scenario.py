@@ -315,3 +315,36 @@ def test_correlated_gnss_wanders_with_a_one_minute_correlation_time():
     assert not drift.displacement(np.array([drift.end_s])).any()
     r = s.table("relative").cols["range_true_m"]
     assert r.min() >= 20.0 and r.max() <= 140.0
+
+
+def test_mismatch_scenario_common_error_steps_and_heavy_tails():
+    """Receivers sharing 70 % of their wandering error's variance, a 2.5 m step each, 10 %
+    outliers of 1-8 m. tau 2 s gives ~300 independent samples over 600 s: the standard error
+    of a correlation r is (1 - r^2)/sqrt(N) = 0.03, of a 100 s mean 1.5 sqrt(2 tau / 100 s)."""
+    from dataclasses import replace
+
+    from skyfix.datasets.fusion_scenario import CORRELATED_NOISE, STEP_TIMES_S, mismatch_scenario
+
+    noise = replace(CORRELATED_NOISE, gnss_gm_tau_s=2.0, gnss_common_frac=0.7, gnss_outlier_frac=0.1,
+                    gnss_outlier_min_m=1.0, gnss_outlier_max_m=8.0)
+    s = mismatch_scenario(600.0, seed=4, noise=noise, step_m=2.5)
+    assert s.spoof is None and s.outage.start_s == 150.0 and s.outage.end_s == 240.0
+    tab = s.table("gnss")
+    grid = np.arange(250.0, 600.0, 0.2)  # after every step and the outage
+    errs = {}
+    for i, d in enumerate(DRONE_IDS):
+        m = (tab.drone == i) & ~tab.cols["outlier"]
+        meas = s.frame.to_enu_points(np.stack([tab.cols[k][m] for k in ("lat_deg", "lon_deg", "alt_m")], 1))
+        err = meas - s.truth_enu(d, tab.time_s[m])
+        errs[d] = np.stack([np.interp(grid, tab.time_s[m], err[:, j]) for j in range(2)], axis=1)
+        step = next(f for f in s.faults if f.drone_id == d)
+        assert step.start_s == STEP_TIMES_S[d] and step.end_s == 600.0
+        np.testing.assert_allclose(np.linalg.norm(step.offset_enu_m), 2.5)
+        before = err[(tab.time_s[m] > step.start_s - 100.0) & (tab.time_s[m] < step.start_s), :2].mean(0)
+        after = err[(tab.time_s[m] >= step.start_s) & (tab.time_s[m] < step.start_s + 100.0), :2].mean(0)
+        assert np.linalg.norm(after - before - step.offset_enu_m[:2]) < 5 * 1.5 * np.sqrt(2 * 2 * 2.0 / 100.0)
+    for a, b in (("A", "B"), ("B", "C")):
+        r = np.corrcoef(errs[a][:, 0], errs[b][:, 0])[0, 1]
+        assert abs(r - 0.7) < 0.15, (a, b, r)  # 5 standard errors
+    out = tab.cols["outlier"]
+    assert abs(out.mean() - 0.1) < 5 * np.sqrt(0.1 * 0.9 / out.size)
