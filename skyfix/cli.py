@@ -193,6 +193,9 @@ def run_command(func, args: argparse.Namespace, verbose: int = 0) -> int:
     except KeyboardInterrupt:
         log.error("interrupted")
         return 130
+    except BrokenPipeError:  # output piped into `head` and the like: stop quietly, as Unix tools do
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except (SkyfixError, OSError) as exc:
         bad_input = isinstance(exc, INPUT_ERRORS) or (isinstance(exc, OSError) and not isinstance(exc, SkyfixError))
         if verbose:
