@@ -44,6 +44,7 @@ import warnings
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from skyfix.camera import Camera, CameraPose
 from skyfix.datasets.mountain_flight import fly, lines_log, mountain_scene, orbit_log
@@ -318,6 +319,18 @@ def _terrain_flight(flight, dem, centre_en, keep: list, calibration=None) -> dic
     return out
 
 
+def _drift_floor_deg(flight) -> float:
+    """Scoring only (uses the truth): norm of the mean, over the flight's frames, of the
+    logged-to-true camera rotation (deg, camera axes). The drawn AHRS/gimbal drift is about
+    axes fixed in the camera while the gimbal pitch is constant, so its mean over the orbit
+    looks exactly like a boresight: no estimator separates the two from these frames."""
+    t = flight.stamps_s + flight.errors.time_offset_s
+    _, r_log = flight.log.camera_in_frame(flight.scene.frame, t)
+    _, r_true = flight.truth_log.camera_in_frame(flight.scene.frame, t)
+    err = Rotation.from_matrix(np.transpose(r_log, (0, 2, 1)) @ r_true).as_rotvec()
+    return float(np.degrees(np.linalg.norm(err.mean(axis=0))))
+
+
 def _terrain_lines(kind: str, runs: list[dict], goal_m: float) -> tuple[bool, float]:
     """Print a flight kind's mean errors; the goal is judged on the calibrated estimate
     when there is one (a pass flown with the boresight from the same drone's orbit)."""
@@ -360,9 +373,10 @@ def section_t(n_seeds: int, laps: float) -> bool:
                 sol = r["dem_sol"]
                 bores.append((float(np.linalg.norm(sol.boresight_deg - np.array(errors.boresight_deg))),
                               float(np.linalg.norm(errors.boresight_deg)), sol.time_offset_s - errors.time_offset_s,
-                              sol.time_offset_sigma_s))
+                              sol.time_offset_sigma_s, _drift_floor_deg(flight)))
         print(f"   seed {seed}: orbit {orbits[-1]['n_frames']} frames, pass {passes[-1]['n_frames']} frames; "
-              f"boresight {bores[-1][1]:.2f} deg, error after estimate {bores[-1][0]:.3f} deg; time offset "
+              f"boresight {bores[-1][1]:.2f} deg, error after estimate {bores[-1][0]:.3f} deg (the drawn attitude "
+              f"drift's mean over the orbit, in camera axes: {bores[-1][4]:.3f} deg); time offset "
               f"{errors.time_offset_s:+.3f} s, error {bores[-1][2]:+.3f} s (stated sigma {bores[-1][3]:.3f} s)")
     print(f"T. terrain: {n_seeds} seeded mountains, 10 m AMSL DEM (UTM, holes), consumer-drone pose errors:")
     ok_o, m_o = _terrain_lines("orbit", orbits, 2.0)
@@ -377,7 +391,8 @@ def section_t(n_seeds: int, laps: float) -> bool:
           f"{np.median(trk):.1f}); goal >= 85 % -> {'MET' if ok_n else 'NOT MET'}")
     worst = max(b[0] for b in bores)
     ok_b = worst <= 0.2
-    print(f"   boresight error after estimate (orbits): {', '.join(f'{b[0]:.3f}' for b in bores)} deg; goal every "
+    print(f"   boresight error after estimate (orbits): {', '.join(f'{b[0]:.3f}' for b in bores)} deg (floor set by "
+          f"the attitude drift's mean: {', '.join(f'{b[4]:.3f}' for b in bores)} deg); goal every "
           f"orbit <= 0.2 deg -> {'MET' if ok_b else 'NOT MET'}")
     ok_f, fps = _terrain_throughput(keep, dem_big)
     HEADLINE.update(t_orbit=m_o, t_pass=m_p, t_flat=float(np.mean([e for r in orbits for e, _ in r["flat"]])),
