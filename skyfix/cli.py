@@ -171,6 +171,10 @@ def configure_logging(verbose: int, quiet: bool) -> None:
                 pass
 
 
+#: Optional packages -> the skyfix extra that installs them (pyproject.toml).
+EXTRAS = {"pycolmap": "mapping", "piexif": "mapping", "simplekml": "mapping", "rasterio": "thermal",
+          "torch": "gpu", "kornia": "gpu", "pupil_apriltags": "bench", "filterpy": "bench"}
+
 #: skyfix exceptions that mean "the input is wrong" (exit 2); other SkyfixErrors exit 1.
 INPUT_ERRORS = (InputError, DataError, ConfigurationError, NotAvailableError)
 
@@ -202,9 +206,14 @@ def run_command(func, args: argparse.Namespace, verbose: int = 0) -> int:
             traceback.print_exc()
         log.error("%s", error_line(exc))
         return 2 if bad_input else 1
-    except Exception as exc:  # a bug in skyfix: still one line, the traceback with -v
+    except Exception as exc:  # a missing extra, or a bug in skyfix: still one line, the traceback with -v
         if verbose:
             traceback.print_exc()
+        top = (getattr(exc, "name", None) or "").split(".")[0] if isinstance(exc, ModuleNotFoundError) else ""
+        if top in EXTRAS:
+            log.error("%s is not installed: this command needs skyfix's optional '%s' extra (pip install "
+                      "'skyfix[%s]', or 'skyfix[all]' for every extra)", top, EXTRAS[top], EXTRAS[top])
+            return 2
         log.error("internal error: %s: %s (a bug: please report it with the output of the same command "
                   "run with -v)", type(exc).__name__, error_line(exc))
         return 1
