@@ -22,6 +22,7 @@ import importlib
 import importlib.util
 import logging
 import os
+import re
 import sys
 import traceback
 from collections.abc import Sequence
@@ -185,7 +186,9 @@ def error_line(exc: BaseException) -> str:
         text = f"{exc.filename}: {exc.strerror or exc}"
     else:
         text = str(exc) or type(exc).__name__
-    return " ".join(text.split())
+    text = " ".join(text.split())
+    # A name prefixed twice by nested handlers ("a.jpg: a.jpg: corrupt JPEG") is said once.
+    return re.sub(r"^([^:\s]+): (\1: )+", r"\1: ", text)
 
 
 def run_command(func, args: argparse.Namespace, verbose: int = 0) -> int:
