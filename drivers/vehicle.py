@@ -639,8 +639,15 @@ class Vehicle:
     # ------------------------------------------------------------------ missions
     def upload_mission(self, items: list[mission.MissionItem], *,
                        progress: Callable[[int, int], None] | None = None,
-                       item_timeout_s: float = 0.25, timeout_s: float = 60.0) -> mission.TransferStats:
-        """Upload a mission (MISSION_ITEM_INT protocol); see :func:`mission.upload`."""
+                       item_timeout_s: float = 0.25, timeout_s: float = 60.0,
+                       ftp: bool = False) -> mission.TransferStats:
+        """Upload a mission: the MISSION_ITEM_INT protocol (:func:`mission.upload`), or with
+        ``ftp`` (ArduPilot only) one file over MAVLink FTP, read back and compared
+        (:func:`mission_ftp.upload_ftp`: ~8x faster for long missions)."""
+        if ftp:
+            from skyfix.drivers import mission_ftp
+
+            return mission_ftp.upload_ftp(self, items, timeout_s=min(timeout_s, 30.0))
         return mission.upload(self, items, progress=progress, item_timeout_s=item_timeout_s,
                               timeout_s=timeout_s)
 

@@ -96,6 +96,14 @@ def test_sitl_guided_flight_gate_and_100_item_mission(copter):
         assert b.command == M.MAV_CMD_NAV_WAYPOINT
         assert abs(a.lat_deg - b.lat_deg) < 1.5e-7 and abs(a.lon_deg - b.lon_deg) < 1.5e-7  # degE7
         assert b.alt_m == pytest.approx(a.alt_m, abs=1e-3)
+    # the same mission as one file over MAVLink FTP (@MISSION/mission.dat), in reverse order so
+    # that the item protocol's download proves the FTP upload replaced the first one
+    items = items[::-1]
+    stats = v.upload_mission(items, ftp=True)  # read back over FTP and compared inside
+    back = v.download_mission()
+    assert len(back) == 100
+    np.testing.assert_allclose([(b.lat_deg, b.lon_deg, b.alt_m) for b in back],
+                               [(a.lat_deg, a.lon_deg, a.alt_m) for a in items], rtol=0, atol=1.5e-7)
     v.start_mission()
     v.wait_until(lambda s: s.mission_seq >= 3, 60.0, what="AUTO past waypoint 2")
     assert any(e.kind == "mission_item_reached" for e in v.events)
