@@ -631,20 +631,24 @@ CORRELATED_FORMATIONS: dict[str, Formation] = {
 }
 
 
-def correlated_scenario(duration_s: float = 600.0, seed: int = 0, faults: bool = True) -> FusionScenario:
+def correlated_scenario(duration_s: float = 600.0, seed: int = 0, faults: bool = True,
+                        return_offset: bool = True) -> FusionScenario:
     """The survey with Gauss-Markov GNSS on every drone (:data:`CORRELATED_NOISE`) and, with
     ``faults`` (needs ``duration_s`` >= 450): A silent 150-240 s, then A's GNSS 30 m off for
     30 s; B spoofed by a 50 m jump 300-330 s; C's GNSS drifting at 0.5 m/s 380-440 s, honest after.
-    Jump and drift directions are drawn from ``seed``."""
+    Jump and drift directions are drawn from ``seed``. ``return_offset=False``: A stays silent
+    240-270 s instead of returning 30 m off, every other message the same (a counterfactual
+    that tells what the offset GNSS moved from what the estimate would have done anyway)."""
     if not faults:
         return survey_scenario(duration_s, seed, outage=None, spoof=None, noise=CORRELATED_NOISE,
                                formations=CORRELATED_FORMATIONS)
     az = np.random.default_rng(np.random.SeedSequence([int(seed), 15])).uniform(0.0, 2 * np.pi, 2)
     horiz = np.stack([np.sin(az), np.cos(az), np.zeros(2)], axis=1)
-    extra = (Spoof("A", 240.0, 30.0, 30.0 * horiz[0]),
-             Spoof("C", 380.0, 60.0, np.zeros(3), 0.5 * horiz[1]))
-    return survey_scenario(duration_s, seed, outage=("A", 150.0, 90.0), spoof=("B", 300.0, 30.0, 50.0),
-                           noise=CORRELATED_NOISE, formations=CORRELATED_FORMATIONS, faults=extra)
+    drift = Spoof("C", 380.0, 60.0, np.zeros(3), 0.5 * horiz[1])
+    extra = (Spoof("A", 240.0, 30.0, 30.0 * horiz[0]), drift) if return_offset else (drift,)
+    return survey_scenario(duration_s, seed, outage=("A", 150.0, 90.0 if return_offset else 120.0),
+                           spoof=("B", 300.0, 30.0, 50.0), noise=CORRELATED_NOISE,
+                           formations=CORRELATED_FORMATIONS, faults=extra)
 
 
 STEP_TIMES_S: dict[str, float] = {"A": 100.0, "B": 170.0, "C": 200.0}  # mismatch_scenario's error steps

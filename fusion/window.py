@@ -139,6 +139,8 @@ class GraphWindow:
         rows = [self._tail_index.get(key) for key in keys]
         if self._tail_cov is None or any(r is None for r in rows):
             return None
+        if rows == list(range(rows[0], rows[0] + 3 * len(rows), 3)):  # adjacent (a drone's p, b, n): a slice
+            return self._tail_cov[rows[0]:rows[0] + 3 * len(rows), rows[0]:rows[0] + 3 * len(rows)].copy()
         idx = np.concatenate([np.arange(r, r + 3) for r in rows])
         return self._tail_cov[np.ix_(idx, idx)]
 
