@@ -244,7 +244,8 @@ class WorldCamera:
         self._clouds = cloud_map(sim.config.seed if terrain_seed is None else terrain_seed)
         truth = sim.truth(index)
         self._gimbal = _Gimbal(g, truth["time_s"], truth["yaw_deg"], 0.0, gimbal_fault)
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()         # gimbal state
+        self._render_lock = threading.Lock()  # noise generator, auto-exposure state, logs
         self._gain: float | None = None  # auto-exposure scene gain (signal per unit radiance)
         self._gain_t_s = 0.0
         self.last_truth: FrameTruth | None = None
@@ -276,11 +277,12 @@ class WorldCamera:
             t_now = self.sim.time_s
             truths = [self.sim.truth(i) for i in range(len(self.sim.servers))]
         t_exp = t_now - self.latency_s
-        with self._lock:
+        with self._lock:  # the gimbal only: point() is never kept waiting by a render
             self._gimbal.advance(t_now)
             if t_exp < self._gimbal.history[0][0]:
                 return None
             yaw, pitch, r_yaw, r_pitch = self._gimbal.at(t_exp)
+        with self._render_lock:
             return self._frame(t_exp, truths, yaw, pitch, (r_yaw, r_pitch))
 
     # ------------------------------------------------------------------ rendering
