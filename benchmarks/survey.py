@@ -29,12 +29,12 @@ from skyfix.camera import Camera
 from skyfix.geo import destination
 from skyfix.mapping.coverage import verify_coverage
 from skyfix.mapping.mission import MAV_CMD, mission_items
+from skyfix.mapping.split import split_survey
 from skyfix.mapping.survey import (
     extend_survey,
     footprint_m,
     plan_polygon,
     plan_three_corners,
-    split_survey,
 )
 
 LAT0, LON0 = 40.6303, -8.6575  # University of Aveiro

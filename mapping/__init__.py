@@ -10,7 +10,7 @@ shapely through this package):
   ``remap_torch``;
 - calibration: :func:`calibrate`, :class:`BoardSpec` (``calibrate``, ``board``);
 - surveys: :func:`plan_survey`, :func:`plan_three_corners`, :func:`plan_polygon`,
-  :func:`extend_survey`, :func:`split_survey`, :func:`handoff` (``survey``),
+  :func:`extend_survey` (``survey``), :func:`split_survey`, :func:`handoff` (``split``),
   :func:`verify_coverage` (``coverage``), :func:`mission_items` / :class:`MissionItemInt`
   (``mission``), file writers in ``export``;
 - photo-to-model pipeline: :func:`run_pipeline`, :class:`PipelineConfig`, :class:`Report`
@@ -30,7 +30,7 @@ _EXPORTS = {
     "Undistortion": "correct", "CorrectionSpec": "batch", "correct_photos": "batch",
     "read_metadata": "exif", "BoardSpec": "board", "Calibration": "calibrate", "calibrate": "calibrate",
     "SurveyPlan": "survey", "SurveyPart": "survey", "plan_survey": "survey", "plan_three_corners": "survey",
-    "plan_polygon": "survey", "extend_survey": "survey", "split_survey": "survey", "handoff": "survey",
+    "plan_polygon": "survey", "extend_survey": "survey", "split_survey": "split", "handoff": "split",
     "verify_coverage": "coverage", "MissionItemInt": "mission", "mission_items": "mission",
     "load_camera": "skyfix.camera_io", "save_camera": "skyfix.camera_io",
     "PipelineConfig": "pipeline", "run_pipeline": "pipeline", "Report": "report", "load_photos": "photos",

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import simplejpeg
 
 from skyfix import validate
 from skyfix.camera import Camera
@@ -32,6 +33,7 @@ __all__ = ["BatchReport", "CorrectionSpec", "PhotoResult", "correct_photos", "li
 log = logging.getLogger(__name__)
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg")
+_SUBSAMPLING = ("444", "422", "420", "440", "411")
 
 
 @dataclass(frozen=True)
@@ -106,6 +108,15 @@ class BatchReport:
                                    for r in self.written if r.output_camera})}
 
 
+def reason(exc: BaseException, source: str | os.PathLike) -> str:
+    """``exc``'s message without a leading ``source: `` (callers print the name once)."""
+    text = str(exc)
+    for prefix in (f"{source}: ", f"{Path(source).name}: "):
+        if text.startswith(prefix):
+            return text[len(prefix):]
+    return text
+
+
 def list_photos(in_dir: str | os.PathLike) -> list[Path]:
     """JPEG photos directly inside ``in_dir``, sorted by name."""
     path = Path(in_dir)
@@ -135,9 +146,12 @@ class _Worker:
         if not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
             raise DataError(f"{src}: corrupt JPEG (truncated: no end-of-image marker)")
         self.metadata[src] = read_metadata(data, str(src), require_exif=self.spec.require_exif)
-        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
-        if image is None:
-            raise DataError(f"{src}: corrupt JPEG (image data could not be decoded)")
+        # libjpeg-turbo through simplejpeg in strict mode: damaged data raises with libjpeg's
+        # own words instead of being printed on stderr and decoded into grey blocks (OpenCV).
+        try:
+            image = simplejpeg.decode_jpeg(data, colorspace="BGR", strict=True)
+        except ValueError as exc:
+            raise DataError(f"{src}: corrupt JPEG ({exc})") from None
         return data, image
 
     def output_camera(self, src: Path, data: bytes, tables: Undistortion) -> dict:
@@ -160,11 +174,11 @@ class _Worker:
 
     def finish(self, src: Path, dst: Path, data: bytes, corrected: np.ndarray, tables: Undistortion) -> PhotoResult:
         quality = self.spec.jpeg_quality or jpeg_quality(data) or 95
-        ok, encoded = cv2.imencode(".jpg", corrected, [cv2.IMWRITE_JPEG_QUALITY, quality])
-        if not ok:
-            raise DataError(f"{src}: JPEG encoding failed")
+        sampling = simplejpeg.decode_jpeg_header(data)[3]  # the photo's own chroma subsampling
+        encoded = simplejpeg.encode_jpeg(np.ascontiguousarray(corrected), quality, colorspace="BGR",
+                                         colorsubsampling=sampling if sampling in _SUBSAMPLING else "444")
         out = tables.output
-        blob = transfer_metadata(data, encoded.tobytes(), focal_scale=tables.focal_scale,
+        blob = transfer_metadata(data, encoded, focal_scale=tables.focal_scale,
                                  width=out.width, height=out.height, source=str(src))
         tmp = dst.with_name(dst.name + ".part")
         tmp.write_bytes(blob)
@@ -180,7 +194,7 @@ class _Worker:
             return self.finish(src, dst, data, corrected, tables)
         except (SkyfixError, OSError, cv2.error) as exc:
             self.metadata.pop(src, None)
-            return PhotoResult(str(src), None, str(exc))
+            return PhotoResult(str(src), None, reason(exc, src))
 
 
 def _threaded_results(worker: _Worker, jobs: list[tuple[Path, Path]], n_threads: int) -> Iterator[PhotoResult]:
@@ -214,7 +228,7 @@ def _torch_results(worker: _Worker, jobs: list[tuple[Path, Path]], device: str |
             try:
                 decoded.append((src, dst, *worker.decode(src)))
             except (SkyfixError, OSError, cv2.error) as exc:
-                pending.append(PhotoResult(str(src), None, str(exc)))
+                pending.append(PhotoResult(str(src), None, reason(exc, src)))
         by_size: dict[tuple[int, int], list] = {}
         for item in decoded:
             by_size.setdefault(item[3].shape[:2], []).append(item)
@@ -225,13 +239,13 @@ def _torch_results(worker: _Worker, jobs: list[tuple[Path, Path]], device: str |
                     remappers[(w, h)] = TorchRemapper(tables, device=device)
                 corrected = remappers[(w, h)](np.stack([it[3] for it in items]))
             except (SkyfixError, cv2.error) as exc:
-                pending.extend(PhotoResult(str(it[0]), None, str(exc)) for it in items)
+                pending.extend(PhotoResult(str(it[0]), None, reason(exc, it[0])) for it in items)
                 continue
             for (src, dst, data, _), out in zip(items, corrected, strict=True):
                 try:
                     pending.append(worker.finish(src, dst, data, out, tables))
                 except (SkyfixError, OSError, cv2.error) as exc:
-                    pending.append(PhotoResult(str(src), None, str(exc)))
+                    pending.append(PhotoResult(str(src), None, reason(exc, src)))
         yield from pending
 
 
@@ -245,10 +259,14 @@ def correct_photos(photos: Iterable[str | os.PathLike], out_dir: str | os.PathLi
     ``device`` (default: CUDA when available, else CPU). Returns a :class:`BatchReport`;
     bad photos are logged at WARNING and listed in ``report.skipped``.
     """
-    from tqdm import tqdm
+    from skyfix.progress import bar as progress_bar
 
     if backend not in ("opencv", "torch"):
         raise InputError(f"backend must be 'opencv' or 'torch', got {backend!r}")
+    if backend == "torch":
+        from skyfix.mapping.remap_torch import require_torch
+
+        require_torch()  # once, before any photo
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(Path(p), out / Path(p).name) for p in photos]
@@ -258,7 +276,7 @@ def correct_photos(photos: Iterable[str | os.PathLike], out_dir: str | os.PathLi
     n_workers = (os.cpu_count() or 1) if workers is None else int(validate.positive_scalar("workers", workers))
     report = BatchReport()
     start = time.perf_counter()
-    bar = tqdm(total=len(jobs), desc="lens correct", unit="photo", disable=not progress)
+    bar = progress_bar(desc="lens correct", total=len(jobs), unit="photo", disable=not progress)
     try:
         if backend == "torch":
             results: Iterator[PhotoResult] = _torch_results(_Worker(spec), jobs, device, batch_size)

@@ -19,6 +19,44 @@ log = logging.getLogger("skyfix.mapping")
 
 # --------------------------------------------------------------------------- parsing helpers
 
+#: Library parameter names -> the flags a user typed, so errors name what the user can change.
+FLAG_NAMES = {"step_m": "--step", "altitude_m": "--alt", "hold_s": "--hold", "forward_overlap": "--forward",
+              "side_overlap": "--side", "heading_deg": "--heading", "turnaround_m": "--turnaround",
+              "joining_drones": "--joining", "growth_per_drone": "--growth", "alarm_latlon": "--alarm",
+              "next_index": "--next-index", "stopped_at_latlon": "--stopped-at", "speed_m_s": "--speed",
+              "jpeg_quality": "--quality", "workers": "--workers", "resolution_cm": "--resolution-cm",
+              "dsm_resolution_m": "--dsm-resolution-m", "dense_scale": "--dense-scale",
+              "max_ortho_mpx": "--max-ortho-mpx", "max_image_size_px": "--max-image-size",
+              "max_features": "--max-features"}
+
+
+def flags_named(func):
+    """Wrap a command function: a skyfix error whose message names library parameters
+    (``step_m``) is raised again, same type, naming the command's flags (``--step``)."""
+    import functools
+    import re
+
+    from skyfix.errors import SkyfixError
+
+    pattern = re.compile(r"\b(" + "|".join(FLAG_NAMES) + r")\b")
+
+    @functools.wraps(func)
+    def run(args: argparse.Namespace) -> int:
+        try:
+            return func(args)
+        except SkyfixError as exc:
+            text = pattern.sub(lambda m: FLAG_NAMES[m.group(1)], str(exc))
+            if text == str(exc):
+                raise
+            try:
+                renamed = type(exc)(text)
+            except TypeError:
+                raise exc from None
+            raise renamed from exc
+
+    return run
+
+
 
 def _latlon(text: str) -> tuple[float, float]:
     """'lat,lon' -> (lat_deg, lon_deg)."""
@@ -50,19 +88,26 @@ def _fraction(text: str) -> float:
 
 
 def _polygon(text: str) -> list[tuple[float, float]]:
-    """A GeoJSON file (first Polygon) or 'lat,lon;lat,lon;...'."""
+    """--polygon: a GeoJSON file (its first Polygon) or 'lat,lon;lat,lon;...'."""
+    from skyfix.jsonfile import read_json
+
     path = Path(text)
-    if path.suffix.lower() in (".geojson", ".json"):
-        if not path.is_file():
-            raise InputError(f"polygon file {text!r} does not exist")
-        data = json.loads(path.read_text())
+    if path.is_file() or path.suffix.lower() in (".geojson", ".json"):
+        data = read_json(path, "--polygon file", missing=InputError)
         features = data.get("features", [data]) if isinstance(data, dict) else []
         for feat in features:
-            geom = feat.get("geometry", feat)
-            if geom.get("type") == "Polygon":
-                return [(lat, lon) for lon, lat, *_ in geom["coordinates"][0][:-1]]
-        raise InputError(f"{text}: no Polygon geometry found")
-    return [_latlon(p) for p in text.split(";") if p.strip()]
+            geom = feat.get("geometry", feat) if isinstance(feat, dict) else None
+            if isinstance(geom, dict) and geom.get("type") == "Polygon":
+                try:
+                    return [(float(lat), float(lon)) for lon, lat, *_ in geom["coordinates"][0][:-1]]
+                except (KeyError, IndexError, TypeError, ValueError):
+                    raise InputError(f"--polygon file {text}: the Polygon's coordinates are not "
+                                     "[[lon, lat], ...] rings") from None
+        raise InputError(f"--polygon file {text}: no GeoJSON Polygon geometry found")
+    try:
+        return [_latlon(p) for p in text.split(";") if p.strip()]
+    except argparse.ArgumentTypeError:
+        raise InputError(f"--polygon {text!r} is neither a GeoJSON file nor 'lat,lon;lat,lon;...'") from None
 
 
 def _drones_dict(pairs) -> dict:
@@ -208,7 +253,7 @@ def _lens_convert(args: argparse.Namespace) -> int:
 def _finish_plan(plan, args, parts=None, extra: dict | None = None) -> int:
     from skyfix.mapping.export import write_all
     from skyfix.mapping.plan_io import save_plan
-    from skyfix.mapping.survey import split_survey
+    from skyfix.mapping.split import split_survey
 
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
@@ -216,7 +261,8 @@ def _finish_plan(plan, args, parts=None, extra: dict | None = None) -> int:
     if parts is None and len(drones) > 1:
         parts = split_survey(plan, drones)
     save_plan(out / "plan.json", plan)
-    written = write_all(out, parts or plan, speed_m_s=getattr(args, "speed", None))
+    homes = {name: (*pos, 0.0) for name, pos in {**drones, **_drones_dict(getattr(args, "available", None))}.items()}
+    written = write_all(out, parts or plan, home_latlon_alt=homes, speed_m_s=getattr(args, "speed", None))
     summary = {"kind": plan.kind, "waypoints": plan.n_waypoints, "path_length_m": plan.path_length_m,
                "step_m": plan.step_m, "trigger_distance_m": plan.trigger_distance_m, "files": written, **(extra or {})}
     if parts:
@@ -272,7 +318,7 @@ def _plan_extend(args: argparse.Namespace) -> int:
 
 def _plan_handoff(args: argparse.Namespace) -> int:
     from skyfix.mapping.plan_io import load_plan
-    from skyfix.mapping.survey import handoff
+    from skyfix.mapping.split import handoff
 
     plan = load_plan(args.plan)
     part = handoff(plan, args.next_index, _drones_dict(args.available), stopped_at_latlon=args.stopped_at)
@@ -315,7 +361,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default=None, help="torch device for --backend torch (default: cuda if available)")
     p.add_argument("--allow-missing-exif", action="store_true",
                    help="correct photos that have no EXIF instead of skipping them")
-    p.set_defaults(func=_lens_correct)
+    p.set_defaults(func=flags_named(_lens_correct))
 
     p = lens_sub.add_parser("calibrate", formatter_class=fmt, help="calibrate a camera from board photos",
                             description="Detect a chessboard or ChArUco board in each image, fit OpenCV's "
@@ -332,7 +378,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--model", default="brown_conrady", choices=["brown_conrady", "fisheye"],
                    help="lens model to fit (default brown_conrady)")
     p.add_argument("-o", "--output", default="cal.json", help="camera file to write")
-    p.set_defaults(func=_lens_calibrate)
+    p.set_defaults(func=flags_named(_lens_calibrate))
 
     p = lens_sub.add_parser("convert", formatter_class=fmt, help="fit ImageMagick barrel <-> OpenCV models",
                             description="With --barrel and --size: the OpenCV Brown-Conrady camera closest to an "
@@ -343,7 +389,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--focal-px", type=float, default=None, help="raw focal length in pixels (with --barrel)")
     p.add_argument("--calibration", metavar="CAL.json", help="calibrated camera to express as a barrel model")
     p.add_argument("-o", "--output", default=None, help="write the fitted camera JSON here")
-    p.set_defaults(func=_lens_convert)
+    p.set_defaults(func=flags_named(_lens_convert))
 
     plan = subparsers.add_parser("plan", help="survey planning: grids, photo lines, extension, split, handoff",
                                  description="Plan coverage surveys and write plan.json, plan.geojson, plan.kml, "
@@ -367,7 +413,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--alt", type=float, required=True, help="flight altitude above take-off, metres")
     p.add_argument("--hold", type=float, default=0.0, help="hold time at each waypoint, seconds")
     common(p)
-    p.set_defaults(func=_plan_corners)
+    p.set_defaults(func=flags_named(_plan_corners))
 
     p = plan_sub.add_parser("polygon", formatter_class=fmt, help="photo survey lines over a polygon",
                             description="Parallel photo lines over a polygon: spacing and camera trigger "
@@ -385,7 +431,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--turnaround", type=float, default=None, help="run-in/run-out beyond the photos, metres "
                                                                   "(default: half the along-track footprint)")
     common(p)
-    p.set_defaults(func=_plan_polygon)
+    p.set_defaults(func=flags_named(_plan_polygon))
 
     p = plan_sub.add_parser("extend", formatter_class=fmt, help="re-centre a plan on an alarm and grow it",
                             description="Rebuild PLAN with the same shape and step, centred on --alarm, its area "
@@ -395,7 +441,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--joining", type=int, required=True, help="number of drones joining")
     p.add_argument("--growth", type=float, default=0.5, help="area growth per joining drone (fraction)")
     common(p)
-    p.set_defaults(func=_plan_extend)
+    p.set_defaults(func=flags_named(_plan_extend))
 
     p = plan_sub.add_parser("handoff", formatter_class=fmt, help="give a failing drone's remaining path away",
                             description="The waypoints of PLAN from --next-index on (optionally starting at "
@@ -406,7 +452,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--available", action="append", type=_drone, required=True, metavar="ID=LAT,LON",
                    help="a drone that can take over (repeat)")
     common(p, drones=False)
-    p.set_defaults(func=_plan_handoff)
+    p.set_defaults(func=flags_named(_plan_handoff))
 
     from skyfix.mapping.map_cli import register_map
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from skyfix.mapping.mission import MissionItemInt, mission_items
+from skyfix.mapping.mission import MAV_FRAME, MissionItemInt, mission_items
 from skyfix.mapping.survey import SurveyPart, SurveyPlan
 
 __all__ = ["write_geojson", "write_kml", "write_png", "write_qgc_mission", "plan_geojson"]
@@ -84,12 +84,19 @@ def write_kml(path: str | os.PathLike, plan_or_parts) -> None:
     kml.save(str(path))
 
 
+#: The file holds degrees, not 1e7 integers: *_INT frames are written as their float twins.
+_WPL_FRAME = {MAV_FRAME.GLOBAL_INT: 0, MAV_FRAME.GLOBAL_RELATIVE_ALT_INT: 3}
+
+
 def write_qgc_mission(path: str | os.PathLike, items: Sequence[MissionItemInt]) -> None:
-    """Mission file in the ``QGC WPL 110`` text format (QGroundControl, Mission Planner, MAVProxy)."""
+    """Mission file in the ``QGC WPL 110`` text format (QGroundControl, Mission Planner, MAVProxy);
+    item 0 is home there, marked current as Mission Planner writes it."""
     lines = ["QGC WPL 110"]
     for it in items:
         params = ["0" if math.isnan(p) else f"{p:.8g}" for p in (it.param1, it.param2, it.param3, it.param4)]
-        lines.append("\t".join([str(it.seq), str(it.current), str(it.frame), str(it.command), *params,
+        current = 1 if it.seq == 0 else it.current
+        lines.append("\t".join([str(it.seq), str(current), str(_WPL_FRAME.get(it.frame, it.frame)), str(it.command),
+                                *params,
                                 f"{it.x / 1e7:.7f}", f"{it.y / 1e7:.7f}", f"{it.z:.3f}", str(it.autocontinue)]))
     Path(path).write_text("\n".join(lines) + "\n")
 
@@ -136,7 +143,14 @@ def write_png(path: str | os.PathLike, plan_or_parts, *, footprints: bool = True
 
 def write_all(out_dir: str | os.PathLike, plan_or_parts, *, home_latlon_alt=None, speed_m_s: float | None = None,
               stem: str = "plan") -> dict[str, str]:
-    """GeoJSON, KML, PNG and one QGC mission file per drone in ``out_dir``; returns {kind: path}."""
+    """GeoJSON, KML, PNG and one QGC mission file per drone in ``out_dir``; returns {kind: path}.
+
+    Every mission file starts with home as item 0 (ArduPilot, Mission Planner and QGC WPL
+    files treat item 0 as home, so a take-off there would be lost): ``home_latlon_alt``
+    (lat_deg, lon_deg, alt_m AMSL) for all drones, or {drone_id: (lat, lon, alt)}; a
+    drone without one gets its part's first waypoint at altitude 0 (the autopilot sets
+    its real home when it arms).
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     _, parts = _parts(plan_or_parts)
@@ -145,7 +159,10 @@ def write_all(out_dir: str | os.PathLike, plan_or_parts, *, home_latlon_alt=None
     write_kml(written["kml"], plan_or_parts)
     write_png(written["png"], plan_or_parts)
     for part in parts:
+        home = home_latlon_alt.get(part.drone_id) if isinstance(home_latlon_alt, dict) else home_latlon_alt
+        if home is None:
+            home = (*part.plan.waypoints_latlon()[0], 0.0)
         path = out / f"{stem}_{part.drone_id}.waypoints"
-        write_qgc_mission(path, mission_items(part, home_latlon_alt=home_latlon_alt, speed_m_s=speed_m_s))
+        write_qgc_mission(path, mission_items(part, home_latlon_alt=home, speed_m_s=speed_m_s))
         written[f"mission_{part.drone_id}"] = path
     return {k: str(v) for k, v in written.items()}

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from skyfix.errors import DataError, InputError
-from skyfix.mapping.batch import list_photos
+from skyfix.mapping.batch import list_photos, reason
 from skyfix.mapping.exif import PhotoMetadata, read_metadata
 
 __all__ = ["OverlapCheck", "Photo", "Rejected", "camera_groups", "check_gps_overlap", "load_photos"]
@@ -99,8 +99,9 @@ def load_photos(photos_dir: str | os.PathLike) -> tuple[list[Photo], list[Reject
         try:
             photos.append(_photo(path))
         except (DataError, OSError) as exc:
-            log.warning("rejected %s: %s", path.name, exc)
-            rejected.append(Rejected(path.name, str(exc)))
+            why = reason(exc, path)
+            log.warning("rejected %s: %s", path.name, why)
+            rejected.append(Rejected(path.name, why))
     without_gps = [p.name for p in photos if not p.has_gps]
     if without_gps:
         log.warning("%d photo(s) without GPS in EXIF (they reconstruct but do not georeference): %s",

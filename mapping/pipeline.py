@@ -33,7 +33,7 @@ from skyfix.errors import ConfigurationError, DataError, InputError, SkyfixError
 from skyfix.mapping.photos import Photo, camera_groups, check_gps_overlap, load_photos
 from skyfix.mapping.report import Report
 
-__all__ = ["STAGES", "PipelineConfig", "run_pipeline"]
+__all__ = ["STAGES", "PipelineConfig", "run_pipeline", "stage_options"]
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +88,34 @@ class PipelineConfig:
                 raise InputError(f"{name} must be a positive number, got {v!r}")
 
 
+#: The options each stage's result depends on (its own and, for the stages that are
+#: never redone by a change upstream, those of the stages it reads). A stage whose
+#: recorded options differ runs again, and every later stage with it.
+_STAGE_OPTIONS = {
+    "photos": (), "correct": ("barrel",),
+    "features": ("barrel", "calibration", "max_image_size_px", "max_features"),
+    "matches": ("barrel", "calibration", "max_image_size_px", "max_features", "exhaustive_max_photos",
+                "spatial_neighbours", "seed"),
+    "mapping": ("calibration", "refine_focal", "gps_sigma_m", "seed"),
+    "georef": ("georef_max_error_m", "two_view_max_offset_m", "two_view_max_vertical_m", "estimate_gps_lag"),
+    "dsm": ("dense", "dense_scale", "dense_cell_px", "dsm_resolution_m", "max_dense_points", "seed"),
+    "ortho": ("resolution_cm", "max_ortho_mpx", "ortho_seams", "seam_band_px", "blend_power"),
+    "export": (),
+}
+
+
+def stage_options(config: PipelineConfig, stage: str) -> dict:
+    """The options ``stage`` depends on, as JSON values (objects by their repr)."""
+    def plain(value):
+        if value is None or isinstance(value, (bool, int, float, str)):
+            return value
+        if isinstance(value, tuple):
+            return [plain(v) for v in value]
+        return repr(value)
+
+    return {name: plain(getattr(config, name)) for name in _STAGE_OPTIONS[stage]}
+
+
 class _Project:
     """Paths of a project folder and the stage markers."""
 
@@ -109,6 +137,22 @@ class _Project:
         tmp = self.stages / f"{stage}.json.part"
         tmp.write_text(json.dumps(data, indent=1))
         os.replace(tmp, self.stages / f"{stage}.json")
+
+    def reset_database(self, stage: str) -> None:
+        """Before re-running ``features`` (the database goes) or ``matches`` (its matches go):
+        pycolmap skips images and pairs the database already holds."""
+        if stage == "features":
+            for suffix in ("", "-wal", "-shm"):
+                Path(f"{self.database}{suffix}").unlink(missing_ok=True)
+        elif self.database.exists():
+            import pycolmap
+
+            db = pycolmap.Database.open(str(self.database))
+            try:
+                db.clear_matches()
+                db.clear_two_view_geometries()
+            finally:
+                db.close()
 
     def clear_from(self, stage: str) -> None:
         for later in STAGES[STAGES.index(stage):]:
@@ -139,7 +183,13 @@ def run_pipeline(config: PipelineConfig) -> Report:
     try:
         for stage in STAGES:
             marker = project.marker(stage)
-            rerun = stage in config.force or marker is None or (dirty and stage not in ("features", "matches"))
+            options = stage_options(config, stage)
+            changed = marker is not None and marker.get("options") != options
+            if changed:
+                log.info("stage %s runs again: its options changed since the last run (%s)", stage,
+                         ", ".join(k for k in options if (marker.get("options") or {}).get(k) != options[k]))
+            rerun = stage in config.force or marker is None or changed or \
+                (dirty and stage not in ("features", "matches"))
             if stage == "photos":
                 rerun = True  # cheap, and later stages need the photo list
             if not rerun:
@@ -149,8 +199,11 @@ def run_pipeline(config: PipelineConfig) -> Report:
                 continue
             t0 = time.perf_counter()
             log.info("stage %s", stage)
+            if marker is not None and stage in ("features", "matches"):
+                project.reset_database(stage)
             data = _STAGE_RUN[stage](config, project, state, report) or {}
             data["seconds"] = time.perf_counter() - t0
+            data["options"] = options
             if stage != "photos":
                 dirty = True
             elif marker is not None and marker.get("names") != data.get("names"):

@@ -12,7 +12,19 @@ import numpy as np
 from skyfix.errors import InputError, NotAvailableError
 from skyfix.mapping.correct import Undistortion
 
-__all__ = ["TorchRemapper"]
+__all__ = ["TorchRemapper", "require_torch"]
+
+
+def require_torch() -> None:
+    """Raise :class:`NotAvailableError` (with the install advice of the README) unless torch
+    and kornia import."""
+    try:
+        import kornia  # noqa: F401
+        import torch  # noqa: F401
+    except ImportError as exc:
+        raise NotAvailableError(f"the torch backend needs torch and kornia ({exc.name or exc} is not installed): "
+                                "install torch first (pip install torch; the CPU build where there is no GPU), "
+                                "then the gpu extra (pip install -e '.[gpu]'), as the README says") from None
 
 
 class TorchRemapper:
@@ -22,11 +34,9 @@ class TorchRemapper:
     """
 
     def __init__(self, tables: Undistortion, device: str | None = None) -> None:
-        try:
-            import kornia  # noqa: F401
-            import torch
-        except ImportError as exc:
-            raise NotAvailableError("the torch backend needs the 'gpu' extra: pip install torch kornia") from exc
+        require_torch()
+        import torch
+
         self._torch = torch
         self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         self.tables = tables

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import shutil
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -69,6 +70,45 @@ def colmap_camera(photo: Photo, calibration: Camera | None = None) -> ColmapCame
                              "first (the pipeline's --barrel option)")
 
 
+@contextmanager
+def _database_progress(database: Path, table: str, desc: str, total: int | None, unit: str):
+    """A progress bar (skyfix.progress) counting the rows of ``table`` in the pycolmap
+    database while the body runs: pycolmap's extraction and matching are single native
+    calls without a callback, but they write each image's features / each pair as it is done."""
+    import sqlite3
+    import threading
+
+    from skyfix import progress
+
+    if not progress.enabled():
+        yield
+        return
+    done = threading.Event()
+
+    def poll(bar) -> None:
+        con = None
+        finished = False
+        while not finished:
+            finished = done.wait(0.5)  # one last count after the work is done
+            try:
+                con = con or sqlite3.connect(f"file:{database}?mode=ro", uri=True, timeout=0.2)
+                count = con.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0]  # noqa: S608 - fixed names
+            except sqlite3.Error:
+                continue  # the database is being created or locked: try again
+            bar.update(count - bar.n)
+        if con is not None:
+            con.close()
+
+    with progress.bar(desc=desc, total=total, unit=unit) as bar:
+        thread = threading.Thread(target=poll, args=(bar,), daemon=True, name="sfm-progress")
+        thread.start()
+        try:
+            yield
+        finally:
+            done.set()
+            thread.join()
+
+
 def extract(database: Path, image_dir: Path, photos: list[Photo], *, calibration: Camera | None = None,
             max_image_size_px: int = 1600, max_features: int = 4000, threads: int = -1) -> None:
     """SIFT features of ``photos`` into ``database``; images already there are skipped by pycolmap.
@@ -91,9 +131,10 @@ def extract(database: Path, image_dir: Path, photos: list[Photo], *, calibration
         pycolmap.Database.open(str(database)).close()  # import_images needs the file to exist
         pycolmap.import_images(database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, image_names=names,
                                options=reader)
-        pycolmap.extract_features(database, image_dir, image_names=names,
-                                  camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                                  extraction_options=options, device=pycolmap.Device.cpu)
+        with _database_progress(database, "keypoints", "map: features", len(photos), "photo"):
+            pycolmap.extract_features(database, image_dir, image_names=names,
+                                      camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                      extraction_options=options, device=pycolmap.Device.cpu)
 
 
 def match(database: Path, photos: list[Photo], *, exhaustive_max_photos: int = 40, neighbours: int = 12,
@@ -112,16 +153,19 @@ def match(database: Path, photos: list[Photo], *, exhaustive_max_photos: int = 4
     verification.ransac.random_seed = int(seed)  # each pair's RANSAC seeded: the same matches every run
     if len(photos) <= exhaustive_max_photos or not all(p.has_gps for p in photos):
         log.info("exhaustive matching of %d photos (%d pairs)", len(photos), len(photos) * (len(photos) - 1) // 2)
-        pycolmap.match_exhaustive(database, matching_options=options, verification_options=verification,
-                                  device=pycolmap.Device.cpu)
+        with _database_progress(database, "two_view_geometries", "map: matching", len(photos) * (len(photos) - 1) // 2,
+                                "pair"):
+            pycolmap.match_exhaustive(database, matching_options=options, verification_options=verification,
+                                      device=pycolmap.Device.cpu)
         return "exhaustive"
     pairing = pycolmap.SpatialPairingOptions()
     pairing.max_num_neighbors = int(neighbours)
     pairing.max_distance = 1e6  # neighbours by count, not by distance
     pairing.ignore_z = True
     log.info("spatial matching of %d photos with their %d nearest GPS neighbours", len(photos), neighbours)
-    pycolmap.match_spatial(database, matching_options=options, pairing_options=pairing,
-                           verification_options=verification, device=pycolmap.Device.cpu)
+    with _database_progress(database, "two_view_geometries", "map: matching", None, "pair"):
+        pycolmap.match_spatial(database, matching_options=options, pairing_options=pairing,
+                               verification_options=verification, device=pycolmap.Device.cpu)
     return "spatial"
 
 

@@ -15,9 +15,8 @@ exported. Two kinds of plan:
   (every ``trigger_distance_m``) along the segment from waypoint k to k + 1.
 
 :func:`extend_survey` re-centres a plan on an alarm point and grows it by 50 % per
-joining drone keeping shape and step; :func:`split_survey` cuts the path into
-contiguous parts of equal length and gives each to the nearest drone;
-:func:`handoff` gives a failing drone's remaining path to the nearest available drone.
+joining drone keeping shape and step; splitting a plan among drones and handing a
+failing drone's path over are in :mod:`skyfix.mapping.split`.
 """
 
 from __future__ import annotations
@@ -32,8 +31,8 @@ from skyfix.camera import Camera
 from skyfix.errors import GeometryError, InputError
 from skyfix.geo import LocalFrame
 
-__all__ = ["SurveyPart", "SurveyPlan", "extend_survey", "handoff", "plan_polygon", "plan_survey",
-           "plan_three_corners", "split_survey"]
+__all__ = ["MAX_WAYPOINTS", "SurveyPart", "SurveyPlan", "extend_survey", "plan_polygon", "plan_survey",
+           "plan_three_corners"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -177,6 +176,16 @@ def _to_en(frame: LocalFrame, latlon: np.ndarray) -> np.ndarray:
 
 _STEP_SLACK = 0.02
 
+#: Most waypoints in one plan. A MAVLink mission numbers its items with a uint16 (at most
+#: 65 535) and a photo line adds up to two camera commands per four waypoints, plus home,
+#: take-off, speed and return: 40 000 waypoints always fit. Checked before any allocation.
+MAX_WAYPOINTS = 40_000
+
+
+def _check_waypoint_count(count: int, what: str) -> None:
+    if count > MAX_WAYPOINTS:
+        raise InputError(f"{what} gives {count:,} waypoints; at most {MAX_WAYPOINTS:,} fit in one MAVLink mission")
+
 
 def _grid(origin: np.ndarray, v: np.ndarray, w: np.ndarray, step_m: float) -> np.ndarray:
     """Boustrophedon grid: rows along v (alternating direction), stepping along w.
@@ -186,6 +195,7 @@ def _grid(origin: np.ndarray, v: np.ndarray, w: np.ndarray, step_m: float) -> np
     """
     n_v = int(math.floor(np.hypot(*v) / step_m + _STEP_SLACK)) + 1
     n_w = int(math.floor(np.hypot(*w) / step_m + _STEP_SLACK)) + 1
+    _check_waypoint_count(n_v * n_w, f"step_m={step_m:g} over {np.hypot(*v):.0f} x {np.hypot(*w):.0f} m")
     v_hat, w_hat = v / np.hypot(*v), w / np.hypot(*w)
     rows = []
     for j in range(n_w):
@@ -261,8 +271,10 @@ def _default_heading(area: np.ndarray) -> float:
 
 
 def _lines(area: np.ndarray, heading_deg: float, spacing_m: float, trigger_m: float,
-           turnaround_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Waypoints and trigger flags of parallel lines covering ``area`` (see module docstring)."""
+           turnaround_m: float, from_left: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Waypoints and trigger flags of parallel lines covering ``area`` (see module docstring):
+    the first line flown along ``heading_deg`` at the area's right-hand edge (``from_left``:
+    at its left-hand edge), the next one back, and so on."""
     from shapely.geometry import Polygon, box
 
     rot = _rot(heading_deg)
@@ -271,11 +283,14 @@ def _lines(area: np.ndarray, heading_deg: float, spacing_m: float, trigger_m: fl
     x_min, y_min, x_max, y_max = poly.bounds
     height = y_max - y_min
     n_lines = max(1, math.ceil(height / spacing_m - 1e-9))
+    _check_waypoint_count(4 * n_lines, f"a line spacing of {spacing_m:.3g} m over {height:.0f} m")
     centres = y_min + height / 2.0 + (np.arange(n_lines) - (n_lines - 1) / 2.0) * spacing_m
     wps, flags = [], []
-    for k, y in enumerate(centres):
-        lo = y_min - 1.0 if k == 0 else y - spacing_m / 2.0
-        hi = y_max + 1.0 if k == n_lines - 1 else y + spacing_m / 2.0
+    order = np.arange(n_lines)[::-1] if from_left else np.arange(n_lines)
+    for k, g in enumerate(order):  # k: flying order, g: position across the area
+        y = centres[g]
+        lo = y_min - 1.0 if g == 0 else y - spacing_m / 2.0
+        hi = y_max + 1.0 if g == n_lines - 1 else y + spacing_m / 2.0
         piece = poly.intersection(box(x_min - 1.0, lo, x_max + 1.0, hi))
         if piece.is_empty:
             continue
@@ -404,115 +419,3 @@ def extend_survey(plan: SurveyPlan, alarm_latlon, joining_drones: int, *,
     area = centre + (plan.area_en_m - centroid) * scale
     wp, flags = _lines(area, plan.heading_deg, plan.step_m, plan.trigger_distance_m, plan.turnaround_m)
     return replace(plan, waypoints_en_m=wp, trigger_on=flags, area_en_m=area)
-
-
-# --------------------------------------------------------------------------- split / handoff
-
-
-def _drone_positions(drones, frame: LocalFrame) -> tuple[list[str], np.ndarray]:
-    if not isinstance(drones, dict) or not drones:
-        raise InputError("drones must be a non-empty dict {drone_id: (lat_deg, lon_deg)}")
-    ids = [str(k) for k in drones]
-    pos = _latlon_points("drone positions", [drones[k] for k in drones], 1)
-    return ids, _to_en(frame, pos)
-
-
-def _cut(wp: np.ndarray, s_cut: float, cum: np.ndarray) -> tuple[int, np.ndarray]:
-    """Segment index and point at arc length ``s_cut``."""
-    k = int(np.clip(np.searchsorted(cum, s_cut, side="right") - 1, 0, len(wp) - 2))
-    seg = cum[k + 1] - cum[k]
-    frac = 0.0 if seg == 0 else (s_cut - cum[k]) / seg
-    return k, wp[k] + frac * (wp[k + 1] - wp[k])
-
-
-def _sub_plan(plan: SurveyPlan, wp: np.ndarray, flags: np.ndarray) -> SurveyPlan:
-    return replace(plan, waypoints_en_m=wp, trigger_on=flags)
-
-
-def _split_paths(plan: SurveyPlan, n: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
-    """(first index, waypoints, flags) of ``n`` contiguous parts of equal length."""
-    wp, flags = plan.waypoints_en_m, plan.trigger_on
-    cum = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(wp, axis=0).T))))
-    total = cum[-1]
-    if plan.kind == "stations":
-        # Cut between stations: part p gets stations [b_p, b_{p+1}); the hop between parts
-        # is not flown by anyone, so balance the parts' own lengths.
-        if n > len(wp):
-            raise InputError(f"cannot split {len(wp)} waypoints among {n} drones")
-        bounds = [0]
-        for p in range(1, n):
-            target = p * total / n
-            b = int(np.argmin(np.abs(cum - target)))
-            b = min(max(b, bounds[-1] + 1), len(wp) - (n - p))
-            bounds.append(b)
-        bounds.append(len(wp))
-        return [(a, wp[a:b], flags[a:max(a, b - 1)]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
-    parts, prev_k, prev_pt = [], 0, wp[0]
-    for p in range(1, n + 1):
-        if p == n:
-            k, pt = len(wp) - 2, wp[-1]
-            pts = np.vstack((prev_pt[None], wp[prev_k + 1:]))
-        else:
-            k, pt = _cut(wp, p * total / n, cum)
-            pts = np.vstack((prev_pt[None], wp[prev_k + 1:k + 1], pt[None]))
-        seg_flags = np.concatenate(([flags[prev_k]], flags[prev_k + 1:k + 1])) if p < n else \
-            np.concatenate(([flags[prev_k]], flags[prev_k + 1:]))
-        keep = np.concatenate(([True], np.hypot(*np.diff(pts, axis=0).T) > 1e-9))
-        idx = np.flatnonzero(keep)
-        merged = [bool(seg_flags[a:b].any()) for a, b in zip(idx[:-1], idx[1:], strict=True)]
-        parts.append((prev_k + (0 if p == 1 else 1), pts[keep], np.array(merged, bool)))
-        prev_k, prev_pt = k, pt
-    return parts
-
-
-def split_survey(plan: SurveyPlan, drones: dict) -> list[SurveyPart]:
-    """Split ``plan`` among ``drones`` ({id: (lat_deg, lon_deg)}): contiguous parts, balanced length.
-
-    Station plans are cut between stations (lengths then differ by at most one step);
-    line plans are cut at exact fractions of the path length (a waypoint is inserted at
-    the cut, the camera keeps triggering across it). Parts go to drones by least total
-    approach distance (Hungarian assignment); a part is flown backwards when that starts
-    it nearer its drone.
-    """
-    from scipy.optimize import linear_sum_assignment
-
-    ids, pos = _drone_positions(drones, plan.frame)
-    parts = _split_paths(plan, len(ids))
-    starts = np.array([p[1][0] for p in parts])
-    ends = np.array([p[1][-1] for p in parts])
-    d_start = np.linalg.norm(pos[:, None, :] - starts[None], axis=2)
-    d_end = np.linalg.norm(pos[:, None, :] - ends[None], axis=2)
-    rows, cols = linear_sum_assignment(np.minimum(d_start, d_end))
-    out = []
-    for r, c in zip(rows, cols, strict=True):
-        first, wp, flags = parts[c]
-        if d_end[r, c] < d_start[r, c]:
-            wp, flags = wp[::-1], flags[::-1]
-        out.append(SurveyPart(ids[r], _sub_plan(plan, wp, flags), int(first), float(min(d_start[r, c], d_end[r, c]))))
-    return sorted(out, key=lambda part: part.first_index)
-
-
-def handoff(part: SurveyPart | SurveyPlan, next_index: int, available: dict, *,
-            stopped_at_latlon=None) -> SurveyPart:
-    """Give the rest of a failing drone's path to the nearest available drone.
-
-    ``next_index``: index (in ``part``'s waypoints) of the first waypoint the failing drone
-    had not reached. With ``stopped_at_latlon`` (its last position) the new path starts
-    there, so a photo line is resumed where it was interrupted (the camera triggers on
-    the resumed segment when it did on the interrupted one). ``available``:
-    {id: (lat_deg, lon_deg)} of drones that can take over.
-    """
-    plan = part.plan if isinstance(part, SurveyPart) else part
-    if isinstance(next_index, bool) or not isinstance(next_index, (int, np.integer)) \
-            or not 0 <= next_index < plan.n_waypoints:
-        raise InputError(f"next_index must be an integer in [0, {plan.n_waypoints - 1}], got {next_index!r}")
-    wp, flags = plan.waypoints_en_m[next_index:], plan.trigger_on[next_index:]
-    if stopped_at_latlon is not None:
-        stop = _to_en(plan.frame, _latlon_points("stopped_at_latlon", stopped_at_latlon, 1))[0]
-        resumed = bool(plan.trigger_on[next_index - 1]) if next_index > 0 else False
-        wp, flags = np.vstack((stop[None], wp)), np.concatenate(([resumed], flags))
-    ids, pos = _drone_positions(available, plan.frame)
-    dist = np.linalg.norm(pos - wp[0], axis=1)
-    best = int(np.argmin(dist))
-    offset = part.first_index if isinstance(part, SurveyPart) else 0
-    return SurveyPart(ids[best], _sub_plan(plan, wp, flags), offset + int(next_index), float(dist[best]))

@@ -13,7 +13,8 @@ from skyfix.camera import Camera
 from skyfix.geo import destination
 from skyfix.mapping.export import write_all
 from skyfix.mapping.mission import MAV_CMD, MAV_FRAME, MissionItemInt, mission_items
-from skyfix.mapping.survey import plan_polygon, plan_three_corners, split_survey
+from skyfix.mapping.split import split_survey
+from skyfix.mapping.survey import plan_polygon, plan_three_corners
 
 LAT0, LON0 = 40.6303, -8.6575
 

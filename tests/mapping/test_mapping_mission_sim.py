@@ -12,7 +12,8 @@ from skyfix.drivers.mission import MissionItem
 from skyfix.drivers.vehicle import Vehicle
 from skyfix.geo import destination
 from skyfix.mapping.mission import MissionItemInt, mission_items
-from skyfix.mapping.survey import plan_polygon, plan_three_corners, split_survey
+from skyfix.mapping.split import split_survey
+from skyfix.mapping.survey import plan_polygon, plan_three_corners
 
 
 def to_driver_item(item: MissionItemInt) -> MissionItem:

@@ -96,3 +96,39 @@ def test_barrel_correction_stage_feeds_mapping(tmp_path):
     corrected = sorted(p.name for p in (out / "work" / "corrected").glob("*.jpg"))
     assert corrected == sorted(p.name for p in photos.glob("*.jpg"))
     assert len(report.registered) >= 3 and report.georeferenced and report.georef_rms_m <= 5.0
+
+
+def test_changed_option_reruns_the_stages_it_affects(tmp_path, monkeypatch):
+    # Issue 20: a second run with --resolution-cm 30 kept the old orthophoto. Each stage
+    # records the options it depends on; a changed one re-runs that stage and the later ones.
+    import rasterio
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for p in sorted(DATA.glob("*.jpg"))[1:5]:
+        shutil.copy(p, photos / p.name)
+    out = tmp_path / "project"
+    first = run_pipeline(PipelineConfig(photos, out, **FAST))
+    assert first.resolution_cm < 10.0  # the photos' GSD, ~7 cm
+
+    calls = []
+    for name in ("extract", "match"):
+        original = getattr(sfm, name)
+
+        def spy(*args, _original=original, _name=name, **kwargs):
+            calls.append(_name)
+            return _original(*args, **kwargs)
+
+        monkeypatch.setattr(sfm, name, spy)
+    coarse = run_pipeline(PipelineConfig(photos, out, resolution_cm=30.0, **FAST))
+    assert calls == []
+    assert {"features", "matches", "mapping", "georef", "dsm"} <= set(coarse.resumed_stages)
+    assert "ortho" not in coarse.resumed_stages and coarse.resolution_cm == pytest.approx(30.0)
+    with rasterio.open(out / "orthophoto.tif") as ds:
+        assert ds.res[0] == pytest.approx(0.30)
+
+    # A matching option: the database's matches are replaced, the features kept.
+    again = run_pipeline(PipelineConfig(photos, out, resolution_cm=30.0, exhaustive_max_photos=2, **FAST))
+    assert calls == ["match"] and again.matching == "spatial"
+    assert "features" in again.resumed_stages and "matches" not in again.resumed_stages
+    assert len(again.registered) >= 3 and again.georeferenced

@@ -11,14 +11,13 @@ from skyfix.camera import Camera
 from skyfix.errors import GeometryError, InputError
 from skyfix.geo import destination
 from skyfix.mapping.coverage import verify_coverage
+from skyfix.mapping.split import handoff, split_survey
 from skyfix.mapping.survey import (
     extend_survey,
     footprint_m,
-    handoff,
     plan_polygon,
     plan_survey,
     plan_three_corners,
-    split_survey,
 )
 
 LAT0, LON0 = 40.6303, -8.6575  # University of Aveiro campus
