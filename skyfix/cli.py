@@ -165,10 +165,12 @@ def configure_logging(verbose: int, quiet: bool) -> None:
         os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
         os.environ.setdefault("GLOG_minloglevel", "2")
         os.environ.setdefault("RUST_LOG", "error")
-        if "cv2" in sys.modules:
+        if "cv2" in sys.modules:  # already loaded: the environment variable is read too late
             try:
-                sys.modules["cv2"].setLogLevel(2)  # cv2.LOG_LEVEL_ERROR
-            except AttributeError:
+                import cv2.utils.logging as cv_log
+
+                cv_log.setLogLevel(cv_log.LOG_LEVEL_ERROR)
+            except (ImportError, AttributeError):
                 pass
 
 

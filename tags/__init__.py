@@ -9,25 +9,15 @@ roll/pitch as a prior) -> :class:`TagFix`.
 AprilTag/ArUco boards through ``cv2.aruco``: :class:`ArucoField` and :func:`locate_aruco`,
 returning the same :class:`TagFix` (IPPE with both planar solutions scored).
 
-Heavy imports (cv2, scipy) load with the submodules that need them.
+Every name loads its module (and OpenCV, scipy) on first use.
 """
 
-from skyfix.tags.codec import TagGeometry, TileCodec
-from skyfix.tags.dimensioning import Dimensioning, dimension
-from skyfix.tags.field import TagField
-from skyfix.tags.placement import PlacementReport, optimise_placement
-from skyfix.tags.pose import AttitudePrior, TagFix
+from skyfix.lazy import lazy_exports
 
-__all__ = ["ArucoField", "AttitudePrior", "Dimensioning", "PlacementReport", "TagField", "TagFix",
-           "TagGeometry", "TileCodec", "dimension", "locate_aruco", "locate_tiles", "optimise_placement"]
-
-
-def __getattr__(name: str):
-    # cv2-backed entry points import on first use so `import skyfix.tags` stays light.
-    if name == "locate_tiles":
-        from skyfix.tags.locate import locate_tiles
-        return locate_tiles
-    if name in ("ArucoField", "locate_aruco"):
-        from skyfix.tags import aruco
-        return getattr(aruco, name)
-    raise AttributeError(f"module 'skyfix.tags' has no attribute {name!r}")
+# Names are imported on first use, so `import skyfix.tags` (and `skyfix --help`) stays light.
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "TagGeometry": "codec", "TileCodec": "codec", "Dimensioning": "dimensioning", "dimension": "dimensioning",
+    "TagField": "field", "PlacementReport": "placement", "optimise_placement": "placement",
+    "AttitudePrior": "pose", "TagFix": "pose", "locate_tiles": "locate", "ArucoField": "aruco",
+    "locate_aruco": "aruco",
+})
