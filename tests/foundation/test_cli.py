@@ -63,3 +63,59 @@ def test_ci_runs_the_readme_test_command_verbatim():
     assert "pytest" in install_and_test
     ci = (ROOT / ".ci" / "run").read_text().splitlines()
     assert install_and_test in [line.strip() for line in ci]
+
+
+def test_log_flags_work_after_the_subcommand(capsys):
+    argv = ["tags", "dimension", "--area-m", "5", "4", "--min-height-m", "1", "--max-height-m", "3"]
+    assert main([*argv, "-q"]) == 0
+    assert main([*argv, "-v"]) == 0
+    assert '"tile_m"' in capsys.readouterr().out
+
+
+def test_help_states_each_default_once_and_no_escaped_percent():
+    from skyfix.cli import iter_parsers
+
+    for path, sub in iter_parsers(build_parser()):
+        text = sub.format_help()
+        assert "%%" not in text, f"'{path} --help' shows a literal %%"
+        for block in re.split(r"\n  (?=-)", text):  # one option's help per block
+            flat = " ".join(block.split()).lower()
+            # The doubling users saw: "(default 50) (default: 50)", "(default: None)".
+            assert not re.search(r"default[^()]*\)\s*\(default:", flat) and "(default: none)" not in flat, \
+                f"'{path} --help' repeats a default: {flat[:160]}"
+
+
+def test_top_level_help_lists_every_command_and_tags_board(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    top = capsys.readouterr().out
+    for action in build_parser()._subparsers._group_actions[0].choices:
+        assert f"    {action}" in top
+    with pytest.raises(SystemExit):
+        main(["tags", "--help"])
+    assert "board" in capsys.readouterr().out
+
+
+def test_errors_are_one_line_exit_2_and_operational_failures_exit_1(tmp_path, capsys):
+    from skyfix.cli import run_command
+    from skyfix.errors import DataError, SkyfixTimeout
+
+    def bad(_):
+        raise DataError("photo.jpg: photo.jpg: corrupt JPEG")
+
+    def late(_):
+        raise SkyfixTimeout("no heartbeat from udpin:127.0.0.1:14550 in 5 s")
+
+    def missing(_):
+        open(tmp_path / "nope.csv")
+
+    def bug(_):
+        raise KeyError("x")
+
+    assert main(["-q", "tags", "board", "-o", str(tmp_path / "b" / "b.json"), "--rows", "1", "--cols", "1"]) == 0
+    capsys.readouterr()
+    for func, code, text in ((bad, 2, "photo.jpg: corrupt JPEG"), (late, 1, "no heartbeat"),
+                             (missing, 2, "nope.csv: No such file"), (bug, 1, "internal error: KeyError")):
+        assert run_command(func, None) == code
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and text in err[0] and "Traceback" not in err[0], err
