@@ -325,11 +325,10 @@ class FusionEngine:
             return
         if self._log is not None:
             self._log.record("update")
-        tail = []
-        for drone in self._drones.values():
-            if drone.anchored:
-                for k in range(max(drone.first_k, self._settled_step(drone) - 1), drone.last_k + 1):
-                    tail += [self._window.key(drone.index, kind, k) for kind in range(3)]
+        # Joint covariance for every drone's settled step: what gates and answers read (a 27 x 27
+        # inverse for 3 drones; older steps, asked for rarely, go through gtsam's Marginals).
+        tail = [self._window.key(drone.index, kind, self._settled_step(drone))
+                for drone in self._drones.values() if drone.anchored for kind in range(3)]
         self._window.update(tail)
         oldest = self._window.oldest_alive_step()
         for drone_id, drone in self._drones.items():

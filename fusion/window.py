@@ -69,6 +69,7 @@ class GraphWindow:
         self.max_iterations = int(max_iterations)
         self._huber = gtsam.noiseModel.mEstimator.Huber.Create(float(robust_k))
         self._values = gtsam.Values()              # estimate (and initial guesses of new variables)
+        self._value_cache: dict[int, np.ndarray] = {}  # read-only copies of _values (read ~30 times per update)
         self._graph = gtsam.NonlinearFactorGraph()  # window factors; marginalised ones leave null slots
         self._buckets: dict[int, list[int]] = {}   # oldest step a factor touches -> its slots in _graph
         self._live = 0
@@ -119,6 +120,7 @@ class GraphWindow:
                 continue
             key = self.key(drone_index, kind, k)
             self._values.insert(key, gtsam.Point3(*guess))
+            self._value_cache.pop(key, None)
             self._keys_by_step.setdefault(k, []).append(key)
             self._new_keys.append(key)
         self._newest_step = max(self._newest_step, k)
@@ -126,9 +128,11 @@ class GraphWindow:
     def value(self, drone_index: int, kind: int, k: int) -> np.ndarray | None:
         """Current estimate of a variable (its initial guess if not yet optimised), or None."""
         key = self.key(drone_index, kind, k)
-        if self._values.exists(key):
-            return np.asarray(self._values.atPoint3(key))
-        return None
+        out = self._value_cache.get(key)
+        if out is None and self._values.exists(key):
+            out = self._value_cache[key] = np.asarray(self._values.atPoint3(key))
+            out.flags.writeable = False
+        return out
 
     def is_optimised(self, drone_index: int, kind: int, k: int) -> bool:
         return self.key(drone_index, kind, k) in self._optimised
@@ -341,6 +345,7 @@ class GraphWindow:
         except (RuntimeError, np.linalg.LinAlgError) as exc:  # gtsam: indeterminant system
             raise EstimationError(f"fusion window solve failed: {exc}") from exc
         self._values = values
+        self._value_cache = {}
         return tail_cov
 
     def _marginalise(self, before_step: int) -> None:
@@ -371,4 +376,5 @@ class GraphWindow:
             del self._keys_by_step[k]
         for key in old_keys:
             self._values.erase(key)
+            self._value_cache.pop(key, None)
             self._optimised.discard(key)
