@@ -22,10 +22,11 @@ Huber robust model (a fix is gated only, see :meth:`GraphWindow.position`).
 The window is one this module marginalises itself (gtsam's fixed-lag smoothers were
 measured at 3-5 ms per update here, and its incremental one has known crash and growth
 bugs): at each update the factors of the window are linearised at the current
-estimate and eliminated in time order with gtsam's sequential elimination, the newest
-two steps of every drone last; their joint marginal (a small dense information
-matrix) gives both the newest solution and its covariance, and back-substitution the
-rest. Steps older than the lag are eliminated out of their factors and the result is
+estimate and eliminated in time order with gtsam's sequential elimination, the
+caller's ``tail`` (the engine's: every drone's settled step) last; its joint marginal
+(a small dense information matrix) gives both its solution and covariance, and
+back-substitution the rest. (A banded Cholesky in numpy instead was timed on a window's
+300 unknowns: building the band and factoring it alone cost as much as gtsam's elimination.) Steps older than the lag are eliminated out of their factors and the result is
 kept as a ``LinearContainerFactor`` on what remains, so memory and time per update
 stay bounded. Every new variable must enter together with a factor that constrains
 it (a new position with its motion factors, a new bias with its random walk or its
