@@ -70,6 +70,37 @@ def colmap_camera(photo: Photo, calibration: Camera | None = None) -> ColmapCame
                              "first (the pipeline's --barrel option)")
 
 
+def _colmap_logging():
+    """pycolmap, its native log (glog) at the level skyfix's CLI gave the ``pycolmap``
+    logger (ERROR unless -v): set here because glog reads its environment only when the
+    library loads, which may be before the CLI chose."""
+    import pycolmap
+
+    level = logging.getLogger("pycolmap").getEffectiveLevel()
+    pycolmap.logging.minloglevel = 0 if level <= logging.INFO else (1 if level <= logging.WARNING else 2)
+    return pycolmap
+
+
+@contextmanager
+def _native_stderr_quiet():
+    """fd 2 to /dev/null while the body runs, unless -v: ``pycolmap.bundle_adjustment``
+    resets glog to INFO itself and prints its heading whatever the level set."""
+    import os
+
+    if logging.getLogger("pycolmap").getEffectiveLevel() <= logging.INFO:
+        yield
+        return
+    saved = os.dup(2)
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(null)
+
+
 @contextmanager
 def _database_progress(database: Path, table: str, desc: str, total: int | None, unit: str):
     """A progress bar (skyfix.progress) counting the rows of ``table`` in the pycolmap
@@ -117,7 +148,7 @@ def extract(database: Path, image_dir: Path, photos: list[Photo], *, calibration
     ids do not depend on which extraction thread finishes first (the mapper's choices
     follow the ids: without this two runs on the same photos differ).
     """
-    import pycolmap
+    pycolmap = _colmap_logging()
 
     options = pycolmap.FeatureExtractionOptions()
     options.max_image_size = int(max_image_size_px)
@@ -145,7 +176,7 @@ def match(database: Path, photos: list[Photo], *, exhaustive_max_photos: int = 4
     pair each photo with its ``neighbours`` nearest GPS positions (pycolmap spatial matching
     on the EXIF positions the extractor stored as pose priors).
     """
-    import pycolmap
+    pycolmap = _colmap_logging()
 
     options = pycolmap.FeatureMatchingOptions()
     options.num_threads = int(threads)
@@ -173,7 +204,7 @@ def set_pose_priors(database: Path, photos: list[Photo], frame: LocalFrame, sigm
     """Replace the database's pose priors (pycolmap stores EXIF GPS as WGS84 without a
     covariance) by the photos' GPS in ``frame`` (ENU metres, CARTESIAN) with a diagonal
     covariance of (horizontal, vertical) standard deviations ``sigma_m``; returns how many."""
-    import pycolmap
+    pycolmap = _colmap_logging()
 
     by_name = {p.name: p for p in photos if p.has_gps}
     cov = np.diag([sigma_m[0] ** 2, sigma_m[0] ** 2, sigma_m[1] ** 2])
@@ -219,7 +250,7 @@ def reconstruct(database: Path, image_dir: Path, out_dir: Path, *, calibrated: b
     the model lies in their frame and cannot drift away from GPS. ``seed`` fixes
     pycolmap's random sampling (RANSAC, initial pair) so a run repeats.
     """
-    import pycolmap
+    pycolmap = _colmap_logging()
 
     out_dir.mkdir(parents=True, exist_ok=True)
     pycolmap.set_random_seed(int(seed))
@@ -259,7 +290,7 @@ def _without_unsupported_distortion(rec, min_gain: float = 0.05):
     at k = 0.0056 with no better fit than k = 0, and every height came out 1.2 % of the
     flying height too high. A real lens shows its distortion as a clear gain and keeps it.
     """
-    import pycolmap
+    pycolmap = _colmap_logging()
 
     radial = {"SIMPLE_RADIAL": (3,), "RADIAL": (3, 4)}
     cams = [c for c in rec.cameras.values() if c.model.name in radial and any(
@@ -275,8 +306,11 @@ def _without_unsupported_distortion(rec, min_gain: float = 0.05):
                 params[i] = 0.0
             cam.params = params
     options = pycolmap.BundleAdjustmentOptions()
+    options.print_summary = False  # Ceres's report goes to stdout, past the logging levels
     options.refine_focal_length = options.refine_extra_params = options.refine_principal_point = False
-    pycolmap.bundle_adjustment(trial, options)
+    with _native_stderr_quiet():
+        pycolmap.bundle_adjustment(trial, options)
+    _colmap_logging()  # bundle_adjustment left glog at INFO
     without_k = trial.compute_mean_reprojection_error()
     keep = with_k < (1.0 - min_gain) * without_k
     log.info("radial distortion %s: reprojection %.4f px with it, %.4f px without", "kept" if keep else
@@ -296,7 +330,7 @@ class PairModel:
 def _best_partners(database: Path, unregistered: set[str], registered: set[str],
                    min_inliers: int) -> dict[str, tuple[str, int]]:
     """For each unregistered photo, the registered photo it shares the most verified inliers with."""
-    import pycolmap
+    pycolmap = _colmap_logging()
 
     db = pycolmap.Database.open(str(database))
     try:
@@ -329,7 +363,7 @@ def pair_models(database: Path, image_dir: Path, out_dir: Path, unregistered: se
     pair consistently). The caller anchors it on the partner's pose in the main model and
     checks it against GPS (:func:`skyfix.mapping.georef.attach_pair`).
     """
-    import pycolmap
+    pycolmap = _colmap_logging()
 
     registered = {im.name for rec in main_models for im in rec.images.values() if im.has_pose}
     partners = _best_partners(database, unregistered, registered, min_inliers)
@@ -382,7 +416,7 @@ def pair_models(database: Path, image_dir: Path, out_dir: Path, unregistered: se
 
 def load_models(out_dir: Path) -> list:
     """Models written by :func:`reconstruct` (``out_dir/0``, ``out_dir/1`` ...), in order."""
-    import pycolmap
+    pycolmap = _colmap_logging()
 
     models = []
     i = 0

@@ -156,3 +156,19 @@ def test_features_and_matching_show_progress(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "map: features" in err and "3/3" in err
     assert "map: matching" in err
+
+
+def test_map_prints_no_colmap_or_opencv_lines_unless_verbose(tmp_path):
+    import re
+
+    photos_dir = tmp_path / "photos"
+    photos_dir.mkdir()
+    for p in sorted((DATA.parent.parent / "data" / "seneca").glob("*.jpg"))[1:4]:
+        shutil.copy(p, photos_dir / p.name)
+    cmd = [sys.executable, "-m", "skyfix.cli", "map", str(photos_dir), "-o", str(tmp_path / "m"), "--threads", "2",
+           "--max-image-size", "800", "--sparse-dsm"]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    glog = re.compile(r"^[IWE]\d{8} ", re.MULTILINE)  # glog's line prefix (COLMAP, Ceres)
+    assert not glog.search(run.stdout + run.stderr)
+    assert "Bundle adjustment report" not in run.stdout + run.stderr
