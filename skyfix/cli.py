@@ -18,6 +18,7 @@ with ``-v``. ``-v``/``-q`` work before or after the subcommand.
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib
 import importlib.util
 import logging
@@ -81,12 +82,37 @@ def build_parser() -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands")
     for name in SUBCOMMAND_MODULES:
         if _module_exists(name):
-            importlib.import_module(name).register(subparsers)
+            _register(name, subparsers)
     for _path, sub in iter_parsers(parser):
         sub.formatter_class = _skyfix_formatter(sub.formatter_class)
-        if sub is not parser:
+        if sub is not parser and "-" in sub.prefix_chars:  # not the stand-ins of a missing extra
             _add_log_flags(sub)
     return parser
+
+
+#: Commands of a subcommand module that needs an extra to import, and that extra: without
+#: it they stay listed and say which extra to install.
+EXTRA_COMMANDS = {"skyfix.mapping.cli": ("mapping", ("lens", "plan", "map"))}
+
+
+def _register(module: str, subparsers: argparse._SubParsersAction) -> None:
+    """Register a module's subcommands; one that cannot import for want of an extra gets
+    stand-ins that fail with the one-line 'install the extra' error."""
+    try:
+        importlib.import_module(module).register(subparsers)
+    except ModuleNotFoundError as exc:
+        extra, commands = EXTRA_COMMANDS.get(module, (None, ()))
+        if extra is None or (exc.name or "").split(".")[0] not in EXTRAS:
+            raise
+        for command in (c for c in commands if c not in subparsers.choices):  # some may be registered already
+            stub = subparsers.add_parser(command, help=f"(needs the '{extra}' extra: pip install 'skyfix[{extra}]')",
+                                         add_help=False, prefix_chars="\0")
+            stub.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+            stub.set_defaults(func=functools.partial(_reraise, exc))
+
+
+def _reraise(exc: BaseException, _args: argparse.Namespace) -> int:
+    raise exc
 
 
 def iter_parsers(parser: argparse.ArgumentParser, prefix: str = "skyfix"):
@@ -175,7 +201,8 @@ def configure_logging(verbose: int, quiet: bool) -> None:
 
 
 #: Optional packages -> the skyfix extra that installs them (pyproject.toml).
-EXTRAS = {"pycolmap": "mapping", "piexif": "mapping", "simplekml": "mapping", "rasterio": "thermal",
+EXTRAS = {"pycolmap": "mapping", "piexif": "mapping", "simplekml": "mapping", "simplejpeg": "mapping",
+          "rasterio": "thermal",
           "torch": "gpu", "kornia": "gpu", "pupil_apriltags": "bench", "filterpy": "bench"}
 
 #: skyfix exceptions that mean "the input is wrong" (exit 2); other SkyfixErrors exit 1.

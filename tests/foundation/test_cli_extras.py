@@ -15,8 +15,8 @@ from skyfix.cli import main
 
 _BLOCK = '''
 import importlib, importlib.abc, pkgutil, sys
-BLOCK = {"pycolmap", "piexif", "simplekml", "rasterio", "torch", "kornia", "pupil_apriltags", "filterpy",
-         "pytest", "_pytest"}
+BLOCK = {"pycolmap", "piexif", "simplekml", "simplejpeg", "rasterio", "torch", "kornia", "pupil_apriltags",
+         "filterpy", "pytest", "_pytest"}
 class Blocker(importlib.abc.MetaPathFinder):
     def find_spec(self, name, path, target=None):
         if name.split(".")[0] in BLOCK:
@@ -42,13 +42,25 @@ def _python(code: str, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=120)
 
 
-def test_base_install_imports_all_but_the_photo_harness():
+def test_base_install_imports_the_flying_stack():
     out = _python(_WALK)
     assert out.returncode == 0, out.stderr
     # Every module of the flying stack (core, drivers, fusion, crps, simulator, tags, thermal)
-    # and the mapping modules themselves (their heavy imports are lazy) import without the
-    # extras; only the survey-photo renderer (EXIF writing) needs the mapping extra.
-    assert out.stdout.split() == ["skyfix.datasets.survey_scene:piexif"]
+    # imports without the extras; only photo-pipeline modules may need the mapping extra.
+    fails = out.stdout.split()
+    assert "skyfix.datasets.survey_scene:piexif" in fails
+    assert all(f.startswith(("skyfix.mapping.", "skyfix.datasets.survey_scene:")) for f in fails), fails
+
+
+def test_base_install_lists_every_command_and_names_the_extra():
+    code = _BLOCK + "from skyfix.cli import main\nsys.exit(main(sys.argv[1:]))\n"
+    out = _python(code, "--help")
+    assert out.returncode == 0, out.stderr
+    for command in ("demo", "thermal", "tags", "serve", "sim", "vehicle", "fusion", "map", "plan", "lens"):
+        assert f"    {command} " in out.stdout
+    out = _python(code, "-q", "map", "photos/", "-o", "project/")
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and len(lines) == 1 and "pip install 'skyfix[mapping]'" in lines[0], out.stderr
 
 
 def test_a_missing_extra_is_one_line_naming_it(tmp_path):
