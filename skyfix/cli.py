@@ -167,26 +167,37 @@ THIRD_PARTY_LOGGERS = ("matplotlib", "PIL", "rasterio", "zenoh", "pycolmap", "ur
                        "mavsdk", "foxglove", "fiona", "numba", "h5py")
 
 
-def configure_logging(verbose: int, quiet: bool) -> None:
-    """Log to stderr at a level chosen by -v/-q (default: warnings and info of skyfix).
+def configure_logging(verbose: int, quiet: bool):
+    """Log to stderr at a level chosen by -v/-q (default: warnings and info of skyfix);
+    returns a function that undoes it (``main`` run in-process leaves no trace).
 
     Without -v, third-party chatter is silenced: their Python loggers at ERROR, OpenCV's
     own log at ERROR (OPENCV_LOG_LEVEL, read when cv2 is imported; cv2 is imported lazily by
     the commands), COLMAP/glog at ERROR (GLOG_minloglevel), zenoh's Rust log off (RUST_LOG).
     Log lines are written through tqdm so they do not break a progress bar."""
     level = logging.WARNING if quiet else (logging.DEBUG if verbose >= 2 else logging.INFO)
-    root = logging.getLogger()
-    for h in [h for h in root.handlers if getattr(h, "_skyfix", False)]:
-        root.removeHandler(h)
-    handler = progress.LogHandler(sys.stderr)
-    handler._skyfix = True
+    root, own = logging.getLogger(), logging.getLogger("skyfix")
+    third_party = logging.DEBUG if verbose >= 2 else (logging.INFO if verbose else logging.ERROR)
+    noisy = [logging.getLogger(name) for name in THIRD_PARTY_LOGGERS]
+    saved = (root.level, own.level, [lg.level for lg in noisy], progress.enabled_setting())
+    handler = progress.LogHandler()
     handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
     root.addHandler(handler)
-    root.setLevel(level)
+    own.setLevel(level)
+    if verbose:
+        root.setLevel(min(level, root.level))
     progress.set_enabled(False if quiet else None)
-    third_party = logging.DEBUG if verbose >= 2 else (logging.INFO if verbose else logging.ERROR)
-    for noisy in THIRD_PARTY_LOGGERS:
-        logging.getLogger(noisy).setLevel(third_party)
+    for lg in noisy:
+        lg.setLevel(third_party)
+
+    def restore() -> None:
+        root.removeHandler(handler)
+        root.setLevel(saved[0])
+        own.setLevel(saved[1])
+        for lg, lvl in zip(noisy, saved[2], strict=True):
+            lg.setLevel(lvl)
+        progress.set_enabled(saved[3])
+
     if not verbose:
         os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
         os.environ.setdefault("GLOG_minloglevel", "2")
@@ -198,6 +209,7 @@ def configure_logging(verbose: int, quiet: bool) -> None:
                 cv_log.setLogLevel(cv_log.LOG_LEVEL_ERROR)
             except (ImportError, AttributeError):
                 pass
+    return restore
 
 
 #: Optional packages -> the skyfix extra that installs them (pyproject.toml).
@@ -257,11 +269,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     args.verbose += getattr(args, "sub_verbose", 0) or 0
     args.quiet = args.quiet or getattr(args, "sub_quiet", False)
-    configure_logging(args.verbose, args.quiet)
-    if not getattr(args, "func", None):
-        parser.print_help()
-        return 2
-    return run_command(args.func, args, args.verbose)
+    restore = configure_logging(args.verbose, args.quiet)
+    try:
+        if not getattr(args, "func", None):
+            parser.print_help()
+            return 2
+        return run_command(args.func, args, args.verbose)
+    finally:
+        restore()
 
 
 if __name__ == "__main__":

@@ -25,6 +25,11 @@ def set_enabled(enabled: bool | None) -> None:
     _enabled = enabled
 
 
+def enabled_setting() -> bool | None:
+    """The setting as :func:`set_enabled` left it (None: automatic)."""
+    return _enabled
+
+
 def enabled() -> bool:
     """Whether bars are shown now: the forced setting, else whether stderr is a terminal."""
     return sys.stderr.isatty() if _enabled is None else _enabled
@@ -43,12 +48,13 @@ def progress(iterable: Iterable[T], *, desc: str, total: int | None = None, unit
                      dynamic_ncols=True, leave=False, file=sys.stderr))
 
 
-class LogHandler(logging.StreamHandler):
-    """A stream handler that writes through ``tqdm.write``, so a log line appears above a
-    running progress bar and the bar is redrawn below it instead of being cut in two."""
+class LogHandler(logging.Handler):
+    """A handler that writes to the current ``sys.stderr`` through ``tqdm.write``, so a log
+    line appears above a running progress bar and the bar is redrawn below it instead of
+    being cut in two."""
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
-            tqdm.write(self.format(record), file=self.stream)
+            tqdm.write(self.format(record), file=sys.stderr)
         except Exception:  # logging must never raise into the caller
             self.handleError(record)

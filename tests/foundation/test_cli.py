@@ -112,10 +112,19 @@ def test_errors_are_one_line_exit_2_and_operational_failures_exit_1(tmp_path, ca
     def bug(_):
         raise KeyError("x")
 
+    from skyfix.cli import configure_logging
+
     assert main(["-q", "tags", "board", "-o", str(tmp_path / "b" / "b.json"), "--rows", "1", "--cols", "1"]) == 0
     capsys.readouterr()
-    for func, code, text in ((bad, 2, "photo.jpg: corrupt JPEG"), (late, 1, "no heartbeat"),
-                             (missing, 2, "nope.csv: No such file"), (bug, 1, "internal error: KeyError")):
-        assert run_command(func, None) == code
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and text in err[0] and "Traceback" not in err[0], err
+    restore = configure_logging(0, True)
+    try:
+        for func, code, text in ((bad, 2, "photo.jpg: corrupt JPEG"), (late, 1, "no heartbeat"),
+                                 (missing, 2, "nope.csv: No such file"), (bug, 1, "internal error: KeyError")):
+            assert run_command(func, None) == code
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and text in err[0] and "Traceback" not in err[0], err
+    finally:
+        restore()
+    import logging
+
+    assert not [h for h in logging.getLogger().handlers if type(h).__name__ == "LogHandler"]  # main leaves none
