@@ -131,6 +131,8 @@ class HelpLoop:
         self._resume: str | None = None
         self._goto_enu: np.ndarray | None = None
         self._actions = _Actions(f"skyfix-help-{self.id}")
+        self._pinned = False
+        self._auto_switch: int | None = None
 
     @property
     def recovering(self) -> bool:
@@ -190,6 +192,10 @@ class HelpLoop:
     def _as_requester(self, now_s: float, dec) -> None:
         if dec.mode is not self.mode:
             self._event(now_s, f"{dec.mode.value} ({dec.reason})")
+            vehicle = self.svc.vehicle
+            if dec.mode is Mode.NORMAL and self._pinned and vehicle is not None:
+                self._pinned = False
+                self._actions.submit("gps", f"{self.id} GPS auto switch", lambda: self._pin_gps(vehicle, False))
             self.mode = dec.mode
             role = _ROLE_OF.get(dec.mode)
             self._want = None if role is None else role_mode(self._flavour(), role)
@@ -256,11 +262,26 @@ class HelpLoop:
         if state.mode == want:
             if not self.recovering:
                 self._want = None  # back on its mission: the mission's own mode changes are its business
+            elif not self._pinned:
+                self._pinned = True
+                self._actions.submit("gps", f"{self.id} GPS primary", lambda: self._pin_gps(vehicle, True))
             return
         if time.monotonic() - self._want_sent_wall_s < RECOMMAND_WALL_S or self._actions.busy:
             return
         self._want_sent_wall_s = time.monotonic()
         self._actions.submit("mode", f"{self.id} mode {want}", lambda: vehicle.set_mode(want))
+
+    def _pin_gps(self, vehicle, pin: bool) -> None:
+        """ArduPilot with the injected fix on its 2nd GPS (GPS2_TYPE=14): fly on that one alone while recovering
+        (GPS_AUTO_SWITCH=0, GPS_PRIMARY=1), so a receiver that comes back wrong is not switched to; then
+        restore. Only fusion judges when the receiver is right again."""
+        if vehicle.autopilot != "ardupilot" or int(vehicle.get_param("GPS2_TYPE", timeout_s=0.5, retries=2)) != 14:
+            return
+        if pin:
+            self._auto_switch = int(vehicle.get_param("GPS_AUTO_SWITCH", timeout_s=0.5, retries=2))
+        vehicle.set_param("GPS_AUTO_SWITCH", 0 if pin else (self._auto_switch if self._auto_switch is not None else 1),
+                          timeout_s=0.5, retries=2)
+        vehicle.set_param("GPS_PRIMARY", 1 if pin else 0, timeout_s=0.5, retries=2)
 
     def _flavour(self) -> str:
         vehicle = self.svc.vehicle

@@ -73,8 +73,9 @@ class HelperEye:
 
     def __init__(self, camera, drone_id: str, own_fix: Callable[[float], GeoFix | None],
                  clock: Callable[[], float], cfg: EyeConfig | None = None,
-                 on_frame: Callable[[object, str, bool], None] | None = None) -> None:
-        """``on_frame(frame, target_id, detected)`` after every processed frame (a harness scores with it)."""
+                 on_frame: Callable[[object, str, bool], None] | None = None, *, run: bool = True) -> None:
+        """``on_frame(frame, target_id, detected)`` after every processed frame (a harness scores with it);
+        ``run`` False: no worker thread (call :meth:`observe_frame` yourself)."""
         self.camera, self.drone_id, self.own_fix, self.clock = camera, str(drone_id), own_fix, clock
         self.on_frame = on_frame
         self.cfg = cfg or EyeConfig()
@@ -88,7 +89,8 @@ class HelperEye:
         self._tracker_camera: Camera | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True, name=f"skyfix-eye-{drone_id}")
-        self._thread.start()
+        if run:
+            self._thread.start()
 
     def point(self, yaw_deg: float, pitch_deg: float) -> None:
         """Aim the gimbal: earth-frame yaw (deg from north, clockwise) and pitch (deg, negative down)."""
@@ -128,11 +130,19 @@ class HelperEye:
                 continue
             try:
                 frame = self.camera()
-                if frame is not None:
-                    detected = self._process(frame, *target)
-                    self.frames.append((frame.t_s, target[0], detected))
-                    if self.on_frame is not None:
-                        self.on_frame(frame, target[0], detected)
+                if frame is None:
+                    continue
+                obs = self.observe_frame(frame, *target)
+                self.frames.append((frame.t_s, target[0], obs is not None))
+                if self.on_frame is not None:
+                    self.on_frame(frame, target[0], obs is not None)
+                if obs is None:
+                    continue
+                try:
+                    self.observations.put_nowait(obs)
+                except queue.Full:  # the main loop stalled: the oldest observation is worth least
+                    self.observations.get_nowait()
+                    self.observations.put_nowait(obs)
             except SkyfixError as exc:  # an unusable frame or pose: logged, the next frame is tried
                 log.warning("helper %s camera: %s", self.drone_id, exc)
             except Exception:  # noqa: BLE001 - a camera thread must outlive a bug in one frame
@@ -146,11 +156,12 @@ class HelperEye:
                           gimbal_pitch_deg=float(frame.pitch_deg), stabilized=True)  # earth-frame gimbal
         return pose, own
 
-    def _process(self, frame, target_id: str, prior: GeoFix) -> bool:
-        """Whether the target was detected in ``frame`` (its observation queued)."""
+    def observe_frame(self, frame, target_id: str, prior: GeoFix) -> RelativeObservation | None:
+        """The observation of ``target_id`` (last known at ``prior``) in ``frame``, or None when not found.
+        Frames must come in time order (the tracker's state carries over)."""
         posed = self._pose(frame)
         if posed is None:
-            return False
+            return None
         pose, own = posed
         camera = frame.camera
         if self._tracker is None or self._tracker_camera is not camera:
@@ -163,18 +174,16 @@ class HelperEye:
             self._detector.window = prior_window(camera, pose, widened, attitude_sigma_deg=self.cfg.attitude_sigma_deg,
                                                  helper_cov_enu_m2=own.cov_enu_m2)
         except SkyfixError:  # the prior is behind the camera: nothing to look for in this frame
-            return False
+            return None
         det = self._tracker.update(frame.image, frame.t_s, pose)
+        if det is None and self._tracker.tracking:
+            # the gimbal turned between frames and the target jumped out of the tracker's gate: the prior
+            # (a world position, not a pixel) still places it, so search its window afresh
+            self._tracker.reset()
+            det = self._tracker.update(frame.image, frame.t_s, pose)
         if det is None or not shape_consistent(camera, pose, det, self.model):
-            return False
+            return None
         obs = observe(camera, pose, det, self.cfg.target_span_m, model=self.model, observer_id=self.drone_id,
                       target_id=target_id, time_s=frame.t_s, attitude_sigma_deg=self.cfg.attitude_sigma_deg,
                       observer_cov_enu_m2=own.cov_enu_m2)
-        if not (math.isfinite(obs.range_m) and obs.range_m > 0):
-            return False
-        try:
-            self.observations.put_nowait(obs)
-        except queue.Full:  # the main loop stalled: the oldest observation is worth least
-            self.observations.get_nowait()
-            self.observations.put_nowait(obs)
-        return True
+        return obs if math.isfinite(obs.range_m) and obs.range_m > 0 else None

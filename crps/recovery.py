@@ -188,10 +188,10 @@ class _Run:
         self.bus = InProcessBus()
         camera = Camera.from_fov(*cfg.camera_px, cfg.camera_hfov_deg)
         for i, drone_id in enumerate(IDS):
-            cam = WorldCamera(self.sim, i, camera, seed=cfg.seed * 10 + i, gimbal_fault=self.faults.gimbal_fault(i))
+            cam = WorldCamera(self.sim, i, camera, seed=cfg.seed * 10 + i)
             self.cameras.append(cam)
             eye = EyeConfig(frame_hz=cfg.frame_hz, speed=cfg.speed, target_span_m=cam.model.span_m,
-                            target_arms=cam.model.arms)
+                            target_arms=cam.model.arms, attitude_sigma_deg=cam.gimbal_cfg.pointing_sigma_deg)
             setup = HelpSetup(fault_response=cfg.fault_response, camera=cam, eye=eye,
                               on_frame=self.recorder.frame_scorer(i, cam))
             url = self.faults.mavlink_url(i, self.sim.url(i))
@@ -280,8 +280,15 @@ class _Run:
         st = self.services[LOST].vehicle.state if self.services[LOST].vehicle is not None else None
         airborne = st is None or st.armed
         outcome = "holding" if airborne else ("home" if landing_m <= HOME_RADIUS_M else "landed_elsewhere")
+        figures = {**rec.figures(), **self.faults.figures()}
+        lost = self.services[LOST]
+        figures["forged_rejected"] = float(lost.codec.dropped.get("forged", 0))
+        if lost.help is not None:
+            events = lost.help.agent.requester.protocol.events
+            figures["helpers_replaced"] = float(sum(what.startswith("dropped") for _, what, _ in events))
+        figures["gnss_trusted_again_t_s"] = rec.gnss_trusted_again_s(figures["gnss_back_t_s"])
         return RecoveryResult(landing_m, rec.first_fused_fix_s(), rec.max_recovery_error_m(), rec.min_separation_m(),
-                              rec.detection_share(), timeline, outcome, figures=rec.figures())
+                              rec.detection_share(), timeline, outcome, figures=figures)
 
     def close(self) -> None:
         for s in self.services:

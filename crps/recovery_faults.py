@@ -34,16 +34,17 @@ class LossyLink:
         self._rng = random.Random(seed)
         self._lock = threading.Lock()
         self.muted = False
-        self.lost = 0
+        self.lost = self.delivered = 0
 
     def _drop(self) -> bool:
         if self.muted:
             return True
-        if self.rate <= 0.0:
-            return False
-        with self._lock:
-            lose = self._rng.random() < self.rate
+        lose = False
+        if self.rate > 0.0:
+            with self._lock:
+                lose = self._rng.random() < self.rate
         self.lost += lose
+        self.delivered += not lose
         return lose
 
     def publish(self, topic: str, data: bytes) -> None:
@@ -113,12 +114,8 @@ class Faults:
         self._forger: tuple[SwarmCodec, object] | None = None
         self._forged_next_s = -math.inf
         self.forged_sent = 0
-        self._fov_done: set[str] = set()
-        if cfg.target_leaves_fov:
-            raise NotImplementedError("target_leaves_fov needs a gimbal fault settable during the flight")
-
-    def gimbal_fault(self, index: int):
-        return None
+        self.first_assigned_s: float | None = None
+        self.fov_helper: str | None = None
 
     def mavlink_url(self, index: int, url: str) -> str:
         """The URL the service of vehicle ``index`` uses (through a relay for the lost drone's outage)."""
@@ -163,9 +160,31 @@ class Faults:
         if cfg.helper_dropout_s is not None and self.dropped_helper is None and lost.helpers \
                 and now >= run.t_loss + cfg.helper_dropout_s:
             self._drop_helper(lost.helpers[0])
+        if lost.helpers and self.first_assigned_s is None:
+            self.first_assigned_s = now
+        if cfg.target_leaves_fov and self.fov_helper is None and lost.helpers \
+                and now >= self.first_assigned_s + FOV_FAULT_AFTER_S:
+            self._look_away(lost.helpers[0], now)
         if cfg.forged_observation and now >= self._forged_next_s:
             self._forged_next_s = now + FORGED_PERIOD_S
             self._forge(now)
+
+    def _look_away(self, helper_id: str, now_s: float) -> None:
+        from skyfix.crps.recovery import IDS
+        from skyfix.datasets.sim.world_camera import GimbalFault
+
+        self.fov_helper = helper_id
+        self.run.cameras[IDS.index(helper_id)].set_gimbal_fault(GimbalFault(now_s, FOV_FAULT_FOR_S, 90.0))
+        self.run.note(f"{helper_id}'s gimbal looks 90 deg away for {FOV_FAULT_FOR_S:.0f} s: the target leaves its view")
+
+    def figures(self) -> dict[str, float]:
+        """Evidence that each fault happened (counts as floats, NaN where it does not apply)."""
+        links = [s.transport for s in self.run.services]
+        return {"swarm_delivered": float(sum(k.delivered for k in links)), "swarm_lost": float(sum(k.lost for k in links)),
+                "mavlink_dropped": float(self.relay.dropped) if self.relay is not None else math.nan,
+                "forged_sent": float(self.forged_sent),
+                "gnss_back_t_s": self.run.t_loss + GNSS_BACK_AFTER_S
+                if self.cfg.gnss_return_offset_m is not None and self.run.t_loss is not None else math.nan}
 
     def _drop_helper(self, helper_id: str) -> None:
         from skyfix.crps.recovery import IDS

@@ -107,6 +107,12 @@ class Recorder:
         gaps = [np.linalg.norm(pos[:, i] - pos[:, j], axis=1).min() for i in range(n) for j in range(i + 1, n)]
         return float(min(gaps))
 
+    def gnss_trusted_again_s(self, back_s: float) -> float:
+        """First time after ``back_s`` that the lost drone's estimate uses GNSS again (NaN: never)."""
+        if not math.isfinite(back_s):
+            return math.nan
+        return next((r["t_s"] for r in self.rows if r["t_s"] >= back_s and "gnss" in r["sources"].split()), math.nan)
+
     def detection_share(self) -> float:
         with self._lock:
             in_view = [f for f in self.frames if f[4]]
@@ -117,11 +123,25 @@ class Recorder:
         nees = [float(e @ np.linalg.solve(c, e)) for e, c in zip(err, cov, strict=True)]
         with self._lock:
             frames = list(self.frames)
-        return {"recovery_error_rms_h_m": float(np.sqrt(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2)))
+        final = self._final()
+        return {**final, "recovery_error_rms_h_m": float(np.sqrt(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2)))
                 if len(err) else math.nan,
                 "recovery_mean_nees_3dof": float(np.mean(nees)) if nees else math.nan,
                 "helper_frames": float(len(frames)), "helper_frames_in_view": float(sum(f[4] for f in frames)),
                 "helper_frames_detected": float(sum(f[3] for f in frames))}
+
+
+    def _final(self) -> dict[str, float]:
+        """The lost drone's true final position (world ENU, above home) and its fused error there."""
+        d = self.ids[self.lost]
+        if not self.rows:
+            return {}
+        last = self.rows[-1]
+        out = {f"final_{k}": float(last[f"{d}_{k}"]) for k in ("east_m", "north_m", "up_m", "alt_rel_m")}
+        fused = next((r for r in reversed(self.rows) if "fused_east_m" in r), None)
+        out["final_fused_error_h_m"] = math.nan if fused is None else float(
+            math.hypot(fused["fused_east_m"] - fused[f"{d}_east_m"], fused["fused_north_m"] - fused[f"{d}_north_m"]))
+        return out
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:

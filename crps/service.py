@@ -85,6 +85,7 @@ class Service:
         self.counters = {"mavlink_connects": 0, "mavlink_lost": 0, "inbox_overflow": 0, "sent": 0,
                          "estimates": 0, "loop_errors": 0}
         self._peer_fix_s: dict[str, float] = {}
+        self._gnss_echo = True  # GPS_RAW_INT shows the injected fix (GPS1_TYPE=14), not a receiver
         self._dropped_logged: dict[str, int] = {}
         _warm_up()
         try:
@@ -248,7 +249,7 @@ class Service:
             log.info("fusion origin %.7f, %.7f, %.2f m", *origin)
         if state is not None and state.link_ok:
             self.node.add_telemetry(self.cfg.drone_id, state, self.cfg.time_of or (lambda m: m.time_s),
-                                    use_gnss=self.injector is None)
+                                    use_gnss=self.injector is None or not self._gnss_echo)
         estimates = self.node.update((self.cfg.drone_id,))  # peers publish their own
         now = self.clock()
         fix = self.node.fix(self.cfg.drone_id, now)
@@ -280,7 +281,9 @@ class Service:
             except SkyfixError as exc:
                 log.error("cannot inject the fused position: %s", exc)
                 return
-            self.outputs.json("/action", {"action": "gps_injection_start", "sigma_h_m": fix.sigma_horizontal_m})
+            self._gnss_echo = _reports_injection(vehicle)
+            self.outputs.json("/action", {"action": "gps_injection_start", "sigma_h_m": fix.sigma_horizontal_m,
+                                          "gps_raw_echoes_injection": self._gnss_echo})
         elif not gnss_lost and self.injector is not None and state.gps is not None:
             self.injector.stop()
             self.injector = None
@@ -328,6 +331,19 @@ def _warm_up() -> None:
     import foxglove.messages  # noqa: F401
 
     FusionEngine((0.0, 0.0, 0.0))
+
+
+def _reports_injection(vehicle) -> bool:
+    """Whether the autopilot's GPS_RAW_INT is the injected fix itself: ArduPilot with GPS1_TYPE (GPS_TYPE
+    before 4.6) = 14; with GPS2_TYPE=14 it stays the real receiver, whose return fusion must see."""
+    if vehicle.autopilot != "ardupilot":
+        return True
+    for name in ("GPS1_TYPE", "GPS_TYPE"):
+        try:
+            return int(vehicle.get_param(name, timeout_s=0.5, retries=2)) == 14
+        except SkyfixError:
+            continue
+    return True
 
 
 def _origin_of(state) -> tuple[float, float, float] | None:
