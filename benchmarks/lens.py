@@ -13,8 +13,9 @@ source platform ('0.1 -0.32 0'):
    both on this 2-core machine, full photo I/O included, wall time per photo, in
    alternating rounds (the machine is shared; the median ratio counts); also CPU
    seconds per photo on one core for both.
-   Floor: the same batch only decoded and re-encoded (cv2, same JPEG quality, same 2
-   threads, files written), timed in the same rounds; skyfix per photo over the floor is
+   Floor: the same batch only decoded and re-encoded (skyfix's codec, libjpeg-turbo via
+   simplejpeg, same JPEG quality and subsampling, same 2 threads, files written), timed in
+   the same rounds; skyfix per photo over the floor is
    the issue-19 goal (<= 1.25x). Geometry: the fixed-point remap tables against the float
    tables on the same photos (mean absolute difference, grey levels).
 3. memory: peak resident memory of the batch process (bounded: two photos per thread in flight).
@@ -84,9 +85,13 @@ def children_cpu_s() -> float:
 
 
 def floor_batch(photos: list[Path], out_dir: Path, threads: int = 2) -> float:
-    """Seconds to decode and re-encode ``photos`` (cv2, each at its own JPEG quality, files
-    written) with ``threads`` threads: the I/O floor of any correction."""
+    """Seconds to decode and re-encode ``photos`` with ``threads`` threads, files written: the
+    I/O floor of any correction. The same codec and settings as skyfix's (libjpeg-turbo via
+    simplejpeg, strict decode, each photo's own quality and chroma subsampling), so a codec
+    difference never counts as correction speed."""
     from concurrent.futures import ThreadPoolExecutor
+
+    import simplejpeg
 
     from skyfix.mapping.exif import jpeg_quality
 
@@ -94,9 +99,10 @@ def floor_batch(photos: list[Path], out_dir: Path, threads: int = 2) -> float:
 
     def one(src: Path) -> None:
         data = src.read_bytes()
-        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
-        _, encoded = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality(data) or 95])
-        (out_dir / src.name).write_bytes(encoded.tobytes())
+        image = simplejpeg.decode_jpeg(data, colorspace="BGR", strict=True)
+        sampling = simplejpeg.decode_jpeg_header(data)[3]
+        encoded = simplejpeg.encode_jpeg(image, jpeg_quality(data) or 95, colorspace="BGR", colorsubsampling=sampling)
+        (out_dir / src.name).write_bytes(encoded)
 
     start = time.perf_counter()
     with ThreadPoolExecutor(threads) as pool:

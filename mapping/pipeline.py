@@ -15,7 +15,6 @@ GPS in a local ENU frame), ``dsm``, ``ortho``, ``export`` (PLY, GeoJSON, report)
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import os
@@ -31,13 +30,14 @@ from skyfix.camera import Camera
 from skyfix.distortion import Barrel
 from skyfix.errors import ConfigurationError, DataError, InputError, SkyfixError
 from skyfix.mapping.photos import Photo, camera_groups, check_gps_overlap, load_photos
+from skyfix.mapping.project import STAGES, Project, stage_options
 from skyfix.mapping.report import Report
+from skyfix.mapping.surface_stages import dsm_load, dsm_run, ortho_load, ortho_run, points
 
 __all__ = ["STAGES", "PipelineConfig", "run_pipeline", "stage_options"]
 
 log = logging.getLogger(__name__)
 
-STAGES = ("photos", "correct", "features", "matches", "mapping", "georef", "dsm", "ortho", "export")
 
 
 @dataclass(frozen=True)
@@ -88,77 +88,6 @@ class PipelineConfig:
                 raise InputError(f"{name} must be a positive number, got {v!r}")
 
 
-#: The options each stage's result depends on (its own and, for the stages that are
-#: never redone by a change upstream, those of the stages it reads). A stage whose
-#: recorded options differ runs again, and every later stage with it.
-_STAGE_OPTIONS = {
-    "photos": (), "correct": ("barrel",),
-    "features": ("barrel", "calibration", "max_image_size_px", "max_features"),
-    "matches": ("barrel", "calibration", "max_image_size_px", "max_features", "exhaustive_max_photos",
-                "spatial_neighbours", "seed"),
-    "mapping": ("calibration", "refine_focal", "gps_sigma_m", "seed"),
-    "georef": ("georef_max_error_m", "two_view_max_offset_m", "two_view_max_vertical_m", "estimate_gps_lag"),
-    "dsm": ("dense", "dense_scale", "dense_cell_px", "dsm_resolution_m", "max_dense_points", "seed"),
-    "ortho": ("resolution_cm", "max_ortho_mpx", "ortho_seams", "seam_band_px", "blend_power"),
-    "export": (),
-}
-
-
-def stage_options(config: PipelineConfig, stage: str) -> dict:
-    """The options ``stage`` depends on, as JSON values (objects by their repr)."""
-    def plain(value):
-        if value is None or isinstance(value, (bool, int, float, str)):
-            return value
-        if isinstance(value, tuple):
-            return [plain(v) for v in value]
-        return repr(value)
-
-    return {name: plain(getattr(config, name)) for name in _STAGE_OPTIONS[stage]}
-
-
-class _Project:
-    """Paths of a project folder and the stage markers."""
-
-    def __init__(self, out_dir: Path) -> None:
-        self.root = out_dir
-        self.work = out_dir / "work"
-        self.stages = self.work / "stages"
-        self.database = self.work / "database.db"
-        self.sparse = self.work / "sparse"
-        self.georef = self.work / "georef"
-        self.corrected = self.work / "corrected"
-        self.stages.mkdir(parents=True, exist_ok=True)
-
-    def marker(self, stage: str) -> dict | None:
-        path = self.stages / f"{stage}.json"
-        return json.loads(path.read_text()) if path.exists() else None
-
-    def mark(self, stage: str, data: dict) -> None:
-        tmp = self.stages / f"{stage}.json.part"
-        tmp.write_text(json.dumps(data, indent=1))
-        os.replace(tmp, self.stages / f"{stage}.json")
-
-    def reset_database(self, stage: str) -> None:
-        """Before re-running ``features`` (the database goes) or ``matches`` (its matches go):
-        pycolmap skips images and pairs the database already holds."""
-        if stage == "features":
-            for suffix in ("", "-wal", "-shm"):
-                Path(f"{self.database}{suffix}").unlink(missing_ok=True)
-        elif self.database.exists():
-            import pycolmap
-
-            db = pycolmap.Database.open(str(self.database))
-            try:
-                db.clear_matches()
-                db.clear_two_view_geometries()
-            finally:
-                db.close()
-
-    def clear_from(self, stage: str) -> None:
-        for later in STAGES[STAGES.index(stage):]:
-            (self.stages / f"{later}.json").unlink(missing_ok=True)
-
-
 def _peak_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
@@ -174,7 +103,7 @@ def run_pipeline(config: PipelineConfig) -> Report:
     start = time.perf_counter()
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    project = _Project(out)
+    project = Project(out)
     report = Report(str(config.photos_dir), str(out))
     if config.threads > 0:
         cv2.setNumThreads(config.threads)
@@ -442,188 +371,6 @@ def _georef_load(config, project, state, report, marker) -> None:
     state["unreferenced"] = [state["models"][m["model"]] for m in marker["models"] if not m["georeferenced"]]
 
 
-def _points(models: list, max_error_px: float = 2.0, min_track: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) xyz and (N, 3) uint8 colours of well-measured points of ``models``."""
-    xyz, rgb = [], []
-    for rec in models:
-        for p in rec.points3D.values():
-            if p.error <= max_error_px and p.track.length() >= min_track:
-                xyz.append(p.xyz)
-                rgb.append(p.color)
-    if not xyz:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
-    return np.array(xyz, dtype=np.float64), np.array(rgb, dtype=np.uint8)
-
-
-def _dsm_run(config, project, state, report) -> dict:
-    from skyfix.mapping.dsm import auto_dsm_resolution_m, build_dsm
-    from skyfix.mapping.geotiff import write_dsm_tif
-    from skyfix.mapping.grid import Grid, enu_to_utm, utm_epsg
-
-    if not state["referenced"]:
-        report.warnings.append("no georeferenced model: DSM and orthophoto skipped")
-        state["dsm"] = None
-        return {"skipped": True}
-    frame = state["frame"]
-    xyz, _ = _points(state["referenced"])
-    if len(xyz) < 3:
-        raise DataError(f"only {len(xyz)} well-measured 3-D points; a DSM needs more")
-    epsg = utm_epsg(frame.lat0_deg, frame.lon0_deg)
-    utm = enu_to_utm(frame, xyz, epsg)
-    lo, hi = utm[:, :2].min(axis=0), utm[:, :2].max(axis=0)
-    extra = {}
-    if config.dense:
-        dsm, extra = _dense(config, project, state, xyz, epsg)
-        grid = dsm.grid
-    else:
-        res_m = config.dsm_resolution_m or auto_dsm_resolution_m(utm)
-        grid = Grid.covering(epsg, lo[0], lo[1], hi[0], hi[1], res_m)
-        dsm = build_dsm(utm, grid)
-    write_dsm_tif(project.root / "dsm.tif", dsm.surface_m, grid)
-    np.save(project.work / "dsm_filled.npy", dsm.filled_m)
-    np.save(project.work / "dsm_surface.npy", dsm.surface_m)
-    from skyfix.mapping.height_check import flying_height
-
-    check = flying_height(state["referenced"], state["photos"], frame, dsm)
-    area = extra.pop("stereo_area", None)
-    data = {"grid": grid.to_dict(), "points": len(xyz), "flying_height": check.to_dict(),
-            "flying_height_suspicious": check.suspicious(), "valid_share": _valid_share(dsm.observed, area), **extra}
-    _dsm_load(config, project, state, report, data)
-    return data
-
-
-def _valid_share(observed: np.ndarray, area: np.ndarray | None = None) -> float:
-    """Share of the cells inside the surveyed ``area`` (default: the convex hull of the
-    measured cells) that hold a measured height (not interpolated)."""
-    import cv2
-
-    if area is not None:
-        return float(observed[area].mean()) if area.any() else 0.0
-    rows, cols = np.nonzero(observed)
-    if len(rows) < 3:
-        return 0.0
-    hull = cv2.convexHull(np.stack((cols, rows), axis=1).astype(np.int32))
-    area = np.zeros(observed.shape, np.uint8)
-    cv2.fillConvexPoly(area, hull, 1)
-    return float(observed[area > 0].mean())
-
-
-def _dense(config, project, state, sparse_enu: np.ndarray, epsg: int) -> tuple:
-    """Dense DSM (mapping.dense) on a grid of ``dense_cell_px`` matched pixels; saves the cloud."""
-    from skyfix.mapping.dense import dense_dsm, stereo_area
-    from skyfix.mapping.grid import EnuToUtm, Grid
-    from skyfix.mapping.ortho import load_views
-
-    views = load_views(state["referenced"], state["image_dir"])
-    up = (float(np.percentile(sparse_enu[:, 2], 1)) - 20.0, float(np.percentile(sparse_enu[:, 2], 99)) + 20.0)
-    lo, hi = sparse_enu[:, :2].min(axis=0), sparse_enu[:, :2].max(axis=0)
-    to_utm = EnuToUtm(state["frame"], epsg, (lo[0], lo[1], hi[0], hi[1]), up)
-    gsd_m = _median_gsd_m(state["referenced"], state["frame"], None, float(np.median(sparse_enu[:, 2])))
-    res_m = config.dsm_resolution_m or gsd_m / config.dense_scale * config.dense_cell_px
-    utm = to_utm(sparse_enu)
-    grid = Grid.covering(epsg, *utm[:, :2].min(axis=0), *utm[:, :2].max(axis=0), res_m)
-    dsm, cloud = dense_dsm(views, {v.name: v.path for v in views}, sparse_enu, to_utm, grid,
-                           scale=config.dense_scale, max_points=config.max_dense_points, seed=config.seed)
-    np.savez(project.work / "dense_points.npz", xyz=cloud.xyz_utm_m, rgb=cloud.rgb)
-    area = stereo_area(views, grid, to_utm, float(np.median(sparse_enu[:, 2])))
-    return dsm, {"stereo_area": area, "valid_area": "cells inside the footprints of two or more photos","dense_points": len(cloud.xyz_utm_m), "dense_pairs": cloud.pairs, "dense_scale": cloud.scale,
-                 "enu_to_utm_max_residual_m": to_utm.max_residual_m}
-
-
-def _dsm_load(config, project, state, report, marker) -> None:
-    from skyfix.mapping.dsm import Dsm
-    from skyfix.mapping.grid import Grid
-
-    if marker.get("skipped"):
-        state["dsm"] = None
-        return
-    grid = Grid(**marker["grid"])
-    surface = np.load(project.work / "dsm_surface.npy")
-    state["dsm"] = Dsm(grid, surface, np.load(project.work / "dsm_filled.npy"), np.isfinite(surface))
-    report.crs_epsg = grid.epsg
-    report.dsm_resolution_m = grid.resolution_m
-    report.flying_height = marker.get("flying_height", {})
-    report.dsm_valid_share = marker.get("valid_share", math.nan)
-    report.dense_points = marker.get("dense_points", 0)
-    report.dense_pairs = marker.get("dense_pairs", 0)
-    if marker.get("flying_height_suspicious"):
-        report.warnings.append(report.flying_height["line"] + ": the model's heights are probably wrong (focal "
-                               "length?) unless the take-off point was that far above or below the ground surveyed")
-    report.outputs["dsm"] = str(project.root / "dsm.tif")
-
-
-def _median_gsd_m(models: list, frame, dsm, ground_up: float | None = None) -> float:
-    """Median ground sample distance: height above the median DSM height (or ``ground_up``,
-    ENU metres) / focal length."""
-    if ground_up is None:  # measured cells only: filled ones are interpolations
-        ground_up = float(np.nanmedian(dsm.surface_m)) - frame.alt0_m
-    gsd = []
-    for rec in models:
-        for image in rec.images.values():
-            if image.has_pose:
-                cam = rec.cameras[image.camera_id]
-                gsd.append((image.projection_center()[2] - ground_up) / cam.mean_focal_length())
-    return float(np.median(gsd))
-
-
-def _ortho_run(config, project, state, report) -> dict:
-    from skyfix.mapping.geotiff import write_orthophoto_tif, write_preview_png
-    from skyfix.mapping.grid import Grid, UtmToEnu, enu_to_utm
-    from skyfix.mapping.ortho import load_views, orthomosaic
-
-    dsm = state["dsm"]
-    if dsm is None:
-        return {"skipped": True}
-    frame, models = state["frame"], state["referenced"]
-    gsd_m = _median_gsd_m(models, frame, dsm)
-    res_m = config.resolution_cm / 100.0 if config.resolution_cm else gsd_m
-    # Ortho extent: the camera footprints bounded by the DSM box grown by a footprint's half-size.
-    centres = np.array([im.projection_center() for rec in models for im in rec.images.values() if im.has_pose])
-    centres_utm = enu_to_utm(frame, centres, dsm.grid.epsg)
-    west, south, east, north = dsm.grid.bounds_m
-    margin = 0.5 * gsd_m * max(max(c.width, c.height) for rec in models for c in rec.cameras.values())
-    west, south = min(west, centres_utm[:, 0].min() - margin), min(south, centres_utm[:, 1].min() - margin)
-    east, north = max(east, centres_utm[:, 0].max() + margin), max(north, centres_utm[:, 1].max() + margin)
-    area = (east - west) * (north - south)
-    if config.max_ortho_mpx is not None and area / res_m ** 2 > config.max_ortho_mpx * 1e6:
-        res_m = math.sqrt(area / (config.max_ortho_mpx * 1e6))
-        report.warnings.append(f"orthophoto pixel raised to {res_m * 100:.1f} cm (GSD {gsd_m * 100:.1f} cm) "
-                               f"because max_ortho_mpx={config.max_ortho_mpx:g} was asked for")
-    grid = Grid.covering(dsm.grid.epsg, west, south, east, north, res_m)
-    to_enu = UtmToEnu(frame, grid.epsg, grid.bounds_m)
-    views = load_views(models, state["image_dir"])
-    if config.ortho_seams:
-        from skyfix.mapping.mosaic import seamed_mosaic
-
-        mosaic = seamed_mosaic(views, grid, dsm, to_enu, band_px=config.seam_band_px)
-    else:
-        mosaic = orthomosaic(views, grid, dsm, to_enu, blend_power=config.blend_power)
-    # Crop to the covered part.
-    alpha = mosaic.rgba[..., 3] > 0
-    rows, cols = np.flatnonzero(alpha.any(axis=1)), np.flatnonzero(alpha.any(axis=0))
-    r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
-    west_c, north_c = grid.centres_m(r0, c0)
-    crop = Grid(grid.epsg, float(west_c) - res_m / 2, float(north_c) + res_m / 2, res_m, int(c1 - c0), int(r1 - r0))
-    rgba = mosaic.rgba[r0:r1, c0:c1]
-    write_orthophoto_tif(project.root / "orthophoto.tif", rgba, crop)
-    write_preview_png(project.root / "orthophoto.png", rgba)
-    data = {"grid": crop.to_dict(), "gsd_m": gsd_m, "covered_m2": float(alpha.sum() * res_m ** 2),
-            "photos": mosaic.photos_used, "utm_to_enu_max_residual_m": to_enu.max_residual_m}
-    _ortho_load(config, project, state, report, data)
-    return data
-
-
-def _ortho_load(config, project, state, report, marker) -> None:
-    if marker.get("skipped"):
-        return
-    report.gsd_cm = marker["gsd_m"] * 100.0
-    report.resolution_cm = marker["grid"]["resolution_m"] * 100.0
-    report.covered_area_m2 = marker["covered_m2"]
-    report.outputs["orthophoto"] = str(project.root / "orthophoto.tif")
-    report.outputs["preview"] = str(project.root / "orthophoto.png")
-    state["ortho_grid"] = marker["grid"]
-
-
 def _export_run(config, project, state, report) -> dict:
     from skyfix.mapping.geotiff import write_cameras_geojson, write_ply
     from skyfix.mapping.grid import enu_to_utm
@@ -637,7 +384,7 @@ def _export_run(config, project, state, report) -> dict:
         with np.load(dense) as cloud:
             write_ply(project.root / "points.ply", cloud["xyz"], cloud["rgb"])
     elif state["referenced"]:
-        xyz, rgb = _points(state["referenced"], max_error_px=4.0, min_track=2)
+        xyz, rgb = points(state["referenced"], max_error_px=4.0, min_track=2)
         write_ply(project.root / "points.ply", enu_to_utm(frame, xyz, report.crs_epsg) if len(xyz) else xyz, rgb)
     if state["referenced"]:
         emitted: set[str] = set()  # a photo shared by two models is listed once, from the first model
@@ -659,7 +406,7 @@ def _export_run(config, project, state, report) -> dict:
         write_cameras_geojson(project.root / "cameras.geojson", features)
         report.outputs["cameras"] = str(project.root / "cameras.geojson")
     elif state["unreferenced"]:
-        xyz, rgb = _points(state["unreferenced"], max_error_px=4.0, min_track=2)
+        xyz, rgb = points(state["unreferenced"], max_error_px=4.0, min_track=2)
         write_ply(project.root / "points.ply", xyz, rgb)
         report.warnings.append("points.ply is in the arbitrary model frame (no georeference)")
     report.outputs["points"] = str(project.root / "points.ply")
@@ -687,8 +434,8 @@ def _noop_load(config, project, state, report, marker) -> None:
 
 
 _STAGE_RUN = {"photos": _photos_run, "correct": _correct_run, "features": _features_run,
-              "matches": _matches_run, "mapping": _mapping_run, "georef": _georef_run, "dsm": _dsm_run,
-              "ortho": _ortho_run, "export": _export_run}
+              "matches": _matches_run, "mapping": _mapping_run, "georef": _georef_run, "dsm": dsm_run,
+              "ortho": ortho_run, "export": _export_run}
 _STAGE_LOAD = {"photos": _noop_load, "correct": _correct_load, "features": _noop_load,
-               "matches": _matches_load, "mapping": _mapping_load, "georef": _georef_load, "dsm": _dsm_load,
-               "ortho": _ortho_load, "export": _noop_load}
+               "matches": _matches_load, "mapping": _mapping_load, "georef": _georef_load, "dsm": dsm_load,
+               "ortho": ortho_load, "export": _noop_load}
