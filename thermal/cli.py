@@ -356,6 +356,7 @@ def run_locate(args: argparse.Namespace) -> int:
 def _joint_fires(args: argparse.Namespace, camera, rows, detections, ground) -> list:
     """``--joint``: the flight's fires from :func:`locate_jointly`; writes the calibration JSON."""
     from skyfix.errors import DataError
+    from skyfix.progress import bar
     from skyfix.thermal.joint import JointSolution, PoseErrorPrior, locate_jointly
     from skyfix.thermal.poselog import PoseLog
     from skyfix.thermal.sightings import associate
@@ -376,8 +377,9 @@ def _joint_fires(args: argparse.Namespace, camera, rows, detections, ground) -> 
                                         float(c["time_offset_sigma_s"]), np.zeros(0), np.zeros((0, 3)), 0.0, 0)
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise DataError(f"cannot read calibration {args.calibration}: {exc}") from None
-    sol = locate_jointly(camera, pose_log, associate(camera, pose_log, detections, ground), ground, prior=prior,
-                         calibration=calibration)
+    with bar(desc="joint estimate", unit="iteration") as b:
+        sol = locate_jointly(camera, pose_log, associate(camera, pose_log, detections, ground), ground,
+                             prior=prior, calibration=calibration, on_iteration=lambda: b.update(1))
     out = Path(f"{args.output.with_suffix('')}_calibration.json")
     out.write_text(json.dumps({
         "boresight_deg": sol.boresight_deg.round(4).tolist(),

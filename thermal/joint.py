@@ -281,7 +281,7 @@ class _Problem:
 def locate_jointly(camera: Camera, log: PoseLog, sightings: Sightings, ground, *,
                    prior: PoseErrorPrior | None = None, frame: LocalFrame | None = None,
                    boresight_deg=None, calibration: JointSolution | None = None, merge_m: float = 4.0,
-                   gate_px: float = 25.0) -> JointSolution:
+                   gate_px: float = 25.0, on_iteration=None) -> JointSolution:
     """Joint estimate of every fire of ``sightings`` (see module docstring).
 
     ``ground``: ellipsoidal height (m), :class:`FlatGround` or :class:`DemGround`.
@@ -289,7 +289,9 @@ def locate_jointly(camera: Camera, log: PoseLog, sightings: Sightings, ground, *
     estimates it. ``calibration``: an earlier solution of the same camera (e.g. an orbit
     that saw fires from every side) whose boresight and time offset, with their
     covariance, replace the nominal prior. ``merge_m``: fires estimated closer than this are one fire. ``gate_px``: a
-    hotspot farther than this from every fire's predicted pixel is left out. Raises :class:`EstimationError` when the problem does not converge.
+    hotspot farther than this from every fire's predicted pixel is left out. ``on_iteration()``,
+    when given, is called after every solver iteration (for a progress display). Raises
+    :class:`EstimationError` when the problem does not converge.
     """
     if not isinstance(camera, Camera) or not isinstance(log, PoseLog) or not isinstance(sightings, Sightings):
         raise InputError("locate_jointly(camera: Camera, log: PoseLog, sightings: Sightings, ground)")
@@ -304,7 +306,7 @@ def locate_jointly(camera: Camera, log: PoseLog, sightings: Sightings, ground, *
         x[prob.sl_bore], x[prob.i_dt] = prob.bore_mean, prob.dt_mean
         if x_shared is not None:
             x[prob.sl_fire.stop:] = x_shared
-        x, chi2, dof = _solve(prob, x)
+        x, chi2, dof = _solve(prob, x, on_iteration)
         x_shared = x[prob.sl_fire.stop:]
         fire_en = x[prob.sl_fire].reshape(-1, 3)[:, :2]
         merged = sightings.merged(fire_en, merge_m)
@@ -354,20 +356,23 @@ def _reassign(prob: _Problem, x: np.ndarray, gate_px: float, min_detection_rate:
     return out
 
 
-def _solve(prob: _Problem, x: np.ndarray) -> tuple[np.ndarray, float, int]:
+def _solve(prob: _Problem, x: np.ndarray, on_iteration=None) -> tuple[np.ndarray, float, int]:
     """Levenberg-Marquardt on the normal equations (the problem is nearly linear and has a
     few hundred unknowns: Cholesky of J^T J is far cheaper than MINPACK's pivoted QR of J),
     whitening relinearised once at the first solution."""
     for _ in range(2):
         prob.set_whitening(x)
-        x, r = _levenberg_marquardt(prob, x)
+        x, r = _levenberg_marquardt(prob, x, on_iteration=on_iteration)
     return x, float(r @ r), int(r.size - prob.n_params)
 
 
-def _levenberg_marquardt(prob: _Problem, x: np.ndarray, max_iter: int = 30) -> tuple[np.ndarray, np.ndarray]:
+def _levenberg_marquardt(prob: _Problem, x: np.ndarray, max_iter: int = 30, on_iteration=None
+                        ) -> tuple[np.ndarray, np.ndarray]:
     r = prob.residuals(x)
     cost, lam = float(r @ r), 1e-4
     for _ in range(max_iter):
+        if on_iteration is not None:
+            on_iteration()
         j = prob.jacobian(x)
         h, g = j.T @ j, j.T @ r
         damping = np.diag(h).copy() + 1e-12
