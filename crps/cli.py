@@ -110,12 +110,10 @@ def run_range(args: argparse.Namespace) -> int:
         observe,
         shape_consistent,
     )
-    from skyfix.errors import DataError
     from skyfix.geo import LocalFrame
+    from skyfix.imagefile import read_image
 
-    image = cv2.imread(str(args.image), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise DataError(f"cannot read image {args.image}")
+    image = read_image(args.image)  # a truncated JPEG/PNG is refused, not measured
     h, w = image.shape[:2]
     camera = _camera(args.camera, w, h)
     pose, has_pose = _pose(args.pose)
