@@ -130,8 +130,9 @@ class _DefaultsMixin:
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
-        if ("default" in text.lower() or action.default in (None, False, argparse.SUPPRESS)
-                or not action.option_strings or isinstance(action, argparse._HelpAction)):
+        no_default = action.default is None or action.default is False or action.default is argparse.SUPPRESS
+        counter = isinstance(action, argparse._CountAction)
+        if "default" in text.lower() or no_default or counter or not action.option_strings:
             return text
         return text + " (default: %(default)s)"
 
