@@ -187,6 +187,21 @@ def test_gimbal_fault_takes_the_target_out_of_view_and_back(sim):
     assert wc.last_truth.in_view(1)
 
 
+def test_extra_targets_are_drawn_like_simulated_vehicles(sim):
+    # a vehicle the simulator does not fly (e.g. SITL's SIM_STATE truth), 30 m north-east of the helper, 3 m up
+    me = sim.vehicle(0).pos_enu_m
+    lat, lon, alt = sim.world.to_geodetic(me[0] + 21.2, me[1] + 21.2, me[2] + 3.0)
+    extra = TargetPose(float(lat), float(lon), float(alt), yaw_deg=20.0)
+    wc = WorldCamera(sim, 0, Camera.from_fov(640, 360, 60.0), seed=6, latency_s=0.0, extra_targets=lambda: [extra])
+    wc.point(45.0, math.degrees(math.atan2(3.0, 30.0)))
+    sim.run_steps(100)
+    frame = wc()
+    assert wc.last_truth.in_view("extra:0")
+    uv = wc.last_truth.vehicles["extra:0"].centroid_uv
+    assert np.linalg.norm(uv - np.array([319.5, 179.5])) < 15.0  # aimed at: near the centre
+    assert min(np.linalg.norm(d.centroid_uv - uv) for d in SilhouetteDetector()(frame.image)) < 1.0
+
+
 def test_latency_stamps_the_exposure_time(sim):
     wc = WorldCamera(sim, 0, Camera.from_fov(160, 90, 60.0), seed=0, latency_s=0.1)
     assert wc() is None  # nothing exposed 0.1 s before the camera existed
