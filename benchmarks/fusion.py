@@ -27,9 +27,10 @@ Reported: outage RMSE/max of each and ratios; spoof (fused track movement, time 
 "rejected"); GNSS loss detection and re-admission; latency per tick (feeding + update +
 3 estimates) as CPU time (time.process_time) on one core (process pinned to one CPU,
 OMP_NUM_THREADS=1 set before gtsam loads) with wall time next to it; RSS over a
-simulated hour; position NEES band fraction; bad inputs. Exit 0 only when every goal of
-issue 9 and issue 15 that the run measured is met; ``--quick`` (500 s white run, 2 seeds
-of the correlated scenario) is for development. ``--baselines-only`` runs dead reckoning and the EKF alone.
+10 simulated minutes (``--hours`` for longer); position NEES band fraction; bad inputs
+(each refused, and the estimates after them those of the same run without them). Exit 0
+only when every goal of issue 9 and issue 15 that the run measured is met; ``--quick``
+(500 s white run, 2 seeds of the correlated scenario, 1 per mismatch cell) is for development. ``--baselines-only`` runs dead reckoning and the EKF alone.
 
 Then the correlated-GNSS scenario of issue 15 (``benchmarks/fusion_correlated.py``):
 Gauss-Markov GNSS on every drone, helpers 20-140 m away, a 90 s outage, GNSS 30 m off
