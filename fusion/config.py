@@ -106,10 +106,14 @@ class FusionConfig:
             raise InputError(f"FusionConfig.roster has {len(self.roster)} ids, more than max_drones {self.max_drones}")
 
     def gate_chi2(self, dof: int, probability: float | None = None) -> float:
-        """Innovation gate: the chi-square quantile of ``probability`` (default ``gate_probability``) for ``dof``."""
-        from scipy.stats import chi2
+        """Innovation gate: the chi-square quantile of ``probability`` (default ``gate_probability``) for ``dof``.
 
-        return float(chi2.ppf(self.gate_probability if probability is None else probability, dof))
+        ``2 gammaincinv(dof / 2, p)`` is what ``scipy.stats.chi2.ppf`` computes (bit for bit);
+        scipy.special loads in about half the time of scipy.stats, which every engine paid at start.
+        """
+        from scipy.special import gammaincinv
+
+        return float(2.0 * gammaincinv(0.5 * dof, self.gate_probability if probability is None else probability))
 
     def to_dict(self) -> dict:
         out = dataclasses.asdict(self)

@@ -100,3 +100,17 @@ def test_monitor_reports_a_rate_drop():
     issues = [m.rate_issue(4.0 + 0.5 * i) for i in range(1, 11)]    # 2 Hz
     assert issues[-1] == "rate 2.0 Hz (usually 5.0 Hz)"
     assert m.rate_issue(1.0) is None                               # a late message says nothing
+
+
+def test_gate_quantiles_are_scipy_chi2_quantiles():
+    """The gates use scipy.special (cheaper to load) and must equal scipy.stats.chi2.ppf exactly."""
+    from scipy.stats import chi2
+
+    from skyfix.fusion import FusionConfig
+
+    cfg = FusionConfig()
+    for dof in (1, 2, 3):
+        assert cfg.gate_chi2(dof) == chi2.ppf(cfg.gate_probability, dof)
+        for p in (0.95, cfg.drift_gate_probability):
+            assert cfg.gate_chi2(dof, p) == chi2.ppf(p, dof)
+    assert abs(cfg.gate_chi2(3) - 16.266) < 1e-3  # the table value of chi2(3) at 99.9 %
