@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import shutil
 import signal
@@ -165,13 +166,15 @@ class SitlFleet:
     ``homes``: one (lat_deg, lon_deg, alt_amsl_m, heading_deg) per instance (default: the
     first 20 m apart east of ``DEFAULT_HOME``). ``workdir``: parent folder of the instance
     folders (a temporary folder, removed on close, by default). ``first_system_id``: system
-    ids are consecutive from it.
+    ids are consecutive from it. ``params``: parameters set at the first boot on top of the
+    firmware's default set (a defaults file in each instance folder; what needs a reboot on
+    a running autopilot, e.g. ``GPS2_TYPE``, is then in force from the start).
     """
 
     def __init__(self, count: int = 1, *, speedup: float = 5.0, wipe: bool = False,
                  homes: list[tuple[float, float, float, float]] | None = None,
                  workdir: str | Path | None = None, first_system_id: int = 1,
-                 start_timeout_s: float = 20.0) -> None:
+                 start_timeout_s: float = 20.0, params: dict[str, float] | None = None) -> None:
         if not 1 <= int(count) <= 10:
             raise InputError(f"count must be 1..10 SITL instances, got {count}")
         self.count = int(count)
@@ -185,6 +188,7 @@ class SitlFleet:
             raise InputError(f"first_system_id must leave room for {self.count} ids in 1..254")
         self.first_system_id = int(first_system_id)
         self.start_timeout_s = float(start_timeout_s)
+        self.params = {str(k).upper(): validate.finite_scalar(f"params[{k}]", v) for k, v in (params or {}).items()}
         self._own_tmp = workdir is None
         self.workdir = Path(workdir) if workdir is not None else None
         self.instances: list[SitlInstance] = []
@@ -222,6 +226,11 @@ class SitlFleet:
         wd.mkdir(parents=True, exist_ok=True)
         env = dict(os.environ, SITL_SPEEDUP=f"{self.speedup:g}", SITL_WIPE="1" if self.wipe else "0",
                    SITL_SYSID=str(sysid))
+        if self.params:  # the firmware's defaults, then ours (a later line wins)
+            defaults = wd / "defaults.parm"
+            extra = "".join(f"{k} {v:g}\n" for k, v in self.params.items())
+            defaults.write_text((folder / "copter.parm").read_text() + "\n" + extra)
+            env["SITL_DEFAULTS"] = str(defaults)
         home_s = ",".join(f"{x:.8g}" for x in home)
         log_path = wd / "sitl.out"
         with open(log_path, "wb") as out:
@@ -302,3 +311,98 @@ def arm_when_ready(vehicle, timeout_s: float) -> None:
             if time.monotonic() > deadline:
                 raise
             time.sleep(1.0)
+
+
+class SitlTruth:
+    """The firmware's true state (its SIM_STATE messages) as they arrive on a skyfix Vehicle's
+    link: for scoring and for drawing the drone in other vehicles' cameras, never for an
+    estimate. Connect the vehicle with ``stream_rates_hz={"SIM_STATE": ...}``.
+
+    ``home_alt_amsl_m``: the instance's home height (``SitlFleet.homes``), for ``alt_rel_m``.
+    ``geoid_m``: the undulation N to turn SIM_STATE's AMSL height into ellipsoidal height
+    (pass the Simulator's ``geoid_m`` when the drone shares its world); EGM96 at the
+    position when None. ``speedup``: the firmware's, to move a message on by its age.
+    """
+
+    def __init__(self, vehicle, home_alt_amsl_m: float, *, geoid_m: float | None = None,
+                 speedup: float = 1.0) -> None:
+        self.speedup = validate.positive_scalar("speedup", speedup)
+        self.home_alt_amsl_m = validate.finite_scalar("home_alt_amsl_m", home_alt_amsl_m)
+        self.geoid_m = None if geoid_m is None else validate.finite_scalar("geoid_m", geoid_m)
+        self.messages = 0
+        self._last = None
+        vehicle.link.taps.append(self._tap)
+
+    @classmethod
+    def connect(cls, url: str, home_alt_amsl_m: float, *, geoid_m: float | None = None,
+                speedup: float = 1.0, rate_hz: float = 10.0) -> SitlTruth:
+        """A truth tap with its own connection (e.g. ``SitlInstance.url_secondary``, next to
+        the link that flies the drone), SIM_STATE at ``rate_hz`` of simulated time, GCS
+        system id 254; :meth:`close` ends it."""
+        from skyfix.drivers.vehicle import Vehicle
+
+        vehicle = Vehicle.connect(url, timeout_s=30.0, source_system=254,
+                                  stream_rates_hz={"SIM_STATE": rate_hz * speedup})
+        truth = cls(vehicle, home_alt_amsl_m, geoid_m=geoid_m, speedup=speedup)
+        truth._own = vehicle
+        return truth
+
+    def close(self) -> None:
+        """Close the connection :meth:`connect` opened (nothing otherwise)."""
+        own = getattr(self, "_own", None)
+        if own is not None:
+            own.close()
+            self._own = None
+
+    def _tap(self, msg, t_mono: float) -> None:
+        if msg.get_type() == "SIM_STATE":
+            self._last = (msg, t_mono)
+            self.messages += 1
+
+    def wait(self, timeout_s: float) -> None:
+        """Block until a first SIM_STATE arrived (LinkError after ``timeout_s``)."""
+        deadline = time.monotonic() + timeout_s
+        while self._last is None:
+            if time.monotonic() > deadline:
+                raise LinkError(f"no SIM_STATE within {timeout_s:g} s (is it streamed?)")
+            time.sleep(0.02)
+
+    def truth(self, world=None) -> dict[str, float]:
+        """The latest truth with the keys of ``Simulator.truth``: ``lat_deg``, ``lon_deg``,
+        ``alt_m`` (ellipsoidal), ``alt_amsl_m``, ``alt_rel_m`` (above home), velocities
+        (ENU m/s), attitude (degrees, yaw from north clockwise), ``age_s`` since reception;
+        with a :class:`skyfix.geo.LocalFrame` ``world`` also ``east_m``/``north_m``/``up_m``."""
+        if self._last is None:
+            raise LinkError("no SIM_STATE received yet")
+        m, t_mono = self._last
+        lat, lon = m.lat_int / 1e7, m.lon_int / 1e7
+        if self.geoid_m is None:
+            from skyfix.geoid import geoid_undulation_m
+            n_m = float(geoid_undulation_m(lat, lon))
+        else:
+            n_m = self.geoid_m
+        out = {"lat_deg": lat, "lon_deg": lon, "alt_m": m.alt + n_m, "alt_amsl_m": float(m.alt),
+               "alt_rel_m": m.alt - self.home_alt_amsl_m, "vel_east_mps": float(m.ve),
+               "vel_north_mps": float(m.vn), "vel_up_mps": -float(m.vd),
+               "speed_mps": math.sqrt(m.vn ** 2 + m.ve ** 2 + m.vd ** 2),
+               "roll_deg": math.degrees(m.roll), "pitch_deg": math.degrees(m.pitch),
+               "yaw_deg": math.degrees(m.yaw) % 360.0, "age_s": time.monotonic() - t_mono}
+        if world is not None:
+            e, n, u = world.to_enu(lat, lon, out["alt_m"])
+            out.update(east_m=float(e), north_m=float(n), up_m=float(u))
+        return out
+
+    def target_pose(self):
+        """The drone as a :class:`skyfix.datasets.drone_view.TargetPose` (for ``WorldCamera``'s
+        ``extra_targets``), moved on by its velocity for the age of the message."""
+        from skyfix.datasets.drone_view import TargetPose
+        from skyfix.geo import destination
+
+        t = self.truth()
+        dt = t["age_s"] * self.speedup  # simulated seconds since it was sent
+        east, north = t["vel_east_mps"] * dt, t["vel_north_mps"] * dt
+        lat, lon = t["lat_deg"], t["lon_deg"]
+        if east or north:
+            lat, lon = destination(lat, lon, math.degrees(math.atan2(east, north)), math.hypot(east, north))
+        return TargetPose(float(lat), float(lon), t["alt_m"] + t["vel_up_mps"] * dt, yaw_deg=t["yaw_deg"],
+                          pitch_deg=t["pitch_deg"], roll_deg=t["roll_deg"])

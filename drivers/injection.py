@@ -73,11 +73,12 @@ def check_settings(vehicle: Vehicle, kind: str) -> None:
                 first, gps1 = "GPS_TYPE", _param(vehicle, "GPS_TYPE")
             types = {first: gps1, "GPS2_TYPE": _param(vehicle, "GPS2_TYPE")}
             types = {n: (int(v) if v is not None else "unreadable") for n, v in types.items()}
+            vehicle.gps_input_id = 0 if types[first] == 14 else 1  # the MAV GPS instance
             if 14 not in types.values():
                 raise ConfigurationError(
                     f"vehicle {sysid} (ArduPilot) ignores GPS_INPUT: {first}={types[first]}, "
-                    f"GPS2_TYPE={types['GPS2_TYPE']}; set {first}=14 (MAV), or GPS2_TYPE=14 with "
-                    "GPS_AUTO_SWITCH=1 to keep the real receiver as primary, then reboot the autopilot")
+                    f"GPS2_TYPE={types['GPS2_TYPE']}; set {first}=14 (MAV), or GPS2_TYPE=14 next to the real "
+                    "receiver (ARDUPILOT_INJECTED_GPS2_PARAMS), then reboot the autopilot")
             if src is not None and int(src) != 3:
                 raise ConfigurationError(
                     f"vehicle {sysid} (ArduPilot) EKF does not use GPS for position: "
@@ -117,8 +118,10 @@ def check_settings(vehicle: Vehicle, kind: str) -> None:
 
 def gps_input_message(lat_deg: float, lon_deg: float, alt_amsl_m: float, *, h_acc_m: float,
                       v_acc_m: float | None = None, vel_ned_mps: tuple[float, float, float] | None = None,
-                      satellites: int = 12, fix_type: int = 3, time_s: float | None = None):
-    """A GPS_INPUT message; ``time_s`` UNIX time of the fix (now if None)."""
+                      satellites: int = 12, fix_type: int = 3, time_s: float | None = None,
+                      gps_id: int = 0):
+    """A GPS_INPUT message; ``time_s`` UNIX time of the fix (now if None); ``gps_id`` the
+    autopilot's GPS instance it is for (0: GPS1, 1: GPS2; see :func:`gps_input_instance`)."""
     lat = float(validate.latitude("lat_deg", validate.finite_scalar("lat_deg", lat_deg)))
     lon = float(validate.longitude("lon_deg", validate.finite_scalar("lon_deg", lon_deg)))
     alt = validate.finite_scalar("alt_amsl_m", alt_amsl_m)
@@ -138,7 +141,7 @@ def gps_input_message(lat_deg: float, lon_deg: float, alt_amsl_m: float, *, h_ac
             raise InputError(f"vel_ned_mps must have 3 components, got shape {vel.shape}")
         vn, ve, vd = (float(x) for x in vel)
     return M.MAVLink_gps_input_message(
-        int(t * 1e6), 0, ignore, week_ms, week, int(fix_type), int(round(lat * 1e7)),
+        int(t * 1e6), int(gps_id), ignore, week_ms, week, int(fix_type), int(round(lat * 1e7)),
         int(round(lon * 1e7)), alt, h_acc / 1.5, v_acc / 1.5, vn, ve, vd, 0.0, h_acc, v_acc,
         int(satellites), 0)
 
@@ -172,6 +175,33 @@ def vision_message(north_m: float, east_m: float, down_m: float, *, sigma_m: flo
     return M.MAVLink_odometry_message(t_us, M.MAV_FRAME_LOCAL_NED, M.MAV_FRAME_BODY_FRD, n, e, d, q,
                                       math.nan, math.nan, math.nan, math.nan, math.nan, math.nan,
                                       pose_cov, [math.nan] * 21, 0, M.MAV_ESTIMATOR_TYPE_VISION, 100)
+
+
+#: ArduPilot parameters for a companion that injects GPS_INPUT as a second GPS next to the
+#: real receiver (set at boot: GPS2_TYPE needs a reboot). GPS1 stays primary
+#: (GPS_AUTO_SWITCH 0, GPS_PRIMARY 0) until :func:`use_injected_gps` switches; EKF source
+#: set 2 takes GPS positions without GPS velocity (GPS_INPUT from a position-only fusion
+#: carries none, and EK3 fusing the MAV GPS's stale zero velocity throws "GPS Glitch" and
+#: an EKF failsafe: measured on Copter 4.7 SITL).
+ARDUPILOT_INJECTED_GPS2_PARAMS: dict[str, float] = {
+    "GPS2_TYPE": 14, "GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0,
+    "EK3_SRC2_POSXY": 3, "EK3_SRC2_VELXY": 0, "EK3_SRC2_POSZ": 1, "EK3_SRC2_VELZ": 0, "EK3_SRC2_YAW": 1,
+}
+
+
+def use_injected_gps(vehicle: Vehicle, on: bool) -> None:
+    """ArduPilot: make the injected (MAV) GPS the one the EKF uses (``on``), or the real
+    receiver again: GPS_PRIMARY to that instance, and EKF source set 2 (positions only) or 1.
+    Needs :data:`ARDUPILOT_INJECTED_GPS2_PARAMS` (GPS_AUTO_SWITCH 0), else ConfigurationError."""
+    if vehicle.autopilot != "ardupilot":
+        raise ConfigurationError(f"vehicle {vehicle.system_id}: switching the GPS instance is ArduPilot's "
+                                 f"(GPS_PRIMARY); {vehicle.autopilot} fuses every enabled GNSS source")
+    check_settings(vehicle, "gps")
+    if int(vehicle.get_param("GPS_AUTO_SWITCH")) != 0:
+        raise ConfigurationError(f"vehicle {vehicle.system_id}: GPS_AUTO_SWITCH must be 0 for GPS_PRIMARY "
+                                 "to pick the GPS instance")
+    vehicle.set_param("GPS_PRIMARY", vehicle.gps_input_id if on else 0)
+    vehicle.command(M.MAV_CMD_SET_EKF_SOURCE_SET, 2 if on else 1)
 
 
 def set_origin(vehicle: Vehicle, lat_deg: float, lon_deg: float, alt_amsl_m: float, *,
@@ -240,7 +270,8 @@ class PositionInjector:
                         units.geoid_height_m(fix.lat_deg, fix.lon_deg)
                     self.vehicle.send(gps_input_message(
                         fix.lat_deg, fix.lon_deg, fix.alt_m - n_m, h_acc_m=h_acc,
-                        v_acc_m=max(fix.sigma_up_m, 0.05), time_s=fix.time_s or None))
+                        v_acc_m=max(fix.sigma_up_m, 0.05), time_s=fix.time_s or None,
+                        gps_id=self.vehicle.gps_input_id))
                     self.sent += 1
             except SkyfixError as exc:
                 self.skipped += 1

@@ -87,6 +87,9 @@ class Vehicle:
         self.setpoint_rate_hz = 10.0
         self.injector: injection.PositionInjector | None = None
         self._injection_checked: set[str] = set()
+        #: GPS_INPUT's gps_id: the autopilot's MAV GPS instance (0: GPS1_TYPE=14, 1: GPS2_TYPE=14),
+        #: set by check_injection("gps")
+        self.gps_input_id = 0
 
     # ------------------------------------------------------------------ connecting
     @classmethod
@@ -686,7 +689,13 @@ class Vehicle:
                                           satellites=satellites, fix_type=fix_type, time_s=time_s)
         if "gps" not in self._injection_checked:
             self.check_injection("gps")
+        msg.gps_id = self.gps_input_id
         self.send(msg)
+
+    def use_injected_gps(self, on: bool) -> None:
+        """ArduPilot: fly on the injected GPS (GPS_INPUT) instead of the receiver, or back;
+        see :func:`injection.use_injected_gps` and ``ARDUPILOT_INJECTED_GPS2_PARAMS``."""
+        injection.use_injected_gps(self, on)
 
     def inject_vision(self, north_m: float, east_m: float, down_m: float, *, sigma_m: float,
                       roll_deg: float = 0.0, pitch_deg: float = 0.0, yaw_deg: float = 0.0,

@@ -454,6 +454,11 @@ class VehicleServer:
             return None
         if cmd == M.MAV_CMD_DO_REPOSITION:
             return self._reposition(p, msg)
+        if cmd == M.MAV_CMD_SET_EKF_SOURCE_SET and v.flavour == "ardupilot":
+            if int(p[0]) not in (1, 2, 3):
+                raise Refusal(M.MAV_RESULT_DENIED, f"EKF source set {p[0]:g} not in 1..3")
+            v.ekf_source_set = int(p[0])  # the point-mass estimator uses positions only
+            return ACCEPTED
         if cmd == M.MAV_CMD_DO_SET_CAM_TRIGG_DIST:
             v.cam_trigger_dist_m = max(0.0, p[0])
             v._cam_dist_acc_m = 0.0
@@ -598,6 +603,12 @@ class VehicleServer:
         unless their ignore flags are set (then HDOP/VDOP x 1.5 m stand in), DOPs unitless."""
         ign = msg.ignore_flags
         if not all(math.isfinite(x) for x in (msg.alt, msg.horiz_accuracy, msg.hdop, msg.vdop)):
+            return
+        instances = self.vehicle._gps_instances()
+        if self.vehicle.flavour == "ardupilot" and "mav" in instances and msg.gps_id != instances.index("mav"):
+            # ArduPilot hands GPS_INPUT to the instance gps_id names (Copter 4.7 SITL: GPS2_TYPE
+            # 14 stays "Bad fix" on gps_id 0)
+            self.gps_input_ignored += 1
             return
         hdop = msg.hdop if not ign & M.GPS_INPUT_IGNORE_FLAG_HDOP and msg.hdop > 0 else math.nan
         vdop = msg.vdop if not ign & M.GPS_INPUT_IGNORE_FLAG_VDOP and msg.vdop > 0 else math.nan

@@ -45,6 +45,7 @@ _NEEDS_POSITION = {"guided", "mission", "rtl", "hold", "takeoff"}
 ARDUPILOT_PARAMS: dict[str, float] = {
     "SYSID_THISMAV": 1, "GPS1_TYPE": 1, "GPS2_TYPE": 0, "GPS_AUTO_SWITCH": 1, "GPS_PRIMARY": 0,
     "EK3_SRC1_POSXY": 3, "EK3_SRC1_VELXY": 3, "EK3_SRC1_POSZ": 1, "VISO_TYPE": 0,
+    "EK3_SRC2_POSXY": 0, "EK3_SRC2_VELXY": 0, "EK3_SRC2_POSZ": 1, "EK3_SRC2_VELZ": 0, "EK3_SRC2_YAW": 0,
     "WPNAV_SPEED": 500, "WPNAV_SPEED_UP": 250, "WPNAV_SPEED_DN": 150, "WPNAV_RADIUS": 200,
     "RTL_ALT": 1500, "LAND_SPEED": 50, "DISARM_DELAY": 10, "FS_EKF_ACTION": 1,
     "BATT_CAPACITY": 5200, "BATT_LOW_MAH": 0, "ARMING_CHECK": 1,
@@ -55,7 +56,8 @@ ARDUPILOT_PARAMS: dict[str, float] = {
 #: PX4 copies the INT32's bytes into the float (byte-wise encoding).
 INT_PARAMS: frozenset[str] = frozenset({
     "SYSID_THISMAV", "GPS1_TYPE", "GPS_TYPE", "GPS2_TYPE", "GPS_AUTO_SWITCH", "GPS_PRIMARY", "EK3_SRC1_POSXY",
-    "EK3_SRC1_VELXY", "EK3_SRC1_POSZ", "VISO_TYPE", "RTL_ALT", "FS_EKF_ACTION", "BATT_CAPACITY",
+    "EK3_SRC1_VELXY", "EK3_SRC1_POSZ", "VISO_TYPE", "EK3_SRC2_POSXY", "EK3_SRC2_VELXY", "EK3_SRC2_POSZ",
+    "EK3_SRC2_VELZ", "EK3_SRC2_YAW", "RTL_ALT", "FS_EKF_ACTION", "BATT_CAPACITY",
     "ARMING_CHECK", "SIM_GPS1_ENABLE", "SIM_GPS_DISABLE", "DISARM_DELAY",
     "MAV_SYS_ID", "EKF2_GPS_CTRL", "EKF2_EV_CTRL", "EKF2_HGT_REF", "SIM_GPS_BLOCK"})
 #: ArduPilot 4.6+ parameter names -> the names of earlier firmware (``legacy_params``).
@@ -156,6 +158,7 @@ class SimVehicle:
             raise InputError(f"unknown {self.flavour} parameter(s) {', '.join(unknown)}; the simulator "
                              f"knows {', '.join(sorted(self.params))}")
         self.params.update(config.params)
+        self.ekf_source_set = 1  # ArduPilot EK3_SRCn_* set in use (MAV_CMD_SET_EKF_SOURCE_SET)
         self.t_s = 0.0
         self.pos_enu_m = np.array(config.start_enu_m, dtype=float)
         self.ground_up_m = float(self.pos_enu_m[2])

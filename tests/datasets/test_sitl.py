@@ -10,13 +10,16 @@ import pytest
 from skyfix.datasets import sitl
 from skyfix.drivers.vehicle import Vehicle
 from skyfix.errors import ConfigurationError
+from skyfix.geo import inverse
+from skyfix.geoid import geoid_undulation_m
 
 
 @pytest.mark.sitl
 @pytest.mark.slow
 @pytest.mark.skipif(bool(sitl.missing_reason()), reason=sitl.missing_reason() or "-")
 def test_three_instances_start_fly_apart_and_stop(tmp_path):
-    fleet = sitl.SitlFleet(3, speedup=5.0, workdir=tmp_path, first_system_id=11)
+    fleet = sitl.SitlFleet(3, speedup=5.0, workdir=tmp_path, first_system_id=11,
+                           params={"WPNAV_SPEED": 750, "GPS2_TYPE": 14})
     with fleet:
         assert len({i.port for i in fleet}) == 3 and len({i.workdir for i in fleet}) == 3
         vehicles = []
@@ -29,6 +32,21 @@ def test_three_instances_start_fly_apart_and_stop(tmp_path):
             assert homes[1].lon_deg - homes[0].lon_deg == pytest.approx(2.6e-4, abs=2e-6)
             for inst in fleet:
                 assert (inst.workdir / "eeprom.bin").exists()
+            # parameters given to the fleet are in force from the first boot (GPS2_TYPE needs one)
+            assert vehicles[2].get_param("GPS2_TYPE") == 14
+            assert vehicles[2].get_param("WPNAV_SPEED") == pytest.approx(750.0)
+            # the truth tap: SIM_STATE on the second port agrees with the autopilot's own fix
+            truth = sitl.SitlTruth.connect(fleet[0].url_secondary, fleet.homes[0][2], speedup=5.0)
+            try:
+                truth.wait(10.0)
+                t = truth.truth()
+                pos = vehicles[0].wait_until(lambda s: s.position is not None, 30.0).position
+                assert float(inverse(t["lat_deg"], t["lon_deg"], pos.lat_deg, pos.lon_deg)[1]) < 1.5
+                assert abs(t["alt_rel_m"]) < 0.5
+                assert t["alt_m"] - t["alt_amsl_m"] == pytest.approx(float(geoid_undulation_m(46.52, 6.63)), abs=0.1)
+                assert t["age_s"] < 1.0 and truth.target_pose().lat == pytest.approx(t["lat_deg"], abs=1e-6)
+            finally:
+                truth.close()
         finally:
             for v in vehicles:
                 v.close()

@@ -154,10 +154,12 @@ def test_gps_primary_pinned_with_auto_switch_off():
             inject_for(1.0)
             assert sim.truth(0)["est_error_m"] < 2.0  # auto switch: the healthy GPS1 wins
             v.set_param("GPS_AUTO_SWITCH", 0)
-            v.set_param("GPS_PRIMARY", 1)
+            v.use_injected_gps(True)  # GPS_PRIMARY 1 (the MAV GPS) + EKF source set 2
+            assert v.get_param("GPS_PRIMARY") == 1 and sim.vehicle(0).ekf_source_set == 2
             inject_for(2.0)
             assert math.isclose(sim.truth(0)["est_error_m"], north_m, abs_tol=2.0)
-            v.set_param("GPS_PRIMARY", 0)  # back to the real receiver
+            v.use_injected_gps(False)  # back to the real receiver
+            assert sim.vehicle(0).ekf_source_set == 1
             inject_for(2.0)
             assert sim.truth(0)["est_error_m"] < 2.0
         finally:
