@@ -85,3 +85,48 @@ def covariance(name: str, value: Any, dim: int) -> np.ndarray:
     if np.linalg.eigvalsh(arr).min() < -1e-9 * scale:
         raise InputError(f"{name} must be positive semi-definite")
     return arr
+
+
+def integer_in(name: str, value: Any, lo: int, hi: int) -> int:
+    """Return ``value`` as an int, or raise if it is not a whole number in ``[lo, hi]``.
+
+    Example:
+        >>> integer_in("fix_type", 3.0, 0, 8)
+        3
+        >>> integer_in("fix_type", 2.5, 0, 8)
+        Traceback (most recent call last):
+        ...
+        skyfix.errors.InputError: fix_type must be an integer in [0, 8], got 2.5
+    """
+    try:
+        out = int(value)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"{name} must be an integer, got {value!r}") from None
+    if out != value or not lo <= out <= hi:
+        raise InputError(f"{name} must be an integer in [{lo}, {hi}], got {value!r}")
+    return out
+
+
+def positive_definite(name: str, value: Any) -> np.ndarray:
+    """Return a finite square matrix whose symmetric part is positive definite.
+
+    For covariances that become noise models (gtsam, a Kalman gain): a singular or
+    indefinite one would poison the solve; "definite" means the smallest eigenvalue is
+    above 1e-12 of the largest (or of 1).
+
+    Example:
+        >>> positive_definite("cov_m2", [[4.0, 0.0], [0.0, 1.0]]).shape
+        (2, 2)
+        >>> positive_definite("cov_m2", [[1.0, 0.0], [0.0, 0.0]])
+        Traceback (most recent call last):
+        ...
+        skyfix.errors.InputError: cov_m2 must be positive definite (a measurement with zero uncertainty cannot be fused), got eigenvalues [0. 1.]
+    """
+    arr = finite_array(name, value)
+    if arr.ndim != 2 or arr.shape[0] != arr.shape[1]:
+        raise InputError(f"{name} must be a square matrix, got shape {arr.shape}")
+    eig = np.linalg.eigvalsh(0.5 * (arr + arr.T))
+    if not eig[0] > 1e-12 * max(1.0, eig[-1]):
+        raise InputError(f"{name} must be positive definite (a measurement with zero uncertainty cannot be "
+                         f"fused), got eigenvalues {eig}")
+    return arr
