@@ -1,0 +1,274 @@
+"""Every drone's chain of states in the fusion window: its mechanics, not its judgement.
+
+A :class:`StateChains` owns the gtsam :class:`~skyfix.fusion.window.GraphWindow` (made
+at the first measurement) and the state model of :class:`~skyfix.fusion.FusionConfig`:
+it anchors a drone's chain, extends it forwards and backwards on the ``state_dt_s``
+grid, starts a new chain when the old one was corrupted (re-anchoring), moves a
+measurement from its time to the nearest grid step with the drone's bias-corrected
+velocity, and answers predictions, velocities and covariances. Positions are metres in
+the engine's local ENU frame (its axes, not the drone's); times are seconds on the
+engine's one clock. Which measurement to fuse is decided elsewhere
+(:mod:`skyfix.fusion.engine`, :mod:`skyfix.fusion.gnss`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from skyfix.errors import InputError
+from skyfix.fusion.config import FusionConfig
+from skyfix.fusion.drone import DroneState
+from skyfix.fusion.velocity import IntervalVelocity
+from skyfix.fusion.window import GraphWindow
+from skyfix.geo import LocalFrame
+
+ROTATION_REFRESH_M = 100.0  # ENU axes turn ~0.0009 deg per 100 m: refresh a drone's axes after this
+EYE3 = np.eye(3)
+
+
+def nis(innovation: np.ndarray, cov: np.ndarray) -> float:
+    """Normalised innovation squared ``innovation' cov^-1 innovation`` (inf for a singular ``cov``).
+
+    Example:
+        >>> nis(np.array([3.0, 0.0]), np.diag([9.0, 1.0]))
+        1.0
+    """
+    try:
+        return float(innovation @ np.linalg.solve(cov, innovation))
+    except np.linalg.LinAlgError:
+        return math.inf
+
+
+class StateChains:
+    """The drones' state chains in one window over ``frame`` (see module docs)."""
+
+    def __init__(self, frame: LocalFrame, lag_s: float, config: FusionConfig) -> None:
+        self.frame, self.lag_s, self.config = frame, lag_s, config
+        cfg = config
+        self.gm_sigma_m = np.array([cfg.gnss_gm_h_sigma_m, cfg.gnss_gm_h_sigma_m, cfg.gnss_gm_v_sigma_m])
+        self._q0 = self._q_sigma = self._q_walk = None
+        if cfg.velocity_scale_heading:  # (scale, heading rad, pinned 0)
+            self._q0 = np.zeros(3)
+            self._q_sigma = np.array([cfg.velocity_scale_sigma, math.radians(cfg.velocity_heading_sigma_deg), 1e-6])
+            self._q_walk = np.array([cfg.velocity_scale_walk_per_sqrt_s,
+                                     math.radians(cfg.velocity_heading_walk_deg_per_sqrt_s), 1e-9]) \
+                * math.sqrt(cfg.state_dt_s)
+        self._next_index = 0
+        self.window: GraphWindow | None = None
+        self.now_s = -math.inf
+
+    def advance(self, t: float, drone: DroneState) -> None:
+        """Move the clock to a measurement at ``t`` (s); the first one places the window's grid."""
+        if self.window is None:
+            cfg = self.config
+            epoch = math.floor((t - 10.0 * self.lag_s) / cfg.state_dt_s) * cfg.state_dt_s
+            self.window = GraphWindow(self.lag_s, cfg.state_dt_s, epoch, cfg.max_iterations, cfg.robust_k)
+        self.now_s = max(self.now_s, t)
+        drone.last_time_s = max(drone.last_time_s, t)
+
+    def new_index(self) -> int:
+        self._next_index += 1
+        return self._next_index - 1
+
+
+    def refresh_axes(self, drone: DroneState, enu: np.ndarray) -> None:
+        """The drone's local ENU axes and height offset, taken again after it moved 100 m (frame ENU, m)."""
+        if drone.axes_at_enu_m is not None and np.linalg.norm(enu - drone.axes_at_enu_m) < ROTATION_REFRESH_M:
+            return
+        lat, lon, alt = (float(c) for c in self.frame.to_geodetic(*enu))
+        drone.r_frame_from_local = self.frame.enu_rotation_at(lat, lon)
+        drone.axes_at_enu_m = enu.copy()
+        drone.up_minus_alt_m = float(enu[2]) - alt
+
+
+    def refresh_from_estimate(self, drone: DroneState) -> None:
+        """Local axes at the drone's current estimate (drones placed only by helpers)."""
+        self.refresh_axes(drone, self.window.value(drone.index, 0, drone.last_k))
+
+
+    def anchor(self, drone: DroneState, k: int, p0: np.ndarray, b0: np.ndarray | None = None,
+                b_cov: np.ndarray | None = None, p_sigma_m: float | None = None) -> None:
+        """First state of a drone at step k; the caller adds the factor that fixes its position
+        (or ``p_sigma_m`` gives it a weak prior about ``p0``). The GNSS error starts from its
+        stationary distribution."""
+        window, cfg = self.window, self.config
+        window.new_state(drone.index, k, p0, np.zeros(3) if b0 is None else b0, np.zeros(3), self._q0)
+        if b_cov is None:
+            window.prior_bias(drone.index, k, cfg.bias_initial_sigma_mps)
+        else:
+            window.prior(drone.index, 1, k, b0, b_cov)
+        r = drone.r_frame_from_local
+        window.prior(drone.index, 2, k, np.zeros(3), r @ np.diag(self.gm_sigma_m**2) @ r.T)
+        if self._q_sigma is not None:
+            window.prior(drone.index, 3, k, np.zeros(3), np.diag(self._q_sigma**2))
+        if p_sigma_m is not None:
+            window.prior(drone.index, 0, k, p0, EYE3 * p_sigma_m**2)
+        drone.first_k = drone.last_k = k
+        self.intervals(drone).start_at(k)
+
+
+    def reanchor(self, drone: DroneState, k: int, horizontal_bias: tuple[np.ndarray, np.ndarray] | None) -> None:
+        """Start a new state chain for the drone at step k (its history was corrupted); the
+        velocity bias carries over with its covariance (horizontally the one from before the
+        drift, ``horizontal_bias``, if given), the position comes from what follows."""
+        old, last = drone.index, drone.last_k
+        b, b_cov = np.zeros(3), EYE3 * self.config.bias_initial_sigma_mps**2
+        cached = self.latest_cov(drone) if drone.anchored else None
+        if cached is not None:
+            b, b_cov = self.window.value(old, 1, cached[0]).copy(), cached[1][3:6, 3:6].copy()
+        if horizontal_bias is not None:
+            b[:2] = horizontal_bias[0]
+            b_cov[:2, :] = b_cov[:, :2] = 0.0
+            b_cov[:2, :2] = horizontal_bias[1]
+        p0 = self.window.value(old, 0, last) if last is not None else None
+        drone.index = self.new_index()
+        drone.first_k = drone.last_k = None
+        drone.intervals = None
+        drone.cov_cache = None
+        if p0 is not None:
+            self.anchor(drone, k, p0, b, b_cov, p_sigma_m=self.config.max_speed_mps)
+
+
+    def intervals(self, drone: DroneState) -> IntervalVelocity:
+        if drone.intervals is None:
+            drone.intervals = IntervalVelocity(self.window.epoch_s, self.window.dt_s, self.config.velocity_timeout_s)
+        return drone.intervals
+
+
+    def ensure(self, drone: DroneState, k: int) -> None:
+        """Create the drone's states up to step k (forwards or backwards), each tied to its neighbour."""
+        window, cfg = self.window, self.config
+        walk = cfg.max_speed_mps * cfg.state_dt_s
+        bias_walk = cfg.bias_walk_mps_per_sqrt_s * math.sqrt(cfg.state_dt_s)
+        phi = math.exp(-cfg.state_dt_s / cfg.gnss_gm_tau_s)
+        i = drone.index
+        while drone.last_k < k:
+            prev = drone.last_k
+            p_prev, b_prev = window.value(i, 0, prev), window.value(i, 1, prev)
+            step = np.zeros(3)
+            if drone.velocity is not None and abs(window.time_of(prev) - drone.velocity[0]) <= cfg.velocity_timeout_s:
+                step = (drone.velocity[1] - b_prev) * window.dt_s
+            window.new_state(i, prev + 1, p_prev + step, b_prev, phi * window.value(i, 2, prev),
+                             None if self._q0 is None else window.value(i, 3, prev))
+            window.motion(i, prev, walk, bias_walk, self._q_walk)
+            window.gauss_markov(i, prev, phi, self.gm_sigma_m)
+            drone.last_k = prev + 1
+        while drone.first_k > k:
+            nxt = drone.first_k
+            if nxt - 1 < window.oldest_alive_step():
+                raise InputError("measurement is older than the fusion lag")
+            window.new_state(i, nxt - 1, window.value(i, 0, nxt), window.value(i, 1, nxt), window.value(i, 2, nxt),
+                             None if self._q0 is None else window.value(i, 3, nxt))
+            window.motion(i, nxt - 1, walk, bias_walk, self._q_walk)
+            window.gauss_markov(i, nxt - 1, phi, self.gm_sigma_m)
+            drone.first_k = nxt - 1
+
+
+    def velocity_now(self, drone: DroneState, t: float) -> tuple[np.ndarray, float] | None:
+        """Bias-corrected velocity near ``t`` and its per-axis variance, or None if stale."""
+        if drone.velocity is None or abs(t - drone.velocity[0]) > self.config.velocity_timeout_s:
+            return None
+        if not drone.anchored:
+            return drone.velocity[1], drone.velocity[2]
+        return drone.velocity[1] - self.window.value(drone.index, 1, drone.last_k), drone.velocity[2]
+
+
+    def shift(self, drone: DroneState, t: float, k: int) -> tuple[np.ndarray, float]:
+        """Displacement from time t to grid step k (m) and its per-axis variance."""
+        dt = self.window.time_of(k) - t
+        if abs(dt) < 1e-9:
+            return np.zeros(3), 0.0
+        vel = self.velocity_now(drone, t)
+        if vel is None:
+            return np.zeros(3), (self.config.max_speed_mps * dt) ** 2
+        return vel[0] * dt, vel[1] * dt * dt + (self.config.bias_initial_sigma_mps * dt) ** 2
+
+
+    def settled_step(self, drone: DroneState) -> int:
+        """Newest step whose motion from the previous one is known (velocity integrated up to it).
+
+        Later steps exist only because a measurement landed there before the velocity
+        covering them arrived; answers are taken from the settled step and moved in time.
+        """
+        iv = drone.intervals
+        if iv is None or iv.next_interval is None or drone.velocity is None \
+                or self.now_s - drone.velocity[0] > self.config.velocity_timeout_s:
+            return drone.last_k
+        return max(drone.first_k, min(drone.last_k, iv.next_interval))
+
+
+    def latest_cov(self, drone: DroneState) -> tuple[int, np.ndarray] | None:
+        """Joint covariance (9, 9) of [p, b, n] at the settled (else newest optimised) step, cached per update."""
+        if drone.cov_cache is None:
+            window = self.window
+            for k in range(self.settled_step(drone), drone.first_k - 1, -1):
+                if window.is_optimised(drone.index, 0, k):
+                    keys = [window.key(drone.index, kind, k) for kind in range(3)]
+                    cov = window.joint_covariance(keys)
+                    if cov is None:  # not in the tail: marginals without cross terms
+                        cov = np.zeros((9, 9))
+                        for kind in range(3):
+                            cov[3 * kind:3 * kind + 3, 3 * kind:3 * kind + 3] = window.covariance(drone.index, kind, k)
+                    drone.cov_cache = (k, cov)
+                    break
+        return drone.cov_cache
+
+
+    def predict(self, drone: DroneState, t: float, gnss: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
+        """Fused prediction of the drone's position at t (without the measurement at hand);
+        with ``gnss``, of what its receiver would report (position plus receiver error)."""
+        if not drone.anchored:
+            return None
+        window = self.window
+        k = min(max(window.step_of(t), drone.first_k), self.settled_step(drone))
+        shift, shift_var = self.shift(drone, t, k)
+        p = window.value(drone.index, 0, k) - shift
+        if gnss:
+            p = p - window.value(drone.index, 2, k)
+        cached = self.latest_cov(drone)
+        if cached is None:  # nothing optimised yet: no basis for gating
+            return p, EYE3 * 1e12
+        k_cov, joint = cached
+        cov = joint[:3, :3]
+        if gnss:  # Cov(p - n)
+            cov = cov + joint[6:9, 6:9] - joint[:3, 6:9] - joint[6:9, :3]
+        gap_s = abs(t - window.time_of(k_cov))
+        vel = self.velocity_now(drone, t)
+        grow = (self.config.max_speed_mps * gap_s) ** 2 if vel is None else \
+            vel[1] * gap_s * window.dt_s + (self.config.bias_initial_sigma_mps * gap_s) ** 2
+        return p, cov + EYE3 * (grow + shift_var)
+
+
+    def velocity_estimate(self, drone: DroneState, t: float, k: int) -> tuple[np.ndarray, np.ndarray]:
+        window = self.window
+        vel = self.velocity_now(drone, t)
+        if vel is not None:
+            b_cov = window.covariance(drone.index, 1, min(k, self.latest_cov(drone)[0]))
+            return vel[0], EYE3 * vel[1] + b_cov
+        k0 = max(drone.first_k, k - int(round(1.0 / window.dt_s)))
+        if k0 == k:
+            return np.zeros(3), EYE3 * self.config.max_speed_mps**2
+        span_s = (k - k0) * window.dt_s
+        v = (window.value(drone.index, 0, k) - window.value(drone.index, 0, k0)) / span_s
+        cov = (window.covariance(drone.index, 0, k) + window.covariance(drone.index, 0, k0)) / span_s**2
+        return v, cov
+
+
+    def cross_cov(self, a: DroneState, b: DroneState) -> np.ndarray:
+        """Cross covariance (3, 3) of two drones' newest solved positions (zero if unknown)."""
+        ca, cb = self.latest_cov(a), self.latest_cov(b)
+        if ca is None or cb is None:
+            return np.zeros((3, 3))
+        w = self.window
+        joint = w.joint_covariance([w.key(a.index, 0, ca[0]), w.key(b.index, 0, cb[0])])
+        return np.zeros((3, 3)) if joint is None else joint[:3, 3:]
+
+
+    def step_checked(self, t: float, what: str) -> int:
+        k = self.window.step_of(t)
+        if k < self.window.oldest_alive_step():
+            raise InputError(f"{what} at time_s={t} is older than the fusion lag ({self.lag_s:g} s)")
+        return k
+

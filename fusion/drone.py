@@ -1,0 +1,57 @@
+"""Per-drone bookkeeping of the fusion engine and the one rule for drone ids."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from skyfix.errors import InputError
+from skyfix.fusion.drift import GnssDriftTest
+from skyfix.fusion.health import SourceMonitor
+from skyfix.fusion.velocity import IntervalVelocity
+
+
+@dataclass
+class DroneState:
+    """What the engine keeps about one drone besides its states in the graph window.
+
+    ``index`` names its current state chain in the window (a re-anchored drone gets a new
+    one); steps ``first_k``..``last_k`` hold states (None: not anchored). ``velocity`` is
+    (time s, velocity m/s in frame axes, per-axis variance m2/s2 including the model's).
+    """
+
+    index: int
+    first_k: int | None = None
+    last_k: int | None = None
+    last_time_s: float = -math.inf       # newest measurement time of this drone
+    velocity: tuple[float, np.ndarray, float] | None = None
+    monitors: dict[str, SourceMonitor] = field(default_factory=dict)
+    r_frame_from_local: np.ndarray = field(default_factory=lambda: np.eye(3))
+    axes_at_enu_m: np.ndarray | None = None  # where r_frame_from_local and up_minus_alt_m were taken
+    up_minus_alt_m: float | None = None      # near there: up_m = alt_m + this
+    cov_cache: tuple[int, np.ndarray] | None = None
+    intervals: IntervalVelocity | None = None
+    drift: GnssDriftTest | None = None
+    drift_rejected: bool = False             # GNSS refused by the drift test; re-admitted against the velocity
+    drift_strikes: int = 0                   # consecutive fixes failing the drift test
+    reporting: bool = False                  # has reported its own sensors (may observe others on an open roster)
+
+    @property
+    def anchored(self) -> bool:
+        return self.last_k is not None
+
+
+def drone_id(value) -> str:
+    """A drone id as the engine keys it: a non-empty string (integers are accepted as text).
+
+    Example:
+        >>> drone_id(7), drone_id("A")
+        ('7', 'A')
+    """
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        return str(int(value))
+    if not isinstance(value, str) or not value.strip():
+        raise InputError(f"drone id must be a non-empty string, got {value!r}")
+    return value
