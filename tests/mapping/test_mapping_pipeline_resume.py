@@ -16,6 +16,20 @@ DATA = Path(__file__).parents[1] / "data" / "seneca"
 FAST = {"max_image_size_px": 1200, "max_features": 4000, "threads": 2}
 
 
+def _spy_on_extract_and_match(monkeypatch) -> list[str]:
+    """The names of sfm.extract / sfm.match as they get called (they still run)."""
+    calls = []
+    for name in ("extract", "match"):
+        original = getattr(sfm, name)
+
+        def spy(*args, _original=original, _name=name, **kwargs):
+            calls.append(_name)
+            return _original(*args, **kwargs)
+
+        monkeypatch.setattr(sfm, name, spy)
+    return calls
+
+
 def test_interrupt_after_matching_then_resume(tmp_path, monkeypatch):
     photos = tmp_path / "photos"
     photos.mkdir()
@@ -33,15 +47,7 @@ def test_interrupt_after_matching_then_resume(tmp_path, monkeypatch):
     assert (out / "work" / "stages" / "matches.json").exists()
     assert not (out / "work" / "stages" / "mapping.json").exists()
 
-    calls = []
-    for name in ("extract", "match"):
-        original = getattr(sfm, name)
-
-        def spy(*args, _original=original, _name=name, **kwargs):
-            calls.append(_name)
-            return _original(*args, **kwargs)
-
-        monkeypatch.setattr(sfm, name, spy)
+    calls = _spy_on_extract_and_match(monkeypatch)
     report = run_pipeline(PipelineConfig(photos, out, exhaustive_max_photos=2, **FAST))
     assert calls == []
     assert report.matching == "spatial"  # recorded by the interrupted run, not redone
@@ -111,15 +117,7 @@ def test_changed_option_reruns_the_stages_it_affects(tmp_path, monkeypatch):
     first = run_pipeline(PipelineConfig(photos, out, **FAST))
     assert first.resolution_cm < 10.0  # the photos' GSD, ~7 cm
 
-    calls = []
-    for name in ("extract", "match"):
-        original = getattr(sfm, name)
-
-        def spy(*args, _original=original, _name=name, **kwargs):
-            calls.append(_name)
-            return _original(*args, **kwargs)
-
-        monkeypatch.setattr(sfm, name, spy)
+    calls = _spy_on_extract_and_match(monkeypatch)
     coarse = run_pipeline(PipelineConfig(photos, out, resolution_cm=30.0, **FAST))
     assert calls == []
     assert {"features", "matches", "mapping", "georef", "dsm"} <= set(coarse.resumed_stages)
