@@ -59,14 +59,14 @@ class StateChains:
         self.window: GraphWindow | None = None
         self.now_s = -math.inf
 
-    def advance(self, t: float, drone: DroneState) -> None:
-        """Move the clock to a measurement at ``t`` (s); the first one places the window's grid."""
+    def advance(self, t_s: float, drone: DroneState) -> None:
+        """Move the clock to a measurement at ``t_s`` (s); the first one places the window's grid."""
         if self.window is None:
             cfg = self.config
-            epoch = math.floor((t - 10.0 * self.lag_s) / cfg.state_dt_s) * cfg.state_dt_s
+            epoch = math.floor((t_s - 10.0 * self.lag_s) / cfg.state_dt_s) * cfg.state_dt_s
             self.window = GraphWindow(self.lag_s, cfg.state_dt_s, epoch, cfg.max_iterations, cfg.robust_k)
-        self.now_s = max(self.now_s, t)
-        drone.last_time_s = max(drone.last_time_s, t)
+        self.now_s = max(self.now_s, t_s)
+        drone.last_time_s = max(drone.last_time_s, t_s)
 
     def new_index(self) -> int:
         self._next_index += 1
@@ -166,21 +166,21 @@ class StateChains:
             drone.first_k = nxt - 1
 
 
-    def velocity_now(self, drone: DroneState, t: float) -> tuple[np.ndarray, float] | None:
-        """Bias-corrected velocity near ``t`` and its per-axis variance, or None if stale."""
-        if drone.velocity is None or abs(t - drone.velocity[0]) > self.config.velocity_timeout_s:
+    def velocity_now(self, drone: DroneState, t_s: float) -> tuple[np.ndarray, float] | None:
+        """Bias-corrected velocity near ``t_s`` and its per-axis variance, or None if stale."""
+        if drone.velocity is None or abs(t_s - drone.velocity[0]) > self.config.velocity_timeout_s:
             return None
         if not drone.anchored:
             return drone.velocity[1], drone.velocity[2]
         return drone.velocity[1] - self.window.value(drone.index, 1, drone.last_k), drone.velocity[2]
 
 
-    def shift(self, drone: DroneState, t: float, k: int) -> tuple[np.ndarray, float]:
-        """Displacement from time t to grid step k (m) and its per-axis variance."""
-        dt = self.window.time_of(k) - t
+    def shift(self, drone: DroneState, t_s: float, k: int) -> tuple[np.ndarray, float]:
+        """Displacement from time t_s to grid step k (m) and its per-axis variance."""
+        dt = self.window.time_of(k) - t_s
         if abs(dt) < 1e-9:
             return np.zeros(3), 0.0
-        vel = self.velocity_now(drone, t)
+        vel = self.velocity_now(drone, t_s)
         if vel is None:
             return np.zeros(3), (self.config.max_speed_mps * dt) ** 2
         return vel[0] * dt, vel[1] * dt * dt + (self.config.bias_initial_sigma_mps * dt) ** 2
@@ -216,14 +216,14 @@ class StateChains:
         return drone.cov_cache
 
 
-    def predict(self, drone: DroneState, t: float, gnss: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
-        """Fused prediction of the drone's position at t (without the measurement at hand);
+    def predict(self, drone: DroneState, t_s: float, gnss: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
+        """Fused prediction of the drone's position at t_s (without the measurement at hand);
         with ``gnss``, of what its receiver would report (position plus receiver error)."""
         if not drone.anchored:
             return None
         window = self.window
-        k = min(max(window.step_of(t), drone.first_k), self.settled_step(drone))
-        shift, shift_var = self.shift(drone, t, k)
+        k = min(max(window.step_of(t_s), drone.first_k), self.settled_step(drone))
+        shift, shift_var = self.shift(drone, t_s, k)
         p = window.value(drone.index, 0, k) - shift
         if gnss:
             p = p - window.value(drone.index, 2, k)
@@ -234,16 +234,16 @@ class StateChains:
         cov = joint[:3, :3]
         if gnss:  # Cov(p - n)
             cov = cov + joint[6:9, 6:9] - joint[:3, 6:9] - joint[6:9, :3]
-        gap_s = abs(t - window.time_of(k_cov))
-        vel = self.velocity_now(drone, t)
+        gap_s = abs(t_s - window.time_of(k_cov))
+        vel = self.velocity_now(drone, t_s)
         grow = (self.config.max_speed_mps * gap_s) ** 2 if vel is None else \
             vel[1] * gap_s * window.dt_s + (self.config.bias_initial_sigma_mps * gap_s) ** 2
         return p, cov + EYE3 * (grow + shift_var)
 
 
-    def velocity_estimate(self, drone: DroneState, t: float, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def velocity_estimate(self, drone: DroneState, t_s: float, k: int) -> tuple[np.ndarray, np.ndarray]:
         window = self.window
-        vel = self.velocity_now(drone, t)
+        vel = self.velocity_now(drone, t_s)
         if vel is not None:
             b_cov = window.covariance(drone.index, 1, min(k, self.latest_cov(drone)[0]))
             return vel[0], EYE3 * vel[1] + b_cov
@@ -266,9 +266,9 @@ class StateChains:
         return np.zeros((3, 3)) if joint is None else joint[:3, 3:]
 
 
-    def step_checked(self, t: float, what: str) -> int:
-        k = self.window.step_of(t)
+    def step_checked(self, t_s: float, what: str) -> int:
+        k = self.window.step_of(t_s)
         if k < self.window.oldest_alive_step():
-            raise InputError(f"{what} at time_s={t} is older than the fusion lag ({self.lag_s:g} s)")
+            raise InputError(f"{what} at time_s={t_s} is older than the fusion lag ({self.lag_s:g} s)")
         return k
 

@@ -84,16 +84,16 @@ class GnssDriftTest:
             n = self._odo_n[i] + w * (self._odo_n[i + 1] - self._odo_n[i])
         return float(enu_m[0]) - e, float(enu_m[1]) - n
 
-    def record(self, t_s: float, r: tuple[float, float] | None, white_var_m2: float) -> None:
+    def record(self, t_s: float, residual_m: tuple[float, float] | None, white_var_m2: float) -> None:
         """Keep a residual (and the fix's white variance per axis) in the history the tests use
         (only fixes that count as GNSS's own track)."""
-        if r is None or (self._r_t and t_s <= self._r_t[-1]):
+        if residual_m is None or (self._r_t and t_s <= self._r_t[-1]):
             return
         self._r_t.append(t_s)
-        self._r.append((r[0], r[1], white_var_m2))
+        self._r.append((residual_m[0], residual_m[1], white_var_m2))
         _trim(self._r_t, t_s - 3.0 * self.window_s - 2.0 * _EDGE_S, self._r)
 
-    def bias(self, t_s: float, b: np.ndarray, p_b: np.ndarray) -> None:
+    def bias(self, t_s: float, bias_mps: np.ndarray, bias_cov_m2ps2: np.ndarray) -> None:
         """Record the fused velocity-bias estimate (2,) and its covariance (2, 2) at ``t_s``.
 
         The tests use the estimate from before their window: a drift under way pulls the
@@ -101,7 +101,7 @@ class GnssDriftTest:
         if self._bias_t and t_s <= self._bias_t[-1]:
             return
         self._bias_t.append(t_s)
-        self._bias.append((np.array(b[:2], float), np.array(p_b[:2, :2], float)))
+        self._bias.append((np.array(bias_mps[:2], float), np.array(bias_cov_m2ps2[:2, :2], float)))
         _trim(self._bias_t, t_s - 3.0 * self.window_s - 4.0 * _EDGE_S, self._bias)
 
     def _bias_before(self, t_s: float) -> tuple[np.ndarray, np.ndarray] | None:
@@ -153,14 +153,14 @@ class GnssDriftTest:
         self.reference = None if ref is None or bias is None else (ref[0], ref[1], ref[2], *bias)
         return self.reference is not None
 
-    def agrees_with_reference(self, t_s: float, r: tuple[float, float] | None, white_var_m2: float,
+    def agrees_with_reference(self, t_s: float, residual_m: tuple[float, float] | None, white_var_m2: float,
                               chi2_gate: float) -> bool:
-        """Does the fix with residual ``r`` agree with the velocity since the reference, and has
+        """Does the fix with residual ``residual_m`` agree with the velocity since the reference, and has
         GNSS moved with the velocity over the last few seconds (a drift still under way fails)?"""
-        if self.reference is None or r is None:
+        if self.reference is None or residual_m is None:
             return False
         t_ref, r_ref, ref_var, b, p_b = self.reference
-        if self._nis(np.asarray(r) - r_ref, t_s - t_ref, b, p_b, ref_var + white_var_m2) > chi2_gate:
+        if self._nis(np.asarray(residual_m) - r_ref, t_s - t_ref, b, p_b, ref_var + white_var_m2) > chi2_gate:
             return False
         # the newer bias estimates absorbed part of the drift: use the reference's, grown by the walk
         short = self.window_nis(t_s, _SHORT_S, (b, p_b + np.eye(2) * self.walk_var * (t_s - t_ref)))

@@ -59,6 +59,16 @@ class FusionEngine:
     window kept for late measurements and smoothing (longer: more latency and CPU);
     ``log_path`` records every input to a replayable measurement log. Not thread-safe:
     call it from one thread (or behind one lock).
+
+    Example (a hovering drone; the receiver's error wanders, so three fixes are not
+    three times the evidence):
+        >>> engine = FusionEngine((47.0, 8.0, 400.0), lag_s=2.0)
+        >>> for t_s in (0.0, 0.5, 1.0):
+        ...     engine.add_gnss("A", t_s, 47.0, 8.0, 400.0, h_sigma_m=1.5, v_sigma_m=2.5)
+        ...     engine.add_velocity("A", t_s, [0.0, 0.0, 0.0], 0.1)
+        >>> est = engine.estimate("A")
+        >>> est.time_s, est.sources, round(est.sigma_horizontal_m, 2)
+        (1.0, ('gnss', 'velocity'), 1.51)
     """
 
     def __init__(self, origin: tuple[float, float, float], lag_s: float = 2.0, config: FusionConfig | None = None,
@@ -96,6 +106,13 @@ class FusionEngine:
         ``fix_type`` follows MAVLink GPS_FIX_TYPE (0/1 no fix, 2 2-D, 3 3-D, 4 DGPS, 5/6
         RTK); a no-fix message marks GNSS lost and is never used as a position.
         ``h_sigma_m``/``v_sigma_m`` 1-sigma accuracy; if absent, ``hdop x gnss_uere_m``.
+
+        Example:
+            >>> engine = FusionEngine((47.0, 8.0, 400.0))
+            >>> engine.add_gnss("A", 0.0, 47.0, 8.0, 400.0, satellites=12, hdop=0.8)
+            >>> engine.add_gnss("A", 0.2, 0.0, 0.0, 0.0, fix_type=1)  # what receivers send without a fix
+            >>> engine.health("A")["gnss"].reason
+            'receiver reports no fix (fix type 1)'
         """
         drone_id = _drone_id(drone_id)
         t = self._time("time_s", time_s)
@@ -157,7 +174,15 @@ class FusionEngine:
             add(drone.index, j, mean, np.hypot(sig, self.config.velocity_model_sigma_mps))
 
     def add_altitude(self, drone_id: str, time_s: float, alt_m: float, sigma_m: float) -> None:
-        """A height (metres above the WGS84 ellipsoid, e.g. a barometer referenced to it)."""
+        """A height (metres above the WGS84 ellipsoid, e.g. a barometer referenced to it).
+
+        Example (a 0.5 m barometer tightens a 2.5 m GNSS height):
+            >>> engine = FusionEngine((47.0, 8.0, 400.0))
+            >>> engine.add_gnss("A", 0.0, 47.0, 8.0, 400.0, h_sigma_m=1.5, v_sigma_m=2.5)
+            >>> engine.add_altitude("A", 0.0, 401.0, 0.5)
+            >>> round(float(engine.estimate("A").cov_enu_m2[2, 2]) ** 0.5, 2)
+            0.49
+        """
         drone_id = _drone_id(drone_id)
         t = self._time("time_s", time_s)
         alt = validate.finite_scalar("alt_m", alt_m)
@@ -188,7 +213,14 @@ class FusionEngine:
         self._window.altitude(drone.index, k, up + shift[2], math.sqrt(sigma**2 + shift_var))
 
     def add_fix(self, drone_id: str, fix: GeoFix) -> None:
-        """An absolute fix of the drone (e.g. from fiducial tags); source ``fix:<source_id>``."""
+        """An absolute fix of the drone (e.g. from fiducial tags); source ``fix:<source_id>``.
+
+        Example:
+            >>> engine = FusionEngine((47.0, 8.0, 400.0))
+            >>> engine.add_fix("A", GeoFix(47.0, 8.0, 400.0, np.eye(3) * 0.04, time_s=0.0, source_id="tags"))
+            >>> engine.estimate("A").sources, round(engine.estimate("A").sigma_horizontal_m, 2)
+            (('fix:tags',), 0.2)
+        """
         drone_id = _drone_id(drone_id)
         if not isinstance(fix, GeoFix):
             raise InputError(f"fix must be a skyfix.types.GeoFix, got {type(fix).__name__}")
@@ -215,6 +247,14 @@ class FusionEngine:
         own state here: a position carried in the message is never used. Both drones'
         states are tied by the observation, so the observer's own uncertainty counts, and
         the gate uses their joint covariance. An observer not yet localised is ignored.
+
+        Example (B, localised by GNSS, sees A 30 m east):
+            >>> engine = FusionEngine((47.0, 8.0, 400.0))
+            >>> engine.add_gnss("B", 0.0, 47.0, 8.0, 400.0, h_sigma_m=1.0, v_sigma_m=1.0)
+            >>> engine.add_relative(RelativeObservation("B", "A", 0.0, [1.0, 0.0, 0.0], 30.0, np.eye(3) * 0.25))
+            >>> a = engine.estimate("A")
+            >>> a.sources, round(float(a.enu_m[0]), 1), round(a.sigma_horizontal_m, 2)
+            (('relative:B',), 30.0, 1.61)
         """
         if not isinstance(obs, RelativeObservation):
             raise InputError(f"obs must be a skyfix.types.RelativeObservation, got {type(obs).__name__}")
@@ -283,10 +323,10 @@ class FusionEngine:
             elif drone.anchored:
                 drone.first_k = max(drone.first_k, oldest)
 
-    def estimate(self, drone_id: str, t: float | None = None) -> Estimate:
-        """Fused state of ``drone_id`` at ``t`` (default: its newest measurement time).
+    def estimate(self, drone_id: str, time_s: float | None = None) -> Estimate:
+        """Fused state of ``drone_id`` at ``time_s`` (default: its newest measurement time).
 
-        ``t`` may lie anywhere inside the lag (a smoothed answer) or ahead of the newest
+        ``time_s`` may lie anywhere inside the lag (a smoothed answer) or ahead of the newest
         state (a prediction with grown covariance).
         """
         drone = self._known(drone_id)
@@ -294,11 +334,11 @@ class FusionEngine:
         if not drone.anchored:
             raise NotAvailableError(f"drone {drone_id!r} has no absolute position yet (needs GNSS, a fix, or a "
                                     "relative observation by a localised drone)")
-        t_s = drone.last_time_s if t is None else validate.finite_scalar("t", t)
+        t_s = drone.last_time_s if time_s is None else validate.finite_scalar("time_s", time_s)
         window = self._window
         oldest_s = window.time_of(drone.first_k) - window.dt_s / 2
         if t_s < oldest_s:
-            raise InputError(f"t={t_s} is before drone {drone_id!r}'s window (oldest {oldest_s:.3f} s, lag_s "
+            raise InputError(f"time_s={t_s} is before drone {drone_id!r}'s window (oldest {oldest_s:.3f} s, lag_s "
                              f"{self.lag_s:g}); record estimates as they come or replay the log")
         k = min(max(window.step_of(t_s), drone.first_k), self._chains.settled_step(drone))
         p_k = window.value(drone.index, 0, k)

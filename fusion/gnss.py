@@ -83,53 +83,53 @@ class GnssFusion:
                                         cfg.bias_walk_mps_per_sqrt_s, cfg.velocity_timeout_s)
         return drone.drift
 
-    def fuse(self, drone: DroneState, monitor: SourceMonitor, t: float, enu: np.ndarray, cov_white: np.ndarray,
+    def fuse(self, drone: DroneState, monitor: SourceMonitor, t_s: float, enu_m: np.ndarray, cov_white_m2: np.ndarray,
               quality: str | None) -> None:
-        """Gate, drift-test and fuse a GNSS fix (``cov_white``: its white part, frame axes)."""
-        k = self.chains.step_checked(t, "GNSS fix")
+        """Gate, drift-test and fuse a GNSS fix (``cov_white_m2``: its white part, frame axes)."""
+        k = self.chains.step_checked(t_s, "GNSS fix")
         drift = self.drift_test(drone)
-        residual = drift.residual(t, enu)
-        white_var = float(np.trace(cov_white[:2, :2])) / 2.0
-        predicted = self.chains.predict(drone, t, gnss=True)
-        consistent = predicted is None or nis(enu - predicted[0], predicted[1] + cov_white) <= self._gate
+        residual = drift.residual(t_s, enu_m)
+        white_var = float(np.trace(cov_white_m2[:2, :2])) / 2.0
+        predicted = self.chains.predict(drone, t_s, gnss=True)
+        consistent = predicted is None or nis(enu_m - predicted[0], predicted[1] + cov_white_m2) <= self._gate
         after_drift = drone.drift_rejected and drift.reference is not None
         if after_drift:
             # the estimate is suspect: judge GNSS against the velocity since before the drift
-            drift.record(t, residual, white_var)
-            consistent = drift.agrees_with_reference(t, residual, white_var, self._readmit_gate)
+            drift.record(t_s, residual, white_var)
+            consistent = drift.agrees_with_reference(t_s, residual, white_var, self._readmit_gate)
         elif monitor.on_probation:
             drift.forget()  # a track GNSS had while out of use must not count in the drift test
-        if not monitor.judge(t, consistent, quality):
+        if not monitor.judge(t_s, consistent, quality):
             return
         if after_drift or drone.drift_rejected:
             drone.drift_rejected = False
             drift.forget()
             if after_drift:
                 log.warning("GNSS re-admitted after a drift: re-anchoring the drone on it")
-                self.chains.reanchor(drone, k, drift.reference_bias(t))
+                self.chains.reanchor(drone, k, drift.reference_bias(t_s))
         else:
-            drift.record(t, residual, white_var)
-            if self._drifting(drone, monitor, t):
+            drift.record(t_s, residual, white_var)
+            if self._drifting(drone, monitor, t_s):
                 return
         if not drone.anchored:
-            self.chains.anchor(drone, k, enu)
+            self.chains.anchor(drone, k, enu_m)
         self.chains.ensure(drone, k)
-        shift, shift_var = self.chains.shift(drone, t, k)
-        self.chains.window.gnss(drone.index, k, enu + shift, cov_white + EYE3 * shift_var)
+        shift, shift_var = self.chains.shift(drone, t_s, k)
+        self.chains.window.gnss(drone.index, k, enu_m + shift, cov_white_m2 + EYE3 * shift_var)
 
-    def _drifting(self, drone: DroneState, monitor: SourceMonitor, t: float) -> bool:
+    def _drifting(self, drone: DroneState, monitor: SourceMonitor, t_s: float) -> bool:
         """Windowed drift test of the drone's GNSS against its velocity; rejects GNSS on failure."""
         cached = self.chains.latest_cov(drone) if drone.anchored else None
         if cached is None:
             return False
         k, cov = cached
-        drone.drift.bias(t, self.chains.window.value(drone.index, 1, k), cov[3:6, 3:6])
-        window_nis = drone.drift.window_nis(t)
+        drone.drift.bias(t_s, self.chains.window.value(drone.index, 1, k), cov[3:6, 3:6])
+        window_nis = drone.drift.window_nis(t_s)
         failed = window_nis is not None and window_nis > self._drift_gate
         drone.drift_strikes = drone.drift_strikes + 1 if failed else 0
         if drone.drift_strikes < 2:  # two fixes in a row: one odd window is not a drift
             return False
-        drone.drift.hold_reference(t)
+        drone.drift.hold_reference(t_s)
         drone.drift_rejected = True
-        monitor.reject(t, f"drifting against the velocity over {self.config.drift_window_s:g} s (NIS {window_nis:.0f})")
+        monitor.reject(t_s, f"drifting against the velocity over {self.config.drift_window_s:g} s (NIS {window_nis:.0f})")
         return True

@@ -34,14 +34,14 @@ class IntervalVelocity:
         """Emit intervals from step k on (the drone's first state)."""
         self.next_interval = k
 
-    def add(self, t_s: float, vel: np.ndarray, sigma: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]]:
-        """Add a sample; return the newly complete intervals as (j, mean velocity (3,), sigma (3,))."""
+    def add(self, t_s: float, vel_mps: np.ndarray, sigma_mps: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """Add a sample; return the newly complete intervals as (j, mean velocity (3,) m/s, its sigma (3,) m/s)."""
         i = bisect.bisect_left(self._t, t_s)
         if i < len(self._t) and self._t[i] == t_s:
             return []  # duplicate time stamp
         self._t.insert(i, t_s)
-        self._v.insert(i, vel)
-        self._sigma.insert(i, sigma)
+        self._v.insert(i, vel_mps)
+        self._sigma.insert(i, sigma_mps)
         if self.next_interval is None:
             return []
         out = []

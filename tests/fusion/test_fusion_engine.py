@@ -172,7 +172,7 @@ def test_out_of_order_measurements_inside_the_lag_give_the_same_answer():
                 late.remove((due, t_meas, args))
             if i % 5 == 4:
                 engine.update()
-        results.append((engine.estimate("A", t=29.0).enu_m, engine.estimate("A").enu_m))
+        results.append((engine.estimate("A", time_s=29.0).enu_m, engine.estimate("A").enu_m))
     # equal to the round-off of solves whose information spans 1e-4 m (velocity) to 3 m (weak walk) sigmas
     assert np.allclose(results[0][0], results[1][0], atol=1e-4)
     assert np.allclose(results[0][1], results[1][1], atol=1e-4)
@@ -203,7 +203,7 @@ def test_inputs_older_than_the_lag_are_refused_and_the_engine_goes_on():
     (lambda e: e.add_relative("A"), "RelativeObservation"),
     (lambda e: e.add_gnss("", 10.2, 47.0, 8.0, 400.0), "drone id"),
     (lambda e: e.estimate("Z"), "unknown drone id"),
-    (lambda e: e.estimate("A", t=1.0), "before drone 'A'"),
+    (lambda e: e.estimate("A", time_s=1.0), "before drone 'A'"),
 ])
 def test_bad_input_raises_and_the_engine_keeps_running(call, match):
     rng = np.random.default_rng(11)
