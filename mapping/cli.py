@@ -176,25 +176,28 @@ def _lens_calibrate(args: argparse.Namespace) -> int:
 
     from skyfix.camera_io import save_camera
     from skyfix.errors import DataError
+    from skyfix.imagefile import read_image
     from skyfix.mapping.board import BoardSpec
     from skyfix.mapping.calibrate import calibrate
 
     paths = []
     for item in args.images:
         p = Path(item)
+        if not p.exists():
+            raise InputError(f"calibration image or folder {item!r} does not exist")
         paths.extend(sorted(q for q in p.iterdir() if q.suffix.lower() in (".jpg", ".jpeg", ".png", ".tif", ".tiff"))
                      if p.is_dir() else [p])
     if not paths:
-        raise InputError("no calibration images given")
+        raise InputError(f"no calibration images (.jpg .png .tif) in {', '.join(args.images)}")
     images = []
     for p in paths:
-        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
-        if img is None:
-            log.warning("skipped %s: not a readable image", p)
-            continue
-        images.append(img)
+        try:  # truncated files refused (OpenCV would decode them grey and libjpeg print a warning)
+            images.append(read_image(p, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION, what="calibration image"))
+        except (DataError, InputError) as exc:
+            log.warning("skipped %s", exc)
     if not images:
-        raise DataError("none of the calibration images could be read")
+        raise DataError(f"none of the {len(paths)} calibration image(s) could be read: "
+                        + ", ".join(str(p) for p in paths[:3]) + (" ..." if len(paths) > 3 else ""))
     spec = BoardSpec(kind=args.board, squares=(args.cols, args.rows), square_m=args.square_m,
                      marker_m=args.marker_m if args.marker_m else 0.75 * args.square_m, dictionary=args.dictionary)
     cal = calibrate(images, spec, model=args.model)
