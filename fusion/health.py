@@ -47,7 +47,15 @@ class SourceHealth:
 
 
 class SourceMonitor:
-    """The health state machine of one positioning source of one drone."""
+    """The health state machine of one positioning source of one drone.
+
+    Example (two gate failures in a row reject the source):
+        >>> monitor = SourceMonitor(timeout_s=1.0, reject_after=2, readmit_after_s=5.0, now_s=0.0)
+        >>> monitor.judge(0.0, True), monitor.judge(0.2, False), monitor.judge(0.4, False)
+        (True, False, False)
+        >>> monitor.state
+        <HealthState.REJECTED: 'rejected'>
+    """
 
     def __init__(self, timeout_s: float, reject_after: int, readmit_after_s: float, now_s: float,
                  readmit_fraction: float = 0.8) -> None:

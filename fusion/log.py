@@ -131,7 +131,19 @@ class MeasurementLog:
 
 
 def read_log(path: str | Path) -> tuple[dict, Iterator[dict]]:
-    """Open a measurement log: (header, iterator over records with ``args`` revived)."""
+    """Open a measurement log: (header, iterator over records with ``args`` revived).
+
+    Example:
+        >>> import tempfile
+        >>> from skyfix.fusion import FusionEngine
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     with FusionEngine((47.0, 8.0, 400.0), log_path=f"{tmp}/run.jsonl") as engine:
+        ...         engine.add_gnss("A", 0.0, 47.0, 8.0, 400.0, h_sigma_m=1.5, v_sigma_m=2.5)
+        ...         engine.update()
+        ...     header, records = read_log(f"{tmp}/run.jsonl")
+        ...     header["origin"], [r["op"] for r in records]
+        ([47.0, 8.0, 400.0], ['gnss', 'update'])
+    """
     path = Path(path)
     if not path.is_file():
         raise InputError(f"measurement log {path} does not exist")

@@ -188,7 +188,16 @@ def _stream(path: Path) -> Iterator[object]:
 
 def iter_messages(path: str | Path, topics: Iterable[str] | None = None
                   ) -> Iterator[tuple[str, int, int, bytes]]:
-    """(topic, log_time_ns, publish_time_ns, data) of every message on ``topics`` (all by default)."""
+    """(topic, log_time_ns, publish_time_ns, data) of every message on ``topics`` (all by default).
+
+    Example:
+        >>> import tempfile
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     with McapLog(f"{tmp}/run.mcap", {"origin": [47.0, 8.0, 400.0], "lag_s": 2.0}) as mcap_log:
+        ...         mcap_log.record("update")
+        ...     [topic for topic, *_ in iter_messages(f"{tmp}/run.mcap")]
+        ['/fusion/update']
+    """
     path = Path(path)
     if not path.is_file():
         raise InputError(f"log {path} does not exist")
@@ -228,7 +237,17 @@ def read_header(path: str | Path) -> dict:
 
 def read_mcap_log(path: str | Path) -> tuple[dict, Iterator[dict]]:
     """Open an MCAP measurement log like :func:`skyfix.fusion.log.read_log`: (header, records in order,
-    ``args`` revived, ``line`` the message's index)."""
+    ``args`` revived, ``line`` the message's index).
+
+    Example:
+        >>> import tempfile
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     with McapLog(f"{tmp}/run.mcap", {"origin": [47.0, 8.0, 400.0], "lag_s": 2.0}) as mcap_log:
+        ...         mcap_log.record("update")
+        ...     header, records = read_mcap_log(f"{tmp}/run.mcap")
+        ...     header["lag_s"], [r["op"] for r in records]
+        (2.0, ['update'])
+    """
     header = read_header(path)
     return header, _records(Path(path))
 

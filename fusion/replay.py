@@ -59,6 +59,16 @@ def replay(log_path: str | Path, *, every_update: int = 1,
     After every ``every_update``-th smoother update recorded in the log, the estimate of
     each localised drone is taken (and passed to ``on_estimate``). Inputs the engine
     refuses are logged and skipped, as they were when recorded.
+
+    Example:
+        >>> import tempfile
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     with FusionEngine((47.0, 8.0, 400.0), log_path=f"{tmp}/run.jsonl") as engine:
+        ...         engine.add_gnss("A", 0.0, 47.0, 8.0, 400.0, h_sigma_m=1.5, v_sigma_m=2.5)
+        ...         engine.update()
+        ...     result = replay(f"{tmp}/run.jsonl", show_progress=False)
+        >>> result.n_records, list(result.fused), round(result.estimates[0].sigma_horizontal_m, 2)
+        (2, ['A'], 1.53)
     """
     header, records = (read_mcap_log if Path(log_path).suffix == ".mcap" else read_log)(log_path)
     origin = tuple(float(x) for x in header["origin"])
@@ -103,7 +113,13 @@ def replay(log_path: str | Path, *, every_update: int = 1,
 
 
 def horizontal_errors_m(track: Track, truth: list[tuple[float, np.ndarray]]) -> np.ndarray:
-    """Horizontal distance (N,) m of each fused estimate from the truth interpolated to its time."""
+    """Horizontal distance (N,) m of each fused estimate from the truth interpolated to its time.
+
+    Example:
+        >>> track = Track(time_s=[0.0, 1.0], enu_m=[np.zeros(3), np.array([3.0, 4.0, 0.0])])
+        >>> horizontal_errors_m(track, [(0.0, np.zeros(3)), (2.0, np.zeros(3))])
+        array([0., 5.])
+    """
     t, enu, _ = track.arrays()
     truth_t = np.array([s for s, _ in truth])
     truth_p = np.array([p for _, p in truth])

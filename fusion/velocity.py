@@ -35,7 +35,16 @@ class IntervalVelocity:
         self.next_interval = k
 
     def add(self, t_s: float, vel_mps: np.ndarray, sigma_mps: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]]:
-        """Add a sample; return the newly complete intervals as (j, mean velocity (3,) m/s, its sigma (3,) m/s)."""
+        """Add a sample; return the newly complete intervals as (j, mean velocity (3,) m/s, its sigma (3,) m/s).
+
+        Example (accelerating from 1 to 2.5 m/s: interval 0, [0, 0.2] s, averages 1.5 m/s):
+            >>> iv = IntervalVelocity(epoch_s=0.0, dt_s=0.2, max_gap_s=1.0)
+            >>> iv.start_at(0)
+            >>> iv.add(0.0, np.array([1.0, 0.0, 0.0]), np.full(3, 0.1))
+            []
+            >>> [(j, mean.round(9).tolist()) for j, mean, _ in iv.add(0.3, np.array([2.5, 0.0, 0.0]), np.full(3, 0.1))]
+            [(0, [1.5, 0.0, 0.0])]
+        """
         i = bisect.bisect_left(self._t, t_s)
         if i < len(self._t) and self._t[i] == t_s:
             return []  # duplicate time stamp
