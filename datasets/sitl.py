@@ -140,6 +140,18 @@ class SitlInstance:
     def alive(self) -> bool:
         return self.process.poll() is None
 
+    def release_start_wait(self, timeout_s: float = 30.0) -> None:
+        """Let the firmware finish booting without its client: connect to the first port
+        (where it waits at start), wait until the second port listens, hang up. The first
+        port then takes a new client, and the others can be used before it."""
+        deadline = time.monotonic() + timeout_s
+        with socket.create_connection(("127.0.0.1", self.port), timeout=timeout_s):
+            while not _listening(self.port + 2):
+                if not self.alive() or time.monotonic() > deadline:
+                    raise LinkError(f"SITL instance {self.instance} did not open {self.url_secondary} "
+                                    f"within {timeout_s:g} s; see {self.log_path}")
+                time.sleep(0.05)
+
     def stop(self, timeout_s: float = 5.0) -> None:
         """SIGTERM, then SIGKILL after ``timeout_s``; waits for the process to end."""
         if self.process.poll() is not None:
@@ -338,11 +350,20 @@ class SitlTruth:
                 speedup: float = 1.0, rate_hz: float = 10.0) -> SitlTruth:
         """A truth tap with its own connection (e.g. ``SitlInstance.url_secondary``, next to
         the link that flies the drone), SIM_STATE at ``rate_hz`` of simulated time, GCS
-        system id 254; :meth:`close` ends it."""
+        system id 254; :meth:`close` ends it. Waits (60 s) for the port: the firmware opens
+        its second and third ports only once a client is connected to the first."""
         from skyfix.drivers.vehicle import Vehicle
 
-        vehicle = Vehicle.connect(url, timeout_s=30.0, source_system=254,
-                                  stream_rates_hz={"SIM_STATE": rate_hz * speedup})
+        deadline = time.monotonic() + 60.0
+        while True:  # the firmware opens its other ports once a client is on SERIAL0
+            try:
+                vehicle = Vehicle.connect(url, timeout_s=30.0, source_system=254,
+                                          stream_rates_hz={"SIM_STATE": rate_hz * speedup})
+                break
+            except LinkError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
         truth = cls(vehicle, home_alt_amsl_m, geoid_m=geoid_m, speedup=speedup)
         truth._own = vehicle
         return truth

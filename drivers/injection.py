@@ -178,30 +178,41 @@ def vision_message(north_m: float, east_m: float, down_m: float, *, sigma_m: flo
 
 
 #: ArduPilot parameters for a companion that injects GPS_INPUT as a second GPS next to the
-#: real receiver (set at boot: GPS2_TYPE needs a reboot). GPS1 stays primary
-#: (GPS_AUTO_SWITCH 0, GPS_PRIMARY 0) until :func:`use_injected_gps` switches; EKF source
-#: set 2 takes GPS positions without GPS velocity (GPS_INPUT from a position-only fusion
-#: carries none, and EK3 fusing the MAV GPS's stale zero velocity throws "GPS Glitch" and
-#: an EKF failsafe: measured on Copter 4.7 SITL).
+#: real receiver, set before flight: GPS1 stays the only GPS the EKF uses (GPS_AUTO_SWITCH 0,
+#: GPS_PRIMARY 0) until :func:`use_injected_gps` switches; EKF source set 2 takes GPS
+#: positions without GPS velocity (GPS_INPUT from a position-only fusion carries none, and
+#: EK3 fusing the MAV GPS's stale zero velocity throws "GPS Glitch" and an EKF failsafe).
+#: GPS2_TYPE stays 0 until then: with 14 from boot, arming is refused ("GPS 2: Bad fix")
+#: unless the companion injects before take-off. Measured on Copter 4.7 SITL.
 ARDUPILOT_INJECTED_GPS2_PARAMS: dict[str, float] = {
-    "GPS2_TYPE": 14, "GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0,
+    "GPS_AUTO_SWITCH": 0, "GPS_PRIMARY": 0,
     "EK3_SRC2_POSXY": 3, "EK3_SRC2_VELXY": 0, "EK3_SRC2_POSZ": 1, "EK3_SRC2_VELZ": 0, "EK3_SRC2_YAW": 1,
 }
 
 
 def use_injected_gps(vehicle: Vehicle, on: bool) -> None:
     """ArduPilot: make the injected (MAV) GPS the one the EKF uses (``on``), or the real
-    receiver again: GPS_PRIMARY to that instance, and EKF source set 2 (positions only) or 1.
-    Needs :data:`ARDUPILOT_INJECTED_GPS2_PARAMS` (GPS_AUTO_SWITCH 0), else ConfigurationError."""
+    receiver again. On: GPS2_TYPE 14 when no GPS is of type MAV yet (ArduPilot starts the MAV
+    driver without a reboot), GPS_PRIMARY to that instance, EKF source set 2 (positions
+    only). Off: GPS_PRIMARY 0, source set 1, GPS2_TYPE back to 0 if this set it. Needs
+    GPS_AUTO_SWITCH 0 (:data:`ARDUPILOT_INJECTED_GPS2_PARAMS`), else ConfigurationError."""
     if vehicle.autopilot != "ardupilot":
         raise ConfigurationError(f"vehicle {vehicle.system_id}: switching the GPS instance is ArduPilot's "
                                  f"(GPS_PRIMARY); {vehicle.autopilot} fuses every enabled GNSS source")
-    check_settings(vehicle, "gps")
     if int(vehicle.get_param("GPS_AUTO_SWITCH")) != 0:
         raise ConfigurationError(f"vehicle {vehicle.system_id}: GPS_AUTO_SWITCH must be 0 for GPS_PRIMARY "
-                                 "to pick the GPS instance")
+                                 "to pick the GPS instance (see ARDUPILOT_INJECTED_GPS2_PARAMS)")
+    if on:
+        first = "GPS1_TYPE" if _param(vehicle, "GPS1_TYPE") is not None else "GPS_TYPE"
+        if int(vehicle.get_param(first)) != 14 and int(vehicle.get_param("GPS2_TYPE")) == 0:
+            vehicle.set_param("GPS2_TYPE", 14)
+            vehicle.gps2_type_set_by_skyfix = True
+        check_settings(vehicle, "gps")
     vehicle.set_param("GPS_PRIMARY", vehicle.gps_input_id if on else 0)
     vehicle.command(M.MAV_CMD_SET_EKF_SOURCE_SET, 2 if on else 1)
+    if not on and getattr(vehicle, "gps2_type_set_by_skyfix", False):
+        vehicle.set_param("GPS2_TYPE", 0)
+        vehicle.gps2_type_set_by_skyfix = False
 
 
 def set_origin(vehicle: Vehicle, lat_deg: float, lon_deg: float, alt_amsl_m: float, *,

@@ -143,7 +143,7 @@ class Vehicle:
         """Ask for each telemetry message at ``stream_rates_hz`` (fire and forget; asked again
         when positions stop while heartbeats go on, e.g. after the autopilot rebooted)."""
         self._streams_mono = time.monotonic()
-        for name, rate in self.stream_rates_hz.items():
+        for name, rate in list(self.stream_rates_hz.items()):  # connect() may add rates meanwhile
             msg_id = getattr(M, f"MAVLINK_MSG_ID_{name}", None)
             if msg_id is None:
                 continue
