@@ -459,7 +459,8 @@ class FusionEngine:
         monitor = drone.monitors.get(source)
         if monitor is None:
             cfg = self.config
-            monitor = drone.monitors[source] = SourceMonitor(timeout_s, cfg.reject_after, cfg.readmit_after_s, t)
+            monitor = drone.monitors[source] = SourceMonitor(timeout_s, cfg.reject_after, cfg.readmit_after_s, t,
+                                                              cfg.readmit_fraction)
         return monitor
 
     def _absolute(self, drone: DroneState, monitor: SourceMonitor, t: float, enu: np.ndarray, cov: np.ndarray,

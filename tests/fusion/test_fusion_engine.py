@@ -1,5 +1,6 @@
 """FusionEngine: accuracy and honesty on straight flights, outages, spoofing, helpers, out-of-order input."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -99,6 +100,19 @@ def test_spoofed_jump_is_rejected_and_readmitted_when_honest_again():
     health = engine.health("A")["gnss"]
     assert health.state is HealthState.OK                   # honest again from 45 s: re-admitted once
     assert 48.8 <= health.since_s <= 50.2                   # >= 80 % of the last 5 s consistent: ~4 s
+
+
+@pytest.mark.parametrize("fraction", [0.5, 1.0])
+def test_readmit_fraction_of_the_config_sets_when_gnss_is_fused_again(fraction):
+    """Honest again from 45 s; the last 5 s of probation hold the spoof's failures until 50 s,
+    so the share ``fraction`` of passes is reached at 45 + 5 x fraction s (fixes every 0.2 s)."""
+    config = dataclasses.replace(WHITE_GNSS, readmit_fraction=fraction)
+    engine = FusionEngine(ORIGIN, config=config)
+    fly(engine, np.random.default_rng(5), {"A": EAST}, 60.0,
+        spoof={"A": lambda t: (50.0, 0.0, 0.0) if 30.0 <= t < 45.0 else (0.0, 0, 0)})
+    health = engine.health("A")["gnss"]
+    assert health.state is HealthState.OK
+    assert health.since_s == pytest.approx(45.0 + 5.0 * fraction, abs=0.3)
 
 
 def test_helpers_localise_a_drone_without_gnss():
