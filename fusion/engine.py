@@ -5,7 +5,8 @@ All states live in one local ENU frame about ``origin`` (exact WGS84 through
 directions measured at a drone (velocity, relative bearings, ENU covariances) are
 rotated from the ENU axes *at that drone* into the frame's axes. One gtsam window
 (:mod:`skyfix.fusion.window`) holds every drone, so a relative observation ties the
-observer's and the target's states with both their uncertainties.
+observer's and the target's states with both their uncertainties; the chains of states
+and their mechanics live in :mod:`skyfix.fusion.chains`.
 
 Time: every input is stamped (seconds, one clock for all). A measurement at ``t`` is
 attached to the nearest state on the ``state_dt_s`` grid, moved there with the drone's
@@ -17,12 +18,13 @@ against the fused prediction (chi-square, ``gate_probability``; a relative obser
 with the joint covariance of both drones, cross terms included) before it is fused;
 failures drop it, repeated failures reject the source, and a lost or rejected source is
 fused again on evidence (``readmit_after_s``, ``readmit_fraction``). GNSS also goes
-through a windowed drift test against the drone's own velocity (:mod:`skyfix.fusion.drift`);
+through a windowed drift test against the drone's own velocity (:mod:`skyfix.fusion.gnss`,
+:mod:`skyfix.fusion.drift`);
 after a drift it is re-admitted when it agrees with the velocity again, and the drone's
 chain is re-anchored on it (the spoof corrupted the estimate, not the honest receiver).
 
-Trust: relative observations come only from observers on the roster (see
-:class:`FusionConfig`); the observer's position is always its own state in the engine.
+Trust (:mod:`skyfix.fusion.trust`): relative observations come only from observers on the
+roster (see :class:`FusionConfig`); the observer's position is always its own state in the engine.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from skyfix.fusion.estimate import Estimate
 from skyfix.fusion.gnss import GnssFusion, gnss_quality
 from skyfix.fusion.health import HealthState, SourceHealth, SourceMonitor
 from skyfix.fusion.log import MeasurementLog
+from skyfix.fusion.trust import ObserverTrust
 from skyfix.fusion.window import GraphWindow
 from skyfix.geo import LocalFrame
 from skyfix.types import GeoFix, RelativeObservation
@@ -89,8 +92,7 @@ class FusionEngine:
         self._gate = {dof: cfg.gate_chi2(dof) for dof in (1, 2, 3)}
         self._chains = StateChains(self.frame, self.lag_s, cfg)
         self._gnss = GnssFusion(cfg, self._chains)
-        self._unknown_observers = 0
-        self._unknown_last: tuple[str, float] | None = None
+        self._trust = ObserverTrust(cfg.roster)
         self._drones: dict[str, DroneState] = {}
         self._log: MeasurementLog | None = None
         if log_path is not None:
@@ -263,7 +265,8 @@ class FusionEngine:
             raise InputError(f"RelativeObservation observer and target are the same drone {observer_id!r}")
         t = self._time("obs.time_s", obs.time_s)
         validate.positive_definite("obs.cov_enu_m2", obs.cov_enu_m2)
-        self._check_observer(observer_id, target_id, t)
+        self._trust.check(self._drones, observer_id, target_id, t)
+        self._drone(observer_id)  # a trusted observer first seen here (within max_drones)
         self._record("relative", dict(obs=obs))
         observer, target = self._drones[observer_id], self._drone(target_id)
         self._chains.advance(t, target)
@@ -417,37 +420,10 @@ class FusionEngine:
         drone.reporting = True
         return drone
 
-    def _check_observer(self, observer_id: str, target_id: str, t: float) -> None:
-        """Refuse (InputError) an observation by a drone off the roster, or of a target off it."""
-        roster = self.config.roster
-        observer = self._drones.get(observer_id)
-        if roster:
-            trusted = observer_id in roster
-        else:
-            trusted = observer is not None and observer.reporting
-        if trusted and roster and target_id not in roster:
-            raise InputError(f"relative observation of {target_id!r}, which is not on the roster {list(roster)}")
-        if trusted:
-            if observer is None:
-                self._drone(observer_id)
-            return
-        self._unknown_observers += 1
-        self._unknown_last = (observer_id, t)
-        target = self._drones.get(target_id)
-        if target is not None:
-            target.monitors.setdefault("relative:unknown", SourceMonitor(math.inf, 1, math.inf, t)).reject(
-                t, f"{self._unknown_observers} observation(s) from observers not on the roster (last {observer_id!r})")
-        who = f"the roster {list(roster)}" if roster else f"the drones reporting their own sensors {self._reporting()}"
-        raise InputError(f"relative observation from unknown observer {observer_id!r} (not in {who}); "
-                         "its observation and any position it carries are ignored")
-
-    def _reporting(self) -> list[str]:
-        return sorted(d for d, drone in self._drones.items() if drone.reporting)
-
     @property
     def unknown_observations(self) -> int:
         """Relative observations refused because their observer is not on the roster."""
-        return self._unknown_observers
+        return self._trust.refused
 
     def _known(self, drone_id) -> DroneState:
         drone = self._drones.get(_drone_id(drone_id))
