@@ -12,17 +12,17 @@ from skyfix.fusion.replay import ReplayResult, horizontal_errors_m
 _CHI2_2DOF_95 = 5.991464547107979  # scipy.stats.chi2.ppf(0.95, 2)
 
 
-def ellipse_points(cov_2x2: np.ndarray, scale: float, n: int = 48) -> np.ndarray:
-    """(n, 2) outline of the ellipse x^T C^-1 x = scale^2 (C a 2x2 covariance).
+def ellipse_points(cov_m2: np.ndarray, n_sigma: float, n: int = 48) -> np.ndarray:
+    """(n, 2) outline (m) of the ellipse x^T C^-1 x = n_sigma^2 (C the 2x2 covariance ``cov_m2``, m2).
 
     Example (sigmas 2 m east, 1 m north; the 2-sigma ellipse reaches 4 m and 2 m):
         >>> np.abs(ellipse_points(np.diag([4.0, 1.0]), 2.0, n=5)).max(axis=0)
         array([4., 2.])
     """
-    vals, vecs = np.linalg.eigh(cov_2x2)
+    vals, vecs = np.linalg.eigh(cov_m2)
     ang = np.linspace(0.0, 2.0 * np.pi, n)
     circle = np.stack([np.cos(ang), np.sin(ang)])
-    return (vecs @ (np.sqrt(np.maximum(vals, 0.0))[:, None] * circle)).T * scale
+    return (vecs @ (np.sqrt(np.maximum(vals, 0.0))[:, None] * circle)).T * n_sigma
 
 
 def plot_replay(result: ReplayResult, path: str | Path, *, drones: list[str] | None = None,

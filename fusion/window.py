@@ -111,12 +111,12 @@ class GraphWindow:
         return self._live
 
     # -- variables ---------------------------------------------------------------------
-    def new_state(self, drone_index: int, k: int, p0: np.ndarray, b0: np.ndarray, n0: np.ndarray | None = None,
+    def new_state(self, drone_index: int, k: int, p0_m: np.ndarray, b0_mps: np.ndarray, n0_m: np.ndarray | None = None,
                   q0: np.ndarray | None = None) -> None:
         """Insert p_k, b_k (and n_k, q_k) with initial guesses; the caller adds their constraining factors."""
         if k < 0 or k > _STEP_MASK:
             raise EstimationError(f"grid step {k} outside the window's key range")
-        for kind, guess in ((0, p0), (1, b0), (2, n0), (3, q0)):
+        for kind, guess in ((0, p0_m), (1, b0_mps), (2, n0_m), (3, q0)):
             if guess is None:
                 continue
             key = self.key(drone_index, kind, k)
