@@ -646,7 +646,7 @@ class Vehicle:
                        ftp: bool = False) -> mission.TransferStats:
         """Upload a mission: the MISSION_ITEM_INT protocol (:func:`mission.upload`), or with
         ``ftp`` (ArduPilot only) one file over MAVLink FTP, read back and compared
-        (:func:`mission_ftp.upload_ftp`: ~8x faster for long missions)."""
+        (:func:`mission_ftp.upload_ftp`: ~4x faster for long missions on ArduPilot SITL)."""
         if ftp:
             from skyfix.drivers import mission_ftp
 

@@ -135,3 +135,15 @@ def test_vehicle_cli_flies_a_mission_and_reports_refusals(tmp_path, capsys, capl
         assert main(["-q", "vehicle", "rtl", url, "--wait"]) == 0
         assert not sim.vehicle(0).armed and sim.truth(0)["alt_rel_m"] < 0.5
         assert main(["-q", "vehicle", "mission", "upload", url, str(tmp_path / "missing.json")]) == 2  # bad input: exit 2
+
+
+def test_vehicle_cli_ftp_upload_refused_on_px4(tmp_path, caplog):
+    """`mission upload --ftp` is ArduPilot's @MISSION/mission.dat: refused up front on PX4,
+    in one line naming the reason (the SITL test uploads over FTP for real)."""
+    from skyfix.datasets.sim import Simulator, SimulatorConfig
+
+    plan = tmp_path / "plan.json"
+    plan.write_text(json.dumps({"items": [{"command": 16, "lat_deg": 47.0, "lon_deg": 8.0, "alt_m": 10.0}]}))
+    with Simulator(SimulatorConfig(vehicles=1, flavour="px4", speed=2.0)) as sim:
+        assert main(["vehicle", "mission", "upload", sim.url(0), str(plan), "--ftp"]) == 1
+    assert "needs ArduPilot" in caplog.text
