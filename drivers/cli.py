@@ -73,9 +73,33 @@ def _action(sub, name: str, helptext: str, func) -> argparse.ArgumentParser:
     return a
 
 
+def _check_args(args: argparse.Namespace) -> None:
+    """Refuse bad numbers before connecting (one line naming the argument, exit 2), not after
+    a 10 s wait for the vehicle."""
+    import math
+
+    from skyfix.drivers.link import check_url
+
+    check_url(args.url)
+    for flag, value in (("--timeout", args.timeout), ("--wait", getattr(args, "wait", None))):
+        if isinstance(value, float) and not (math.isfinite(value) and value > 0):
+            raise InputError(f"{flag} must be a positive number of seconds, got {value:g}")
+    if args.system_id is not None and not 1 <= args.system_id <= 255:
+        raise InputError(f"--system-id must be 1..255, got {args.system_id}")
+    alt = getattr(args, "alt_m", None)
+    if alt is not None and not (math.isfinite(alt) and alt > 0):
+        raise InputError(f"ALT_M must be a positive height above home in metres, got {alt:g}")
+    lat, lon = getattr(args, "lat_deg", None), getattr(args, "lon_deg", None)
+    if lat is not None and not (math.isfinite(lat) and -90.0 <= lat <= 90.0):
+        raise InputError(f"LAT_DEG must be a latitude in -90..90 degrees, got {lat:g}")
+    if lon is not None and not (math.isfinite(lon) and -180.0 <= lon <= 180.0):
+        raise InputError(f"LON_DEG must be a longitude in -180..180 degrees, got {lon:g}")
+
+
 def _connect(args: argparse.Namespace):
     from skyfix.drivers.vehicle import Vehicle
 
+    _check_args(args)
     return Vehicle.connect(args.url, timeout_s=args.timeout, system_id=args.system_id)
 
 
@@ -149,6 +173,8 @@ def run_rtl_land(args: argparse.Namespace) -> int:
 def run_mission_upload(args: argparse.Namespace) -> int:
     from skyfix.drivers.mission import MissionItem
 
+    if not args.file.is_file():
+        raise InputError(f"{args.file}: no such mission file")
     try:
         doc = json.loads(args.file.read_text())
         items = [MissionItem(**it) for it in doc["items"]]

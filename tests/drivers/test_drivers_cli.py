@@ -147,3 +147,23 @@ def test_vehicle_cli_ftp_upload_refused_on_px4(tmp_path, caplog):
     with Simulator(SimulatorConfig(vehicles=1, flavour="px4", speed=2.0)) as sim:
         assert main(["vehicle", "mission", "upload", sim.url(0), str(plan), "--ftp"]) == 1
     assert "needs ArduPilot" in caplog.text
+
+
+@pytest.mark.parametrize(("args", "named"), [
+    (["takeoff", "udpin:127.0.0.1:14599", "-5"], "ALT_M"),
+    (["goto", "udpin:127.0.0.1:14599", "95", "6", "10"], "LAT_DEG"),
+    (["goto", "udpin:127.0.0.1:14599", "46", "190", "10"], "LON_DEG"),
+    (["status", "udpin:127.0.0.1:14599", "--timeout", "-1"], "--timeout"),
+    (["status", "udpin:127.0.0.1:14599", "--wait", "0"], "--wait"),
+    (["arm", "udpin:127.0.0.1:14599", "--system-id", "300"], "--system-id"),
+    (["mission", "upload", "udpin:127.0.0.1:14599", "/nonexistent/plan.json"], "no such mission file"),
+])
+def test_vehicle_cli_bad_arguments_fail_at_once(args, named):
+    """Bad numbers are refused before any connection (no 10 s wait for a vehicle), in one
+    line naming the argument, exit 2."""
+    t0 = time.monotonic()
+    out = subprocess.run([sys.executable, "-m", "skyfix", "vehicle", *args], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 2 and time.monotonic() - t0 < 8.0
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and named in lines[0] and "Traceback" not in out.stderr
