@@ -58,6 +58,11 @@ class HelpAgent:
         self._send(out)
         return AgentDecisions(decision, helper)
 
+    def stand_down(self, now_s: float, why: str) -> None:
+        """The requester needs no more help (e.g. it has landed): cancel its request, release its helpers."""
+        if self.requester.protocol.active:
+            self._send(self.requester.protocol.cancel(now_s, why))
+
     def _as_helper(self, me: HelperStatus) -> HelperStatus:
         return replace(me, localised=False) if self.requester.protocol.active else me
 

@@ -60,7 +60,8 @@ class HelpSetup:
     requester: RequesterConfig | None = None
     protocol: HelpConfig | None = None
     vantage: VantageConfig | None = None
-    min_alt_rel_m: float = 5.0        # a vantage point is never lower than this above home
+    min_alt_rel_m: float = 3.0        # a vantage point is never lower than this above home (a landing target
+                                      # stays above the helpers' horizon until ~4 m)
     on_frame: object | None = None    # HelperEye's on_frame (a harness scoring the camera), else None
 
     def build(self, service) -> HelpLoop:
@@ -131,8 +132,6 @@ class HelpLoop:
         self._resume: str | None = None
         self._goto_enu: np.ndarray | None = None
         self._actions = _Actions(f"skyfix-help-{self.id}")
-        self._pinned = False
-        self._auto_switch: int | None = None
 
     @property
     def recovering(self) -> bool:
@@ -164,6 +163,10 @@ class HelpLoop:
         peers = {p.drone_id: (p.lat_deg, p.lon_deg, p.alt_m) for p in self.svc.peers.snapshot()
                  if not p.lost and math.isfinite(p.lat_deg) and math.isfinite(p.alt_m)}
         decisions = self.agent.step(now_s, gnss, fused, self._status, peers)
+        if self.recovering and state is not None and state.position is not None and not state.armed \
+                and self.agent.requester.protocol.active:
+            self.agent.stand_down(now_s, "landed")  # on the ground: nothing left to help with
+            self._event(now_s, "landed: helpers released")
         self._as_requester(now_s, decisions.requester)
         self._as_helper(now_s, decisions.helper)
         if self.eye is not None:
@@ -192,10 +195,6 @@ class HelpLoop:
     def _as_requester(self, now_s: float, dec) -> None:
         if dec.mode is not self.mode:
             self._event(now_s, f"{dec.mode.value} ({dec.reason})")
-            vehicle = self.svc.vehicle
-            if dec.mode is Mode.NORMAL and self._pinned and vehicle is not None:
-                self._pinned = False
-                self._actions.submit("gps", f"{self.id} GPS auto switch", lambda: self._pin_gps(vehicle, False))
             self.mode = dec.mode
             role = _ROLE_OF.get(dec.mode)
             self._want = None if role is None else role_mode(self._flavour(), role)
@@ -262,26 +261,11 @@ class HelpLoop:
         if state.mode == want:
             if not self.recovering:
                 self._want = None  # back on its mission: the mission's own mode changes are its business
-            elif not self._pinned:
-                self._pinned = True
-                self._actions.submit("gps", f"{self.id} GPS primary", lambda: self._pin_gps(vehicle, True))
             return
         if time.monotonic() - self._want_sent_wall_s < RECOMMAND_WALL_S or self._actions.busy:
             return
         self._want_sent_wall_s = time.monotonic()
         self._actions.submit("mode", f"{self.id} mode {want}", lambda: vehicle.set_mode(want))
-
-    def _pin_gps(self, vehicle, pin: bool) -> None:
-        """ArduPilot with the injected fix on its 2nd GPS (GPS2_TYPE=14): fly on that one alone while recovering
-        (GPS_AUTO_SWITCH=0, GPS_PRIMARY=1), so a receiver that comes back wrong is not switched to; then
-        restore. Only fusion judges when the receiver is right again."""
-        if vehicle.autopilot != "ardupilot" or int(vehicle.get_param("GPS2_TYPE", timeout_s=0.5, retries=2)) != 14:
-            return
-        if pin:
-            self._auto_switch = int(vehicle.get_param("GPS_AUTO_SWITCH", timeout_s=0.5, retries=2))
-        vehicle.set_param("GPS_AUTO_SWITCH", 0 if pin else (self._auto_switch if self._auto_switch is not None else 1),
-                          timeout_s=0.5, retries=2)
-        vehicle.set_param("GPS_PRIMARY", 1 if pin else 0, timeout_s=0.5, retries=2)
 
     def _flavour(self) -> str:
         vehicle = self.svc.vehicle

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from skyfix import geo
 from skyfix.camera import Camera, CameraPose
 from skyfix.crps.detection import Detection
 from skyfix.crps.fit import SilhouetteFit
@@ -48,6 +49,7 @@ class EyeConfig:
     target_arms: int = 4
     attitude_sigma_deg: float = 0.5    # 1-sigma pointing error of the reported gimbal attitude
     prior_sigma_m: float = 2.0         # added to the prior's sigma: the target moves, the fix lags
+    min_elevation_deg: float = 1.5     # look only above the horizon: the silhouette detector wants sky behind
 
 
 class _GatedDetector:
@@ -163,6 +165,8 @@ class HelperEye:
         if posed is None:
             return None
         pose, own = posed
+        if _elevation_deg(own, prior) < self.cfg.min_elevation_deg:
+            return None  # the target against the ground: clutter a single silhouette cannot be told from
         camera = frame.camera
         if self._tracker is None or self._tracker_camera is not camera:
             self._tracker = Tracker(self._detector, fit=SilhouetteFit(camera, self.model))
@@ -187,3 +191,9 @@ class HelperEye:
                       target_id=target_id, time_s=frame.t_s, attitude_sigma_deg=self.cfg.attitude_sigma_deg,
                       observer_cov_enu_m2=own.cov_enu_m2)
         return obs if math.isfinite(obs.range_m) and obs.range_m > 0 else None
+
+
+def _elevation_deg(own: GeoFix, target: GeoFix) -> float:
+    """Elevation of ``target`` seen from ``own`` above the local horizontal, degrees."""
+    _, dist_m = geo.inverse(own.lat_deg, own.lon_deg, target.lat_deg, target.lon_deg)
+    return math.degrees(math.atan2(target.alt_m - own.alt_m, max(float(dist_m), 1e-3)))

@@ -69,7 +69,9 @@ class RecoveryConfig:
     forged_observation: bool = False      # an impostor without the swarm key sends observations of the lost drone
     gnss_return_offset_m: float | None = None  # GNSS comes back this far off (east), 25 s after the loss
     target_leaves_fov: bool = False       # one helper's gimbal looks 90 deg away for 12 s, 10 s after it helps
-    lost_vehicle_url: str | None = None   # an external autopilot (ArduPilot SITL) as the lost drone
+    lost_vehicle_url: str | None = None   # an external autopilot (ArduPilot SITL) as the lost drone ...
+    lost_vehicle_truth_url: str | None = None  # ... a second link to it streaming SIM_STATE (its truth)
+    lost_vehicle_home: tuple[float, float, float] | None = None  # ... its home: lat, lon (deg), alt AMSL (m)
     max_after_loss_s: float = 200.0       # the run ends this long after the loss at the latest
     camera_px: tuple[int, int] = (960, 720)
     camera_hfov_deg: float = 50.0
@@ -129,6 +131,19 @@ def _apply_gnss_model(sim, model: GnssModel) -> None:
                 raise NotImplementedError(f"the simulator's GpsReceiver has no {name} yet")
 
 
+def _west_of(cfg: RecoveryConfig) -> tuple[float, float, float]:
+    """The simulator's home for an external lost drone at ``cfg.lost_vehicle_home``: one spacing west of it."""
+    from skyfix.geo import destination
+
+    if cfg.lost_vehicle_home is None or cfg.lost_vehicle_truth_url is None:
+        raise InputError("lost_vehicle_url needs lost_vehicle_home (lat, lon, alt AMSL) and lost_vehicle_truth_url")
+    if cfg.mav_outage_s > 0 or cfg.gnss_return_offset_m is not None:
+        raise NotImplementedError("mav_outage_s and gnss_return_offset_m are simulator faults, not for an external autopilot")
+    lat, lon, alt_amsl = (float(v) for v in cfg.lost_vehicle_home)
+    west_lat, west_lon = destination(lat, lon, 270.0, SPACING_M)
+    return float(west_lat), float(west_lon), alt_amsl
+
+
 def _survey(vehicle, frame, home_enu: np.ndarray):
     """A lawnmower over the drone's own strip north of its home, twice round, then home (RTL)."""
     from skyfix.drivers.mission import MissionItem
@@ -148,24 +163,50 @@ class _Run:
     """One run's moving parts; :meth:`fly` runs it, :meth:`close` takes it all down."""
 
     def __init__(self, cfg: RecoveryConfig, progress: Callable[[str, float], None] | None) -> None:
+        from skyfix.crps.model import DroneModel, shape_table
         from skyfix.datasets.sim import Simulator, SimulatorConfig
 
-        if cfg.lost_vehicle_url is not None:
-            raise NotImplementedError("lost_vehicle_url (an external autopilot as the lost drone) is not wired yet")
         self.cfg, self.progress = cfg, progress or (lambda _what, _frac: None)
         self.rng = np.random.default_rng(cfg.seed)
-        self.sim = Simulator(SimulatorConfig(vehicles=len(IDS), speed=cfg.speed, seed=cfg.seed, spacing_m=SPACING_M,
-                                             wind=_wind(cfg, self.rng), params={"GPS2_TYPE": 14})).start()
+        # the helpers' model fit needs the quad's shape table (seconds, cached): before the clock runs
+        shape_table(DroneModel(arms=4, span_m=0.5).scaled_to(1.0))
+        self.external = cfg.lost_vehicle_url is not None
+        # the simulator's index of each drone (None: the external autopilot)
+        self.sim_index = [None if self.external and k == LOST else k - (self.external and k > LOST)
+                          for k in range(len(IDS))]
+        home, spacing = None, SPACING_M
+        if self.external:
+            home, spacing = _west_of(cfg), 2.0 * SPACING_M  # the helpers either side of the external drone
+        self.sim = Simulator(SimulatorConfig(vehicles=len(IDS) - self.external, speed=cfg.speed, seed=cfg.seed,
+                                             spacing_m=spacing, home=home, wind=_wind(cfg, self.rng),
+                                             params={"GPS_AUTO_SWITCH": 0})).start()  # GPS_PRIMARY picks
         _apply_gnss_model(self.sim, cfg.gnss)
+        self.sitl_truth = None
+        if self.external:
+            from skyfix.datasets.sitl import SitlTruth
+
+            self.sitl_truth = SitlTruth.connect(cfg.lost_vehicle_truth_url, cfg.lost_vehicle_home[2],
+                                                geoid_m=self.sim.geoid_m, speedup=cfg.speed)
+            self.sitl_truth.wait(30.0)
         self.key = secrets.token_bytes(32)
         self.faults = Faults(cfg, self)
-        self.recorder = Recorder(self.sim, IDS, LOST)
+        self.recorder = Recorder(self.sim, IDS, LOST, self.truth)
         self.services, self.threads, self.cameras = [], [], []
         self.t_loss: float | None = None
         self.timeline: list[tuple[float, str]] = []
 
     def clock(self) -> float:
         return self.sim.time_s
+
+    def truth(self, k: int) -> dict[str, float]:
+        """Truth of drone ``k`` (the simulator's, or the external autopilot's SIM_STATE): scoring only."""
+        i = self.sim_index[k]
+        return self.sitl_truth.truth(self.sim.world) if i is None else self.sim.truth(i)
+
+    def target_key(self, drone_id: str):
+        """How a camera's truth names drone ``drone_id``: its simulator index, or the external drone."""
+        i = self.sim_index[IDS.index(drone_id)] if drone_id in IDS else None
+        return "extra:0" if i is None else i
 
     def time_of(self, message) -> float:
         """Telemetry time on the swarm's clock: the simulator's autopilot stamps simulated time."""
@@ -187,16 +228,22 @@ class _Run:
         cfg = self.cfg
         self.bus = InProcessBus()
         camera = Camera.from_fov(*cfg.camera_px, cfg.camera_hfov_deg)
+        extra = None if self.sitl_truth is None else (lambda: [self.sitl_truth.target_pose()])
         for i, drone_id in enumerate(IDS):
-            cam = WorldCamera(self.sim, i, camera, seed=cfg.seed * 10 + i)
+            j = self.sim_index[i]
+            if j is None:  # the external autopilot: asks for help, has no simulated camera
+                cam, setup, url, time_of = None, HelpSetup(fault_response=cfg.fault_response), cfg.lost_vehicle_url, \
+                    lambda _m: self.sim.time_s  # its boot clock is another epoch: stamped on reception
+            else:
+                cam = WorldCamera(self.sim, j, camera, seed=cfg.seed * 10 + i, extra_targets=extra)
+                eye = EyeConfig(frame_hz=cfg.frame_hz, speed=cfg.speed, target_span_m=cam.model.span_m,
+                                target_arms=cam.model.arms, attitude_sigma_deg=cam.gimbal_cfg.pointing_sigma_deg)
+                setup = HelpSetup(fault_response=cfg.fault_response, camera=cam, eye=eye,
+                                  on_frame=self.recorder.frame_scorer(i, cam, self.target_key))
+                url, time_of = self.faults.mavlink_url(i, self.sim.url(j)), self.time_of
             self.cameras.append(cam)
-            eye = EyeConfig(frame_hz=cfg.frame_hz, speed=cfg.speed, target_span_m=cam.model.span_m,
-                            target_arms=cam.model.arms, attitude_sigma_deg=cam.gimbal_cfg.pointing_sigma_deg)
-            setup = HelpSetup(fault_response=cfg.fault_response, camera=cam, eye=eye,
-                              on_frame=self.recorder.frame_scorer(i, cam))
-            url = self.faults.mavlink_url(i, self.sim.url(i))
             scfg = ServiceConfig(drone_id, url, Endpoints((), ()), self.key, roster=IDS, inject=True,
-                                 estimate_hz=5.0 * cfg.speed, help=setup, clock=self.clock, time_of=self.time_of,
+                                 estimate_hz=5.0 * cfg.speed, help=setup, clock=self.clock, time_of=time_of,
                                  log_path=None if cfg.output is None else Path(cfg.output) / f"{drone_id}.mcap")
             link = LossyLink(self.bus.attach("skyfix", drone_id), cfg.swarm_loss_rate,
                              cfg.seed * 1000 + i)
@@ -226,18 +273,20 @@ class _Run:
                        for s in self.services)
 
         self.wait("every drone's service up (MAVLink, fusion, help)", ready, 60.0)
+        from skyfix.datasets.sitl import arm_when_ready
+
         frame = self.sim.world
-        for i, s in enumerate(self.services):
-            s.vehicle.upload_mission(_survey(s.vehicle, frame, self.sim.vehicle(i).pos_enu_m))
         self.recorder.homes_now()
+        for k, s in enumerate(self.services):
+            s.vehicle.upload_mission(_survey(s.vehicle, frame, self.recorder.home_enu[k]))
         for s in self.services:
             s.vehicle.set_mode("GUIDED")
-            s.vehicle.arm()
+            arm_when_ready(s.vehicle, 60.0 / self.cfg.speed + 30.0)  # a real autopilot's EKF settles first
             s.vehicle.takeoff(CRUISE_ALT_M, wait=False)
         self.note("all three drones take off")
         self.wait("take-off", lambda: all(s.vehicle.state.position is not None and
                                           s.vehicle.state.position.alt_rel_m > CRUISE_ALT_M - 1.0
-                                          for s in self.services), 60.0)
+                                          for s in self.services), 120.0)
         for s in self.services:
             s.vehicle.start_mission()
         self.note("surveys start")
@@ -264,7 +313,7 @@ class _Run:
 
         def landed() -> bool:
             st = lost.vehicle.state if lost.vehicle is not None else None
-            done = st is not None and not st.armed and self.sim.truth(LOST)["alt_rel_m"] < 0.3
+            done = st is not None and not st.armed and self.truth(LOST)["alt_rel_m"] < 0.3
             frac = min(1.0, (self.sim.time_s - self.t_loss) / 90.0)
             self.progress("recovering", 0.3 + 0.65 * frac)
             return done or self.sim.time_s - self.t_loss > cfg.max_after_loss_s
@@ -296,6 +345,8 @@ class _Run:
         for t in self.threads:
             t.join(timeout=10.0)
         self.faults.close()
+        if self.sitl_truth is not None:
+            self.sitl_truth.close()
         self.sim.stop()
 
 

@@ -123,7 +123,7 @@ class Faults:
 
         if index != LOST or self.cfg.mav_outage_s <= 0.0:
             return url
-        self.relay = UdpRelay(self.run.sim.addresses[index], self._mavlink_blocked)
+        self.relay = UdpRelay(self.run.sim.addresses[self.run.sim_index[index]], self._mavlink_blocked)
         return self.relay.url
 
     def _mavlink_blocked(self) -> bool:
@@ -133,12 +133,15 @@ class Faults:
         """The receiver of vehicle ``index`` stops at ``t_s`` (and comes back off, if asked)."""
         from skyfix.datasets.sim.gps import GpsFault
 
+        if self.run.sim_index[index] is None:  # an external autopilot (SITL): its simulated receiver off
+            self.run.services[index].vehicle.set_param("SIM_GPS1_ENABLE", 0)
+            return
         offset = self.cfg.gnss_return_offset_m
         if offset is None:
-            self.run.sim.add_gps_fault(index, GpsFault("loss", t_s))
+            self.run.sim.add_gps_fault(self.run.sim_index[index], GpsFault("loss", t_s))
             return
-        self.run.sim.add_gps_fault(index, GpsFault("loss", t_s, GNSS_BACK_AFTER_S))
-        self.run.sim.add_gps_fault(index, GpsFault("jump", t_s + GNSS_BACK_AFTER_S,
+        self.run.sim.add_gps_fault(self.run.sim_index[index], GpsFault("loss", t_s, GNSS_BACK_AFTER_S))
+        self.run.sim.add_gps_fault(self.run.sim_index[index], GpsFault("jump", t_s + GNSS_BACK_AFTER_S,
                                                    offset_enu_m=(float(offset), 0.0, 0.0)))
 
     def tick(self) -> None:

@@ -21,8 +21,10 @@ HOME_RADIUS_M = 3.0
 class Recorder:
     """Truth and belief samples of a run with drones ``ids`` (index ``lost`` is the one that loses GNSS)."""
 
-    def __init__(self, sim, ids: tuple[str, ...], lost: int) -> None:
+    def __init__(self, sim, ids: tuple[str, ...], lost: int, truth=None) -> None:
+        """``truth(k)`` the truth of drone ``k`` (default: the simulator's vehicle ``k``)."""
         self.sim, self.ids, self.lost = sim, ids, lost
+        self.truth = truth or sim.truth
         self.rows: list[dict] = []
         self.frames: list[tuple[int, float, str, bool, bool]] = []  # (helper index, t_s, target, detected, in view)
         self.home_enu: np.ndarray | None = None
@@ -31,14 +33,15 @@ class Recorder:
 
     def homes_now(self) -> None:
         """The true take-off points (what "home" means for the landing error)."""
-        self.home_enu = np.array([[self.sim.truth(i)[k] for k in ("east_m", "north_m", "up_m")]
+        self.home_enu = np.array([[self.truth(i)[k] for k in ("east_m", "north_m", "up_m")]
                                   for i in range(len(self.ids))])
 
-    def frame_scorer(self, index: int, camera):
-        """``on_frame`` for helper ``index``'s eye: whether the target was in view (the camera's truth)."""
+    def frame_scorer(self, index: int, camera, key_of):
+        """``on_frame`` for helper ``index``'s eye: whether the target was in view (the camera's truth, where
+        ``key_of(drone_id)`` names the target)."""
         def score(frame, target_id: str, detected: bool) -> None:
             truth = getattr(camera, "last_truth", None)
-            in_view = truth is not None and target_id in self.ids and truth.in_view(self.ids.index(target_id))
+            in_view = truth is not None and target_id in self.ids and truth.in_view(key_of(target_id))
             with self._lock:
                 self.frames.append((index, float(frame.t_s), target_id, bool(detected), bool(in_view)))
         return score
@@ -46,7 +49,7 @@ class Recorder:
     def sample(self, services) -> None:
         """One row: every drone's truth, the lost drone's fused fix and mode."""
         t = self.sim.time_s
-        truth = [self.sim.truth(i) for i in range(len(self.ids))]
+        truth = [self.truth(i) for i in range(len(self.ids))]
         row = {"t_s": round(t, 3)}
         for drone_id, tr in zip(self.ids, truth, strict=True):
             row.update({f"{drone_id}_east_m": tr["east_m"], f"{drone_id}_north_m": tr["north_m"],

@@ -86,6 +86,9 @@ class Service:
                          "estimates": 0, "loop_errors": 0}
         self._peer_fix_s: dict[str, float] = {}
         self._gnss_echo = True  # GPS_RAW_INT shows the injected fix (GPS1_TYPE=14), not a receiver
+        self._gps_switched = False  # the autopilot flies on the injected GPS instance (use_injected_gps)
+        self._inject_job: threading.Thread | None = None  # starting or stopping the injection
+        self._inject_notes: list[dict] = []  # what that job did, logged by the main loop
         self._dropped_logged: dict[str, int] = {}
         _warm_up()
         try:
@@ -269,25 +272,58 @@ class Service:
             self._injection(vehicle, state, fix)
 
     def _injection(self, vehicle, state, fix) -> None:
-        """GPS_INPUT of the fused fix while the drone's own GNSS is lost; stop when it is back."""
+        """GPS_INPUT of the fused fix while the drone's own GNSS is lost; stop when it is back. Switching takes
+        several parameter round trips: done on a worker thread, the loop (fusion, swarm) goes on meanwhile."""
         gnss_lost = state is not None and state.gps is not None and state.gps.fix_type < GNSS_OK_FIX_TYPE
         if self.help is not None and self.help.recovering:
             gnss_lost = True  # until fusion finds GNSS healthy and consistent again, whatever the receiver says
-        if gnss_lost and self.injector is None:
-            try:
-                # the message's time stamp is UNIX time (GPS week/ms), whatever the swarm's clock
-                self.injector = vehicle.start_gps_injection(
-                    lambda: self.node.fix(self.cfg.drone_id, self.clock(), time_stamp_s=time.time()))
-            except SkyfixError as exc:
-                log.error("cannot inject the fused position: %s", exc)
+        job = self._inject_job
+        if job is not None:
+            if job.is_alive():
                 return
-            self._gnss_echo = _reports_injection(vehicle)
-            self.outputs.json("/action", {"action": "gps_injection_start", "sigma_h_m": fix.sigma_horizontal_m,
-                                          "gps_raw_echoes_injection": self._gnss_echo})
+            self._inject_job = None
+            for action in self._inject_notes:
+                self.outputs.json("/action", action)
+            self._inject_notes = []
+        if gnss_lost and self.injector is None:
+            self._inject_job = threading.Thread(target=self._start_injection, args=(vehicle, fix.sigma_horizontal_m),
+                                                daemon=True, name=f"skyfix-inject-{self.cfg.drone_id}")
+            self._inject_job.start()
         elif not gnss_lost and self.injector is not None and state.gps is not None:
-            self.injector.stop()
-            self.injector = None
-            self.outputs.json("/action", {"action": "gps_injection_stop"})
+            injector, self.injector = self.injector, None
+            self._inject_job = threading.Thread(target=self._stop_injection, args=(vehicle, injector), daemon=True,
+                                                name=f"skyfix-inject-{self.cfg.drone_id}")
+            self._inject_job.start()
+
+    def _start_injection(self, vehicle, sigma_h_m: float) -> None:
+        try:
+            self._switch_gps(vehicle, True)
+            echo = _reports_injection(vehicle)
+            # the message's time stamp is UNIX time (GPS week/ms), whatever the swarm's clock
+            injector = vehicle.start_gps_injection(
+                lambda: self.node.fix(self.cfg.drone_id, self.clock(), time_stamp_s=time.time()))
+        except SkyfixError as exc:
+            log.error("cannot inject the fused position: %s", exc)
+            return
+        self._gnss_echo, self.injector = echo, injector
+        self._inject_notes.append({"action": "gps_injection_start", "sigma_h_m": sigma_h_m,
+                                   "gps_raw_echoes_injection": echo, "injected_gps_primary": self._gps_switched})
+
+    def _stop_injection(self, vehicle, injector) -> None:
+        injector.stop()
+        self._switch_gps(vehicle, False)
+        self._inject_notes.append({"action": "gps_injection_stop", "injected_gps_primary": self._gps_switched})
+
+    def _switch_gps(self, vehicle, on: bool) -> None:
+        """ArduPilot set up for it (GPS_AUTO_SWITCH=0): fly on the injected GPS instance while injecting, so a
+        receiver that comes back wrong is not used; without that setup the injection alone is sent."""
+        if vehicle.autopilot != "ardupilot" or (not on and not self._gps_switched):
+            return
+        try:
+            vehicle.use_injected_gps(on)
+            self._gps_switched = on
+        except SkyfixError as exc:
+            log.warning("injected GPS %s: %s", "not made primary" if on else "still primary", exc)
 
     # -- MAVLink supervision ----------------------------------------------------------------------
     def _mavlink_loop(self) -> None:
