@@ -147,3 +147,26 @@ def test_gnss_back_30_m_off_is_not_trusted_and_recovery_goes_on():
     assert t_rth <= 9.0
     assert all(d.mode is Mode.RETURN_HOME for t, d, _ in log if t >= t_rth)  # 12 s of offset GNSS: never normal
     assert role.protocol.active and role.protocol.helpers() == ()  # (no bus here: nobody was assigned)
+
+
+def _estimate(east_m, north_m, t, sources, sigma_m=1.0):
+    from skyfix.fusion.estimate import Estimate
+
+    enu = np.array([east_m, north_m, 10.0])
+    lat, lon, alt = (float(c) for c in FRAME.to_geodetic(*enu))
+    return Estimate("a", t, lat, lon, alt, enu, np.eye(3) * sigma_m**2, np.zeros(3), np.eye(3) * 0.01, sources)
+
+
+@pytest.mark.parametrize("east_m, expected", [(4.0, Mode.LAND), (20.0, Mode.HOLD)])
+def test_a_drone_returning_home_that_loses_its_helper_fix_lands_only_when_over_home(east_m, expected):
+    from skyfix.fusion.health import HealthState, SourceHealth
+
+    role = RequesterRole("a", at(0.0, 0.0, 0.0))
+    ok, lost = SourceHealth(HealthState.OK, "", 0.0), SourceHealth(HealthState.LOST, "no fix", 1.0)
+    role.step(0.0, ok, _estimate(east_m, 0.0, 0.0, ("gnss",)), [])
+    assert role.step(1.0, lost, _estimate(east_m, 0.0, 1.0, ("velocity",)), [])[0].mode is Mode.HOLD
+    helped = _estimate(east_m, 0.0, 2.0, ("relative:h1", "velocity"))
+    assert role.step(2.0, lost, helped, [])[0].mode is Mode.RETURN_HOME
+    # the helpers lose it (the estimate rests on velocity alone): over home it lands, elsewhere it holds
+    decision, _ = role.step(3.0, lost, _estimate(east_m, 0.0, 3.0, ("velocity",)), [])
+    assert decision.mode is expected
