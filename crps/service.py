@@ -58,6 +58,8 @@ class ServiceConfig:
     log_path: Path | None = None
     live: str | None = None
     estimate_hz: float = 10.0
+    inject_hz: float = 5.0  # GPS_INPUT rate, per wall second (ArduPilot calls a GPS unhealthy beyond ~245 ms gaps)
+    lag_s: float = 2.0      # fusion's smoothing window, s of the clock (late camera observations within it count)
     heartbeat_hz: float = 2.0
     inject: bool = False
     safety: object | None = None  # a drivers SafetyGate installed on the vehicle at every (re)connection
@@ -248,7 +250,8 @@ class Service:
                 return
             # the swarm's roster is the fusion's roster of trusted observers
             config = FusionConfig(roster=self.cfg.roster) if self.cfg.roster else None
-            self.node = Node(self.cfg.drone_id, origin, config=config, make_sink=self.outputs.fusion_sink)
+            self.node = Node(self.cfg.drone_id, origin, lag_s=self.cfg.lag_s, config=config,
+                             make_sink=self.outputs.fusion_sink)
             log.info("fusion origin %.7f, %.7f, %.2f m", *origin)
         if state is not None and state.link_ok:
             self.node.add_telemetry(self.cfg.drone_id, state, self.cfg.time_of or (lambda m: m.time_s),
@@ -301,7 +304,8 @@ class Service:
             echo = _reports_injection(vehicle)
             # the message's time stamp is UNIX time (GPS week/ms), whatever the swarm's clock
             injector = vehicle.start_gps_injection(
-                lambda: self.node.fix(self.cfg.drone_id, self.clock(), time_stamp_s=time.time()))
+                lambda: self.node.fix(self.cfg.drone_id, self.clock(), time_stamp_s=time.time()),
+                rate_hz=self.cfg.inject_hz)
         except SkyfixError as exc:
             log.error("cannot inject the fused position: %s", exc)
             return
