@@ -17,6 +17,7 @@ import logging
 import math
 import queue
 import threading
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -37,6 +38,7 @@ from skyfix.types import GeoFix, RelativeObservation
 log = logging.getLogger(__name__)
 
 OBS_QUEUE = 64
+FRAMES_KEPT = 10_000  # the newest frames' outcomes (a service runs for hours)
 
 
 @dataclass(frozen=True)
@@ -82,7 +84,7 @@ class HelperEye:
         self.on_frame = on_frame
         self.cfg = cfg or EyeConfig()
         self.model = DroneModel(arms=self.cfg.target_arms, span_m=self.cfg.target_span_m)
-        self.frames: list[tuple[float, str, bool]] = []  # (t_s, target id, detected) per processed frame
+        self.frames: deque[tuple[float, str, bool]] = deque(maxlen=FRAMES_KEPT)  # (t_s, target, detected)
         self.observations: queue.Queue[RelativeObservation] = queue.Queue(OBS_QUEUE)
         self._target: tuple[str, GeoFix] | None = None
         self._lock = threading.Lock()
