@@ -100,6 +100,7 @@ def run_range(args: argparse.Namespace) -> int:
     import cv2
     import numpy as np
 
+    from skyfix import validate
     from skyfix.crps import (
         DroneModel,
         MarkerDetector,
@@ -110,14 +111,19 @@ def run_range(args: argparse.Namespace) -> int:
         observe,
         shape_consistent,
     )
+    from skyfix.errors import InputError
     from skyfix.geo import LocalFrame
     from skyfix.imagefile import read_image
 
+    size_m = validate.positive_scalar("--size-m", args.size_m)
+    validate.positive_scalar("--psf-sigma-px", args.psf_sigma_px)
+    if validate.finite_scalar("--attitude-sigma-deg", args.attitude_sigma_deg) < 0:
+        raise InputError(f"--attitude-sigma-deg must be >= 0, got {args.attitude_sigma_deg}")
     image = read_image(args.image)  # a truncated JPEG/PNG is refused, not measured
     h, w = image.shape[:2]
     camera = _camera(args.camera, w, h)
     pose, has_pose = _pose(args.pose)
-    model = DroneModel(arms=args.arms, span_m=args.size_m) if args.arms != 6 else DroneModel.hex(args.size_m)
+    model = DroneModel(arms=args.arms, span_m=size_m) if args.arms != 6 else DroneModel.hex(size_m)
     if args.marker:
         detections = MarkerDetector(camera, args.marker)(image)
     else:

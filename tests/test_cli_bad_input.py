@@ -173,8 +173,8 @@ CASES = [
      ["truncated.jpg"]),
     ("crps range", lambda f, fl, _: ["crps", "range", str(f["fake.jpg"]), "--camera", "80", "--size-m", "0.5"],
      ["fake.jpg"]),
-    _owner(("crps range", lambda f, fl, _: ["crps", "range", str(f["ok.png"]), "--camera", "80", "--size-m", "-1"],
-            ["--size-m"]), "crps engineer", "the error names DroneModel.span_m, not --size-m (issue 20 item 4)"),
+    ("crps range", lambda f, fl, _: ["crps", "range", str(f["ok.png"]), "--camera", "80", "--size-m", "-1"],
+     ["--size-m"]),
     # mapping
     ("lens correct", lambda f, fl, _: ["lens", "correct", str(f["missing"]), str(f["dir"] / "lc"), "--barrel",
                                         "0.1 -0.32 0"], ["missing_input"]),
