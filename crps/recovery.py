@@ -174,11 +174,14 @@ class _Run:
         # the simulator's index of each drone (None: the external autopilot)
         self.sim_index = [None if self.external and k == LOST else k - (self.external and k > LOST)
                           for k in range(len(IDS))]
-        home, spacing = None, SPACING_M
+        home, spacing, geoid_m = None, SPACING_M, None
         if self.external:
             home, spacing = _west_of(cfg), 2.0 * SPACING_M  # the helpers either side of the external drone
+            # ArduPilot SITL's GPS reports alt_ellipsoid = AMSL (its world has no geoid): the helpers' world takes
+            # the same convention, else the lost drone's reported heights sit N (tens of metres) off the helpers'
+            geoid_m = 0.0
         self.sim = Simulator(SimulatorConfig(vehicles=len(IDS) - self.external, speed=cfg.speed, seed=cfg.seed,
-                                             spacing_m=spacing, home=home, wind=_wind(cfg, self.rng),
+                                             spacing_m=spacing, home=home, geoid_m=geoid_m, wind=_wind(cfg, self.rng),
                                              params={"GPS_AUTO_SWITCH": 0})).start()  # GPS_PRIMARY picks
         _apply_gnss_model(self.sim, cfg.gnss)
         self.sitl_truth = None
