@@ -331,12 +331,14 @@ class SitlTruth:
     estimate. Connect the vehicle with ``stream_rates_hz={"SIM_STATE": ...}``.
 
     ``home_alt_amsl_m``: the instance's home height (``SitlFleet.homes``), for ``alt_rel_m``.
-    ``geoid_m``: the undulation N to turn SIM_STATE's AMSL height into ellipsoidal height
-    (pass the Simulator's ``geoid_m`` when the drone shares its world); EGM96 at the
-    position when None. ``speedup``: the firmware's, to move a message on by its age.
+    ``geoid_m``: the undulation N that turns SIM_STATE's AMSL height into ellipsoidal height.
+    0 by default: SITL's world has no geoid (its simulated receiver reports ``alt_ellipsoid``
+    equal to ``alt``, see the recorded fixture), so this is the height the firmware's own GNSS
+    gives skyfix; a Simulator sharing the world must use the same (``geoid_m=0``). None: EGM96
+    at the position (the real world's N, which SITL's receiver does not apply). ``speedup``: the firmware's, to move a message on by its age.
     """
 
-    def __init__(self, vehicle, home_alt_amsl_m: float, *, geoid_m: float | None = None,
+    def __init__(self, vehicle, home_alt_amsl_m: float, *, geoid_m: float | None = 0.0,
                  speedup: float = 1.0) -> None:
         self.speedup = validate.positive_scalar("speedup", speedup)
         self.home_alt_amsl_m = validate.finite_scalar("home_alt_amsl_m", home_alt_amsl_m)
@@ -346,7 +348,7 @@ class SitlTruth:
         vehicle.link.taps.append(self._tap)
 
     @classmethod
-    def connect(cls, url: str, home_alt_amsl_m: float, *, geoid_m: float | None = None,
+    def connect(cls, url: str, home_alt_amsl_m: float, *, geoid_m: float | None = 0.0,
                 speedup: float = 1.0, rate_hz: float = 10.0) -> SitlTruth:
         """A truth tap with its own connection (e.g. ``SitlInstance.url_secondary``, next to
         the link that flies the drone), SIM_STATE at ``rate_hz`` of simulated time, GCS
