@@ -179,7 +179,10 @@ def main() -> int:
         full_res = abs(ds.res[0] * 100 - report["gsd_cm"]) < 0.05
     valid = report.get("dsm_valid_share") or 0.0
     dense, sparse = report.get("dense_points", 0), report["points"]
-    print(f"DSM: {100 * valid:.1f} % of the surveyed cells measured by dense matching, cell "
+    interpolated = report.get("dsm_interpolated_share", 0.0)
+    print(f"DSM: {100 * valid:.1f} % of the surveyed cells measured by dense matching (counted for the goal), "
+          f"{100 * interpolated:.1f} % more interpolated in enclosed holes of at most 4 m2 (dsm_interpolated.tif, "
+          "not counted), cell "
           f"{report['dsm_resolution_m']:.2f} m; dense points {dense} from {report.get('dense_pairs', 0)} pairs "
           f"(sparse {sparse}); orthophoto COG {cog}, at the GSD {full_res}")
     print(report["flying_height"].get("line", "no flying height check"))
@@ -209,7 +212,8 @@ def main() -> int:
     for name, ok in checks.items():
         print(f"  {'met    ' if ok else 'NOT MET'}  {name}")
     stages = " ".join(f"{k} {v:.0f}" for k, v in report["stage_seconds"].items())
-    print(f"mapping: {registered}/{n_photos} registered, DSM valid {100 * valid:.1f} %, {dense} dense points, "
+    print(f"mapping: {registered}/{n_photos} registered, DSM measured {100 * valid:.1f} % (+{100 * interpolated:.1f} % "
+          f"interpolated, marked), {dense} dense points, "
           f"georef RMS {rms:.2f} m, {total_s:.0f} s end to end ({total_s / BEFORE_ISSUE_19_S:.2f}x before; "
           f"load {load_start:.1f}-{load_end:.1f}; s per stage: {stages}), {peak_mib:.0f} MiB peak")
     return 0 if all(checks.values()) else 1

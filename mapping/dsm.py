@@ -19,7 +19,7 @@ from skyfix import validate
 from skyfix.errors import DataError
 from skyfix.mapping.grid import Grid
 
-__all__ = ["Dsm", "auto_dsm_resolution_m", "build_dsm", "cell_median"]
+__all__ = ["Dsm", "auto_dsm_resolution_m", "build_dsm", "cell_median", "enclosed_holes"]
 
 
 @dataclass(frozen=True)
@@ -92,3 +92,20 @@ def build_dsm(points_utm_m: np.ndarray, grid: Grid, spike_m: float = 5.0) -> Dsm
     hull = np.where(observed, surface, linear)
     filled = np.where(np.isfinite(hull), hull, nearest)
     return Dsm(grid, hull.astype(np.float32), filled.astype(np.float32), observed)
+
+
+def enclosed_holes(observed: np.ndarray, max_cells: int) -> np.ndarray:
+    """(H, W) bool: the unmeasured cells of holes that measured cells enclose on every side
+    (4-connected, not touching the grid's edge) and that hold at most ``max_cells`` cells:
+    the holes small enough to interpolate honestly; larger or open ones stay empty."""
+    import cv2
+
+    holes = (~np.asarray(observed, bool)).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(holes, connectivity=4)
+    h, w = holes.shape
+    x, y, bw, bh, area = (stats[:, i] for i in range(5))
+    inside = (x > 0) & (y > 0) & (x + bw < w) & (y + bh < h)
+    keep = inside & (area <= max_cells)
+    keep[0] = False  # label 0: the measured cells
+    return keep[labels] & holes.astype(bool)
+

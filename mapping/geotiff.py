@@ -51,6 +51,13 @@ def write_dsm_tif(path: str | os.PathLike, surface_m: np.ndarray, grid: Grid, no
                {"units": "metre", "vertical_datum": "as recorded by the photos' GPS (usually AMSL)"})
 
 
+def write_mask_tif(path: str | os.PathLike, mask: np.ndarray, grid: Grid, description: str) -> None:
+    """A uint8 0/1 band on ``grid`` (e.g. the DSM cells that are interpolated) as a COG."""
+    _write_cog(path, np.asarray(mask, np.uint8)[None], {"width": grid.width, "height": grid.height, "count": 1,
+                                                        "dtype": "uint8", "crs": f"EPSG:{grid.epsg}",
+                                                        "transform": grid.affine()}, {"meaning": description})
+
+
 def write_preview_png(path: str | os.PathLike, rgba: np.ndarray, max_side_px: int = 2000) -> None:
     """Downscaled RGBA PNG (transparent where there is no data)."""
     import cv2

@@ -44,6 +44,10 @@ def _map(args: argparse.Namespace) -> int:
                   f"camera-to-GPS RMS {lag['rms_without_m']:.2f} m without, {lag['rms_with_m']:.2f} m with it\n")
     if report.flying_height:
         out.write(report.flying_height["line"] + "\n")
+    if report.dense_points:
+        out.write(f"DSM: {100 * report.dsm_valid_share:.1f} % of the area two photos see measured by dense matching, "
+                  f"{100 * report.dsm_interpolated_share:.1f} % interpolated in small enclosed holes "
+                  "(dsm_interpolated.tif marks them)\n")
     for warning in report.warnings:
         out.write(f"warning: {warning}\n")
     for name, path in report.outputs.items():

@@ -70,6 +70,7 @@ class PipelineConfig:
     dense_scale: float = 0.5              # photos are matched at this fraction of their size
     dense_cell_px: float = 2.0            # DSM cell = this many matched pixels on the ground
     max_dense_points: int = 5_000_000     # points.ply holds at most this many dense points (stated in the report)
+    dsm_fill_max_m2: float = 4.0          # dense DSM: enclosed holes up to this area interpolated, in dsm_interpolated.tif
     threads: int = -1                     # -1: all cores
     force: tuple[str, ...] = ()           # stages to re-run even when their outputs exist
 

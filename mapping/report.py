@@ -55,6 +55,7 @@ class Report:
     flying_height: dict = field(default_factory=dict)
     gps_lag: dict = field(default_factory=dict)
     dsm_valid_share: float = math.nan
+    dsm_interpolated_share: float = 0.0
     dense_points: int = 0
     dense_pairs: int = 0
     stage_seconds: dict[str, float] = field(default_factory=dict)

@@ -29,8 +29,8 @@ def points(models: list, max_error_px: float = 2.0, min_track: int = 3) -> tuple
 
 
 def dsm_run(config, project, state, report) -> dict:
-    from skyfix.mapping.dsm import auto_dsm_resolution_m, build_dsm
-    from skyfix.mapping.geotiff import write_dsm_tif
+    from skyfix.mapping.dsm import auto_dsm_resolution_m, build_dsm, enclosed_holes
+    from skyfix.mapping.geotiff import write_dsm_tif, write_mask_tif
     from skyfix.mapping.grid import Grid, enu_to_utm, utm_epsg
 
     if not state["referenced"]:
@@ -52,13 +52,19 @@ def dsm_run(config, project, state, report) -> dict:
         res_m = config.dsm_resolution_m or auto_dsm_resolution_m(utm)
         grid = Grid.covering(epsg, lo[0], lo[1], hi[0], hi[1], res_m)
         dsm = build_dsm(utm, grid)
-    write_dsm_tif(project.root / "dsm.tif", dsm.surface_m, grid)
+    written, area = dsm.surface_m, extra.pop("stereo_area", None)
+    if config.dense:  # small enclosed holes interpolated in the file, and marked
+        holes = enclosed_holes(dsm.observed, int(config.dsm_fill_max_m2 / grid.resolution_m ** 2))
+        written = np.where(holes, dsm.filled_m, dsm.surface_m)
+        write_mask_tif(project.root / "dsm_interpolated.tif", holes, grid,
+                       f"1: height interpolated in an enclosed hole of at most {config.dsm_fill_max_m2:g} m2")
+        extra["interpolated_share"] = valid_share(holes, area)
+    write_dsm_tif(project.root / "dsm.tif", written, grid)
     np.save(project.work / "dsm_filled.npy", dsm.filled_m)
     np.save(project.work / "dsm_surface.npy", dsm.surface_m)
     from skyfix.mapping.height_check import flying_height
 
     check = flying_height(state["referenced"], state["photos"], frame, dsm)
-    area = extra.pop("stereo_area", None)
     data = {"grid": grid.to_dict(), "points": len(xyz), "flying_height": check.to_dict(),
             "flying_height_suspicious": check.suspicious(), "valid_share": valid_share(dsm.observed, area), **extra}
     dsm_load(config, project, state, report, data)
@@ -99,7 +105,7 @@ def _dense(config, project, state, sparse_enu: np.ndarray, epsg: int) -> tuple:
                            scale=config.dense_scale, max_points=config.max_dense_points, seed=config.seed)
     np.savez(project.work / "dense_points.npz", xyz=cloud.xyz_utm_m, rgb=cloud.rgb)
     area = stereo_area(views, grid, to_utm, float(np.median(sparse_enu[:, 2])))
-    return dsm, {"stereo_area": area, "valid_area": "cells inside the footprints of two or more photos","dense_points": len(cloud.xyz_utm_m), "dense_pairs": cloud.pairs, "dense_scale": cloud.scale,
+    return dsm, {"stereo_area": area, "valid_area": "cells inside the footprints of two or more photos", "dense_points": len(cloud.xyz_utm_m), "dense_pairs": cloud.pairs, "dense_scale": cloud.scale,
                  "enu_to_utm_max_residual_m": to_utm.max_residual_m}
 
 
@@ -117,6 +123,9 @@ def dsm_load(config, project, state, report, marker) -> None:
     report.dsm_resolution_m = grid.resolution_m
     report.flying_height = marker.get("flying_height", {})
     report.dsm_valid_share = marker.get("valid_share", math.nan)
+    report.dsm_interpolated_share = marker.get("interpolated_share", 0.0)
+    if marker.get("interpolated_share"):
+        report.outputs["dsm_interpolated"] = str(project.root / "dsm_interpolated.tif")
     report.dense_points = marker.get("dense_points", 0)
     report.dense_pairs = marker.get("dense_pairs", 0)
     if marker.get("flying_height_suspicious"):

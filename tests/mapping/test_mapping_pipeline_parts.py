@@ -122,3 +122,17 @@ def test_map_command_help(capsys):
     assert exc.value.code == 0
     out = capsys.readouterr().out
     assert "--resolution-cm" in out and "--barrel" in out and "--calibration" in out and "resumes" in out
+
+
+def test_enclosed_holes_only_small_ones_inside_measured_cells():
+    from skyfix.mapping.dsm import enclosed_holes
+
+    observed = np.ones((30, 30), bool)
+    observed[5:7, 5:7] = False      # 4 cells, enclosed: interpolated
+    observed[12:18, 12:18] = False  # 36 cells, enclosed but larger than the limit
+    observed[0:3, 20:23] = False    # touches the grid's edge: open, never filled
+    observed[25, 3] = observed[26, 4] = False  # diagonal neighbours: two separate 1-cell holes
+    holes = enclosed_holes(observed, max_cells=16)
+    assert holes[5:7, 5:7].all() and holes[25, 3] and holes[26, 4]
+    assert not holes[12:18, 12:18].any() and not holes[0:3, 20:23].any()
+    assert holes.sum() == 6 and not (holes & observed).any()
