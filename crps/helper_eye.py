@@ -91,6 +91,7 @@ class HelperEye:
         self._detector = _GatedDetector()
         self._tracker: Tracker | None = None
         self._tracker_camera: Camera | None = None
+        self._fresh = False
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True, name=f"skyfix-eye-{drone_id}")
         if run:
@@ -106,7 +107,7 @@ class HelperEye:
             changed = self._target is None or target_id is None or self._target[0] != target_id
             self._target = None if target_id is None or prior is None else (str(target_id), prior)
         if changed:
-            self._tracker = None  # a new target: search afresh
+            self._fresh = True  # a new target: the worker starts a new track at its next frame
 
     def take(self) -> list[RelativeObservation]:
         """The observations made since the last call."""
@@ -170,8 +171,10 @@ class HelperEye:
         if _elevation_deg(own, prior) < self.cfg.min_elevation_deg:
             return None  # the target against the ground: clutter a single silhouette cannot be told from
         camera = frame.camera
-        if self._tracker is None or self._tracker_camera is not camera:
-            self._tracker = Tracker(self._detector, fit=SilhouetteFit(camera, self.model))
+        tracker = self._tracker  # only this (worker) thread replaces it
+        if tracker is None or self._fresh or self._tracker_camera is not camera:
+            self._fresh = False
+            tracker = self._tracker = Tracker(self._detector, fit=SilhouetteFit(camera, self.model))
             self._tracker_camera = camera
         floor = np.eye(3) * self.cfg.prior_sigma_m ** 2
         widened = GeoFix(prior.lat_deg, prior.lon_deg, prior.alt_m, prior.cov_enu_m2 + floor,
@@ -181,12 +184,12 @@ class HelperEye:
                                                  helper_cov_enu_m2=own.cov_enu_m2)
         except SkyfixError:  # the prior is behind the camera: nothing to look for in this frame
             return None
-        det = self._tracker.update(frame.image, frame.t_s, pose)
-        if det is None and self._tracker.tracking:
+        det = tracker.update(frame.image, frame.t_s, pose)
+        if det is None and tracker.tracking:
             # the gimbal turned between frames and the target jumped out of the tracker's gate: the prior
             # (a world position, not a pixel) still places it, so search its window afresh
-            self._tracker.reset()
-            det = self._tracker.update(frame.image, frame.t_s, pose)
+            tracker.reset()
+            det = tracker.update(frame.image, frame.t_s, pose)
         if det is None or not shape_consistent(camera, pose, det, self.model):
             return None
         obs = observe(camera, pose, det, self.cfg.target_span_m, model=self.model, observer_id=self.drone_id,
