@@ -24,6 +24,9 @@ HOME = (46.52, 6.63, 372.0, 0.0)  # the SITL drone's home: lat, lon (deg), alt A
 SPEED = 2.0
 
 
+@pytest.mark.xfail(strict=True, reason="issue 18 open: the helpers aim at the SITL drone (in view in 45 of 47 frames) "
+                   "but detect it in none, so no fused fix and it lands ~90 m away; the autopilot side alone "
+                   "passes (tests/drivers/test_drivers_sitl_lost.py)")
 def test_sitl_lost_drone_returns_home_on_the_helpers_cameras():
     from skyfix.crps.recovery import RecoveryConfig, run_recovery
     from skyfix.drivers.injection import ARDUPILOT_INJECTED_GPS2_PARAMS
