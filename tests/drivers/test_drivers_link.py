@@ -37,7 +37,12 @@ def test_heartbeat_loss_is_surfaced_and_link_recovers():
             t_pos = v.state.position.time_s
             st = v.wait_until(lambda s: s.position is not None and s.position.time_s > t_pos, 3.0)
             assert st.mode == "STABILIZE"
-            # the rates we asked for were re-requested from the new autopilot (10 Hz position)
+            # the rates we asked for are re-requested from the new autopilot (10 Hz position); the
+            # re-request goes out when the link is restored and may land after the first position
+            deadline = time.monotonic() + 3.0
+            while sim2.servers[0].intervals_s.get("GLOBAL_POSITION_INT") != pytest.approx(0.1) \
+                    and time.monotonic() < deadline:
+                time.sleep(0.05)
             assert sim2.servers[0].intervals_s["GLOBAL_POSITION_INT"] == pytest.approx(0.1)
         finally:
             sim2.stop()
