@@ -67,6 +67,9 @@ class Vehicle:
         self._hb_mono = time.monotonic()
         self._position_mono = -math.inf  # last GLOBAL_POSITION_INT received
         self._streams_mono = -math.inf  # last time the streams were requested
+        # the reader thread re-requests streams on the first heartbeat while connect() asks for
+        # the caller's rates: serialised, the last request sent always carries the latest rates
+        self._streams_lock = threading.Lock()
         self._subs: list[_Subscription] = []
         self.statustexts: deque[tuple[float, int, str]] = deque(maxlen=200)
         self._chunks: dict[int, list[str]] = {}
@@ -142,14 +145,15 @@ class Vehicle:
     def request_streams(self) -> None:
         """Ask for each telemetry message at ``stream_rates_hz`` (fire and forget; asked again
         when positions stop while heartbeats go on, e.g. after the autopilot rebooted)."""
-        self._streams_mono = time.monotonic()
-        for name, rate in list(self.stream_rates_hz.items()):  # connect() may add rates meanwhile
-            msg_id = getattr(M, f"MAVLINK_MSG_ID_{name}", None)
-            if msg_id is None:
-                continue
-            interval_us = 1e6 / rate if rate > 0 else -1
-            self._send_command_long(M.MAV_CMD_SET_MESSAGE_INTERVAL, [msg_id, interval_us], 0)
-        self._send_command_long(M.MAV_CMD_REQUEST_MESSAGE, [M.MAVLINK_MSG_ID_HOME_POSITION], 0)
+        with self._streams_lock:
+            self._streams_mono = time.monotonic()
+            for name, rate in list(self.stream_rates_hz.items()):
+                msg_id = getattr(M, f"MAVLINK_MSG_ID_{name}", None)
+                if msg_id is None:
+                    continue
+                interval_us = 1e6 / rate if rate > 0 else -1
+                self._send_command_long(M.MAV_CMD_SET_MESSAGE_INTERVAL, [msg_id, interval_us], 0)
+            self._send_command_long(M.MAV_CMD_REQUEST_MESSAGE, [M.MAVLINK_MSG_ID_HOME_POSITION], 0)
 
     # ------------------------------------------------------------------ state
     @property
