@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from skyfix import validate
+from skyfix.datasets.gauss_markov import gauss_markov
 from skyfix.datasets.observations import noisy_relative
 from skyfix.errors import InputError
 from skyfix.geo import LocalFrame
@@ -386,20 +387,6 @@ def _times(duration_s: float, rate_hz: float, phase_s: float) -> np.ndarray:
 def _late(rng: np.random.Generator, n: int, frac: float, lo: float, hi: float) -> np.ndarray:
     late = rng.random(n) < frac
     return np.where(late, rng.uniform(lo, hi, n), 0.0)
-
-
-def gauss_markov(rng: np.random.Generator, t_s: np.ndarray, sigma: np.ndarray, tau_s: float) -> np.ndarray:
-    """First-order Gauss-Markov samples (N, len(sigma)) at increasing times ``t_s`` (N,):
-    stationary 1-sigma ``sigma`` per axis, correlation time ``tau_s`` (exact discretisation)."""
-    sigma = np.asarray(sigma, float)
-    out = np.empty((t_s.size, sigma.size))
-    x = rng.normal(0.0, 1.0, sigma.size) * sigma
-    phi = np.exp(-np.diff(t_s, prepend=t_s[:1]) / tau_s)
-    w = rng.normal(0.0, 1.0, out.shape)
-    for n in range(t_s.size):
-        x = phi[n] * x + np.sqrt(1.0 - phi[n] ** 2) * sigma * w[n]
-        out[n] = x
-    return out
 
 
 def _random_walk(rng: np.random.Generator, n: int, dt_s: float, sigma0: np.ndarray,

@@ -12,7 +12,8 @@ and where it looked by:
   thermal sensor's optical axis (mounting, 0.5-1.2 degrees);
 - a time offset between the camera's frame stamps and the pose log's clock.
 
-:func:`gauss_markov` is the exact discretisation of the process, at arbitrary times.
+:func:`~skyfix.datasets.gauss_markov.gauss_markov` is the exact discretisation of the
+process, at arbitrary times.
 """
 
 from __future__ import annotations
@@ -22,31 +23,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from skyfix import validate
-from skyfix.errors import InputError
+from skyfix.datasets.gauss_markov import gauss_markov
 from skyfix.geo import LocalFrame
 from skyfix.thermal.poselog import PoseLog
-
-
-def gauss_markov(rng: np.random.Generator, time_s, sigma, tau_s: float) -> np.ndarray:
-    """Stationary first-order Gauss-Markov samples ``(M, D)`` at increasing ``time_s``
-    ``(M,)``: standard deviation ``sigma`` ``(D,)`` (any unit), correlation time ``tau_s``;
-    exact for any spacing (x_k = phi x_{k-1} + sqrt(1 - phi^2) sigma w, phi = exp(-dt/tau))."""
-    t = validate.finite_array("time_s", time_s).reshape(-1)
-    sig = np.atleast_1d(validate.finite_array("sigma", sigma)).astype(float)
-    tau = validate.positive_scalar("tau_s", tau_s)
-    if np.any(np.diff(t) < 0):
-        raise InputError("gauss_markov: time_s must be non-decreasing")
-    w = rng.standard_normal((t.size, sig.size))
-    out = np.empty((t.size, sig.size))
-    if t.size == 0:
-        return out
-    out[0] = sig * w[0]
-    phi = np.exp(-np.diff(t) / tau)
-    gain = np.sqrt(1.0 - phi * phi)
-    for k in range(1, t.size):
-        out[k] = phi[k - 1] * out[k - 1] + gain[k - 1] * sig * w[k]
-    return out
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from skyfix import validate
+from skyfix.datasets.gauss_markov import gauss_markov_step
 from skyfix.errors import InputError
 
 FAULT_KINDS = ("loss", "degraded", "jump", "spoof")
@@ -80,8 +81,7 @@ class GpsReceiver:
         self._bias = np.zeros(3)
 
     def step(self, dt_s: float) -> None:
-        phi = math.exp(-dt_s / self.bias_tau_s)
-        self._bias = phi * self._bias + self.bias_sigma_m * math.sqrt(1 - phi * phi) * self._rng.standard_normal(3)
+        self._bias = gauss_markov_step(self._rng, self._bias, dt_s, self.bias_sigma_m, self.bias_tau_s)
 
     def read(self, t_s: float, true_pos_enu_m: np.ndarray, true_vel_enu_mps: np.ndarray) -> GpsReading:
         """The fix at simulation time ``t_s`` for the vehicle's true state."""

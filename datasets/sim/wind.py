@@ -8,6 +8,7 @@ import numpy as np
 from scipy.interpolate import RegularGridInterpolator
 
 from skyfix import validate
+from skyfix.datasets.gauss_markov import gauss_markov_step
 from skyfix.errors import InputError
 
 
@@ -16,7 +17,8 @@ class WindField:
     """Wind velocity (air moving towards) in world ENU axes, m/s.
 
     ``mean_enu_mps`` (3,) constant part; ``gust_sigma_mps`` standard deviation of a
-    first-order Gauss-Markov gust per axis with correlation time ``gust_tau_s``;
+    first-order Gauss-Markov gust per horizontal axis (0.3 of it vertically) with
+    correlation time ``gust_tau_s``;
     ``grid`` an optional spatial map ``(east_m (Nx,), north_m (Ny,), wind_en_mps (Ny, Nx, 2))``
     added to the mean, bilinear inside the grid and clamped to its edge outside.
     """
@@ -55,10 +57,12 @@ class WindField:
         """Advance the gust process by ``dt_s`` seconds (exact discretisation)."""
         if self.gust_sigma_mps <= 0.0:
             return
-        phi = np.exp(-dt_s / self.gust_tau_s)
-        self._gust = phi * self._gust + self.gust_sigma_mps * np.sqrt(1.0 - phi * phi) \
-            * self._rng.standard_normal(3)
-        self._gust[2] *= 0.3  # vertical gusts are weaker near the ground
+        self._gust = gauss_markov_step(self._rng, self._gust, dt_s, self._gust_sigma_enu_mps(), self.gust_tau_s)
+
+    def _gust_sigma_enu_mps(self) -> np.ndarray:
+        # vertical gusts are weaker near the ground: 0.3 of the horizontal sigma (until issue 22
+        # the vertical state was scaled by 0.3 every step, which made it near-white and ~0.03 sigma)
+        return self.gust_sigma_mps * np.array([1.0, 1.0, 0.3])
 
     def at(self, pos_enu_m: np.ndarray) -> np.ndarray:
         """Wind (3,) m/s at a world ENU position (3,)."""

@@ -158,6 +158,10 @@ def test_wind_gusts_statistics():
     s = np.array(samples)
     # stationary Gauss-Markov: mean = constant part, std = sigma (1000 s = 500 correlation times)
     assert s[:, 0].mean() == pytest.approx(1.0, abs=0.25) and s[:, 0].std() == pytest.approx(1.5, rel=0.15)
+    assert s[:, 2].std() == pytest.approx(0.3 * 1.5, rel=0.15)  # vertical: 0.3 of the horizontal sigma
+    lag = 40  # 2 s = tau: autocorrelation exp(-1); ~500 correlation times -> standard error ~0.05
+    z = s[:, 2] - s[:, 2].mean()
+    assert np.mean(z[:-lag] * z[lag:]) / np.mean(z * z) == pytest.approx(np.exp(-1.0), abs=0.15)
     grid = (np.array([0.0, 100.0]), np.array([0.0, 100.0]), np.array([[[0, 0], [4, 0]], [[0, 4], [4, 4]]], float))
     wg = WindField(grid=grid)
     assert wg.at(np.array([50.0, 50.0, 0.0]))[:2] == pytest.approx([2.0, 2.0])
