@@ -17,6 +17,7 @@ import logging
 import math
 import queue
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -85,6 +86,8 @@ class HelperEye:
         self.cfg = cfg or EyeConfig()
         self.model = DroneModel(arms=self.cfg.target_arms, span_m=self.cfg.target_span_m)
         self.frames: deque[tuple[float, str, bool]] = deque(maxlen=FRAMES_KEPT)  # (t_s, target, detected)
+        self.frames_dropped = 0  # frame slots skipped while a frame was being processed (while helping)
+        self.latency_s: deque[float] = deque(maxlen=FRAMES_KEPT)  # exposure -> observation queued, clock s
         self.observations: queue.Queue[RelativeObservation] = queue.Queue(OBS_QUEUE)
         self._target: tuple[str, GeoFix] | None = None
         self._lock = threading.Lock()
@@ -127,31 +130,47 @@ class HelperEye:
     def _run(self) -> None:
         # the fit's shape table takes seconds to build: before the first frame, not while the target waits
         shape_table(self.model.scaled_to(1.0))
-        wall_period_s = 1.0 / (self.cfg.frame_hz * self.cfg.speed)
-        while not self._stop.wait(wall_period_s):
+        period_wall_s = 1.0 / (self.cfg.frame_hz * self.cfg.speed)
+        due_wall_s = time.monotonic()
+        while not self._stop.is_set():
+            behind_s = time.monotonic() - due_wall_s
+            if behind_s < 0.0:
+                if self._stop.wait(-behind_s):
+                    return
+                behind_s = 0.0
+            # a fixed frame rate: slots that passed while the last frame was processed are skipped, never
+            # queued, so the next frame processed is the newest one (the pipeline never falls behind)
+            missed = int(behind_s // period_wall_s)
+            due_wall_s += (missed + 1) * period_wall_s
             with self._lock:
                 target = self._target
             if target is None:
                 continue
+            self.frames_dropped += missed
+            self._process(target)
+
+    def _process(self, target: tuple[str, GeoFix]) -> None:
+        """Grab the newest frame, observe the target in it, queue the observation."""
+        try:
+            frame = self.camera()
+            if frame is None:
+                return
+            obs = self.observe_frame(frame, *target)
+            self.frames.append((frame.t_s, target[0], obs is not None))
+            if self.on_frame is not None:
+                self.on_frame(frame, target[0], obs is not None)
+            if obs is None:
+                return
+            self.latency_s.append(self.clock() - frame.t_s)
             try:
-                frame = self.camera()
-                if frame is None:
-                    continue
-                obs = self.observe_frame(frame, *target)
-                self.frames.append((frame.t_s, target[0], obs is not None))
-                if self.on_frame is not None:
-                    self.on_frame(frame, target[0], obs is not None)
-                if obs is None:
-                    continue
-                try:
-                    self.observations.put_nowait(obs)
-                except queue.Full:  # the main loop stalled: the oldest observation is worth least
-                    self.observations.get_nowait()
-                    self.observations.put_nowait(obs)
-            except SkyfixError as exc:  # an unusable frame or pose: logged, the next frame is tried
-                log.warning("helper %s camera: %s", self.drone_id, exc)
-            except Exception:  # noqa: BLE001 - a camera thread must outlive a bug in one frame
-                log.exception("helper %s camera frame failed", self.drone_id)
+                self.observations.put_nowait(obs)
+            except queue.Full:  # the main loop stalled: the oldest observation is worth least
+                self.observations.get_nowait()
+                self.observations.put_nowait(obs)
+        except SkyfixError as exc:  # an unusable frame or pose: logged, the next frame is tried
+            log.warning("helper %s camera: %s", self.drone_id, exc)
+        except Exception:  # noqa: BLE001 - a camera thread must outlive a bug in one frame
+            log.exception("helper %s camera frame failed", self.drone_id)
 
     def _pose(self, frame) -> tuple[CameraPose, GeoFix] | None:
         own = self.own_fix(frame.t_s)
