@@ -313,8 +313,7 @@ def render_drone_view(camera: Camera, helper_pose: CameraPose, target: TargetPos
     """
     if model is None and plate is None:
         raise InputError("render_drone_view needs a model, a plate or both")
-    if not isinstance(supersample, int) or supersample < 1:
-        raise InputError(f"supersample must be an integer >= 1, got {supersample!r}")
+    supersample = validate.integer_in("supersample", supersample, 1)
     frac = validate.finite_scalar("occlusion_fraction", occlusion_fraction)
     if not 0.0 <= frac < 1.0:
         raise InputError(f"occlusion_fraction must be in [0, 1), got {frac}")
@@ -368,8 +367,7 @@ def render_drones(image: np.ndarray, camera: Camera, helper_pose: CameraPose, ta
     (vectors in ENU at the helper camera), None for a target behind the camera, outside
     the field of view or within its own radius of the lens.
     """
-    if not isinstance(supersample, int) or supersample < 1:
-        raise InputError(f"supersample must be an integer >= 1, got {supersample!r}")
+    supersample = validate.integer_in("supersample", supersample, 1)
     if image.shape != (camera.height, camera.width):
         raise InputError(f"image must be ({camera.height}, {camera.width}), got {image.shape}")
     rng = rng if rng is not None else np.random.default_rng()

@@ -142,12 +142,10 @@ def render_ground(texture: GroundTexture, camera: Camera, pose: CameraPose, *,
     ``motion_blur_angle_deg``, 0 = +u, clockwise in the image), ``noise_sigma`` (additive
     Gaussian in image units, from ``rng``).
     """
-    if not isinstance(supersample, int) or supersample < 1:
-        raise InputError(f"supersample must be an integer >= 1, got {supersample!r}")
+    supersample = validate.integer_in("supersample", supersample, 1)
     for name, value in (("blur_sigma_px", blur_sigma_px), ("motion_blur_px", motion_blur_px),
                         ("vignetting", vignetting), ("noise_sigma", noise_sigma)):
-        if validate.finite_scalar(name, value) < 0:
-            raise InputError(f"{name} must be >= 0, got {value}")
+        validate.nonnegative_scalar(name, value)
     background = validate.finite_scalar("background", background)
     cam_enu, r_frame_from_cam = pose.in_frame(texture.frame)
     if cam_enu[2] <= 0.0:

@@ -53,8 +53,7 @@ class SceneEffects:
             if not 0.0 <= v < 1.0:
                 raise InputError(f"{name} must be in [0, 1), got {v}")
         for name in ("motion_blur_px", "noise_sigma", "blur_sigma_px"):
-            if validate.finite_scalar(name, getattr(self, name)) < 0:
-                raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
+            validate.nonnegative_scalar(name, getattr(self, name))
 
 
 @dataclass(frozen=True)

@@ -71,8 +71,7 @@ class MissionItem:
     @classmethod
     def camera_trigger_distance(cls, distance_m: float) -> MissionItem:
         """Trigger the camera every ``distance_m`` metres from here on (0 stops)."""
-        if validate.finite_scalar("distance_m", distance_m) < 0:
-            raise InputError(f"distance_m must be >= 0, got {distance_m}")
+        validate.nonnegative_scalar("distance_m", distance_m)
         return cls(M.MAV_CMD_DO_SET_CAM_TRIGG_DIST, param1=float(distance_m), param3=1.0,
                    frame=M.MAV_FRAME_MISSION)
 

@@ -672,9 +672,7 @@ class Vehicle:
 
     def set_camera_trigger_distance(self, distance_m: float) -> None:
         """Trigger the camera every ``distance_m`` metres travelled (0 stops)."""
-        d = validate.finite_scalar("distance_m", distance_m)
-        if d < 0:
-            raise InputError(f"distance_m must be >= 0, got {d}")
+        d = validate.nonnegative_scalar("distance_m", distance_m)
         self.command(M.MAV_CMD_DO_SET_CAM_TRIGG_DIST, d, 0, 1)
 
     # ------------------------------------------------------------------ external position

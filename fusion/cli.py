@@ -52,14 +52,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_replay(args: argparse.Namespace) -> int:
+    from skyfix import validate
     from skyfix.errors import InputError
     from skyfix.fusion.plot import plot_replay
     from skyfix.fusion.replay import horizontal_errors_m, replay
 
-    if args.every < 1:
-        raise InputError(f"--every must be >= 1, got {args.every}")
-    if not args.ellipse_every_s > 0:
-        raise InputError(f"--ellipse-every-s must be > 0, got {args.ellipse_every_s}")
+    validate.integer_in("--every", args.every, 1)
+    validate.positive_scalar("--ellipse-every-s", args.ellipse_every_s)
     out = args.out if args.out is not None else args.log.with_name(args.log.stem + "_replay")
     if out.exists() and not out.is_dir():
         raise InputError(f"-o {out}: exists and is not a directory")

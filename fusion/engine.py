@@ -154,8 +154,8 @@ class FusionEngine:
         vel = validate.finite_array("vel_enu_mps", vel_enu_mps)
         if vel.shape != (3,):
             raise InputError(f"vel_enu_mps must have shape (3,), got {vel.shape}")
-        sigma = validate.finite_array("sigma_mps", sigma_mps) * np.ones(3)
-        if sigma.shape != (3,) or (sigma <= 0).any():
+        sigma = validate.positive_array("sigma_mps", sigma_mps) * np.ones(3)
+        if sigma.shape != (3,):
             raise InputError(f"sigma_mps must be > 0 (a scalar or 3 values), got {sigma_mps!r}")
         self._record("velocity", dict(drone_id=drone_id, time_s=t, vel_enu_mps=vel, sigma_mps=sigma))
         drone = self._reporter(drone_id)

@@ -32,6 +32,23 @@ def positive_scalar(name: str, value: Any) -> float:
     return out
 
 
+def nonnegative_scalar(name: str, value: Any) -> float:
+    """Return ``value`` as a float, or raise if it is not finite and >= 0.
+
+    Example:
+        >>> nonnegative_scalar("sigma_m", 0)
+        0.0
+        >>> nonnegative_scalar("sigma_m", -0.5)
+        Traceback (most recent call last):
+        ...
+        skyfix.errors.InputError: sigma_m must be >= 0, got -0.5
+    """
+    out = finite_scalar(name, value)
+    if out < 0.0:
+        raise InputError(f"{name} must be >= 0, got {out}")
+    return out
+
+
 def finite_array(name: str, value: Any) -> np.ndarray:
     """Return ``value`` as a float64 array (a copy when conversion is needed); raise on NaN/inf."""
     try:
@@ -41,6 +58,36 @@ def finite_array(name: str, value: Any) -> np.ndarray:
     if not np.isfinite(arr).all():  # method form: this check runs on every hot path
         bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
         raise InputError(f"{name} contains {bad} NaN or infinite value(s)")
+    return arr
+
+
+def positive_array(name: str, value: Any) -> np.ndarray:
+    """Return ``value`` as a finite float64 array whose every element is > 0.
+
+    Example:
+        >>> positive_array("focal_px", [800.0, 1200.0])
+        array([ 800., 1200.])
+        >>> positive_array("focal_px", [800.0, 0.0, -1.0])
+        Traceback (most recent call last):
+        ...
+        skyfix.errors.InputError: focal_px must be > 0, got [ 0. -1.]
+    """
+    arr = finite_array(name, value)
+    if (arr <= 0.0).any():
+        raise InputError(f"{name} must be > 0, got {arr[arr <= 0.0].ravel()[:3]}")
+    return arr
+
+
+def nonnegative_array(name: str, value: Any) -> np.ndarray:
+    """Return ``value`` as a finite float64 array whose every element is >= 0.
+
+    Example:
+        >>> nonnegative_array("sigma_px", 0.0)
+        array(0.)
+    """
+    arr = finite_array(name, value)
+    if (arr < 0.0).any():
+        raise InputError(f"{name} must be >= 0, got {arr[arr < 0.0].ravel()[:3]}")
     return arr
 
 
@@ -87,8 +134,9 @@ def covariance(name: str, value: Any, dim: int) -> np.ndarray:
     return arr
 
 
-def integer_in(name: str, value: Any, lo: int, hi: int) -> int:
-    """Return ``value`` as an int, or raise if it is not a whole number in ``[lo, hi]``.
+def integer_in(name: str, value: Any, lo: int, hi: int | None = None) -> int:
+    """Return ``value`` as an int, or raise if it is not a whole number in ``[lo, hi]``
+    (``hi`` None: no upper bound). A bool is not a number here.
 
     Example:
         >>> integer_in("fix_type", 3.0, 0, 8)
@@ -97,13 +145,20 @@ def integer_in(name: str, value: Any, lo: int, hi: int) -> int:
         Traceback (most recent call last):
         ...
         skyfix.errors.InputError: fix_type must be an integer in [0, 8], got 2.5
+        >>> integer_in("supersample", 0, 1)
+        Traceback (most recent call last):
+        ...
+        skyfix.errors.InputError: supersample must be an integer >= 1, got 0
     """
+    what = f"an integer >= {lo}" if hi is None else f"an integer in [{lo}, {hi}]"
+    if isinstance(value, (bool, np.bool_)):
+        raise InputError(f"{name} must be {what}, got {value!r}")
     try:
         out = int(value)
     except (TypeError, ValueError, OverflowError):
-        raise InputError(f"{name} must be an integer, got {value!r}") from None
-    if out != value or not lo <= out <= hi:
-        raise InputError(f"{name} must be an integer in [{lo}, {hi}], got {value!r}")
+        raise InputError(f"{name} must be {what}, got {value!r}") from None
+    if out != value or out < lo or (hi is not None and out > hi):
+        raise InputError(f"{name} must be {what}, got {value!r}")
     return out
 
 

@@ -22,12 +22,6 @@ from skyfix.tags.palette import choose_palette, palette_delta_e, srgb_to_lab
 SUPPORTED_TILES = (4, 9, 16)
 
 
-def _int_in(name: str, value, lo: int, hi: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not lo <= value <= hi:
-        raise InputError(f"{name} must be an integer in [{lo}, {hi}], got {value!r}")
-    return int(value)
-
-
 def spiral_order(k: int) -> np.ndarray:
     """Grid cells ``(k*k, 2)`` as (col, row) with row 0 at the bottom (south), in reading
     order: clockwise from the lower-right cell, spiralling inwards."""
@@ -58,7 +52,7 @@ class TileCodec:
     palette_rgb: np.ndarray | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "colors", _int_in("colors", self.colors, 2, 12))
+        object.__setattr__(self, "colors", validate.integer_in("colors", self.colors, 2, 12))
         if self.tiles not in SUPPORTED_TILES:
             raise InputError(f"tiles must be one of {SUPPORTED_TILES} (a k x k grid), got {self.tiles!r}")
         object.__setattr__(self, "tiles", int(self.tiles))
@@ -136,10 +130,7 @@ class TagGeometry:
             raise InputError(f"tiles must be one of {SUPPORTED_TILES}, got {self.tiles!r}")
         object.__setattr__(self, "tile_m", validate.positive_scalar("tile_m", self.tile_m))
         for name in ("gap_m", "offset_m"):
-            value = validate.finite_scalar(name, getattr(self, name))
-            if value < 0:
-                raise InputError(f"{name} must be >= 0, got {value}")
-            object.__setattr__(self, name, value)
+            object.__setattr__(self, name, validate.nonnegative_scalar(name, getattr(self, name)))
         if self.offset_m < 0.2 * self.tile_m:
             raise InputError(f"offset_m={self.offset_m} is too small to mark orientation; use >= 0.2 * tile_m")
 

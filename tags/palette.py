@@ -65,8 +65,7 @@ def choose_palette(colors: int, levels: int = 5) -> np.ndarray:
     counted as already chosen so every tile also stands out from the background.
     Deterministic: the same ``colors`` always gives the same palette.
     """
-    if isinstance(colors, bool) or not isinstance(colors, (int, np.integer)) or not 2 <= colors <= 12:
-        raise InputError(f"colors must be an integer in [2, 12], got {colors!r}")
+    colors = validate.integer_in("colors", colors, 2, 12)
     grid = np.linspace(0.0, 1.0, levels)
     cand = np.array(list(itertools.product(grid, repeat=3)))
     cand = cand[cand.min(axis=1) <= MAX_INK_CHANNEL + 1e-9]

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from skyfix import validate
 from skyfix.errors import InputError
 from skyfix.tags.codec import TileCodec
 from skyfix.tags.palette import palette_delta_e
@@ -76,15 +77,12 @@ def optimise_placement(codec: TileCodec, rows: int, cols: int, *, time_limit_s: 
     Stops after ``time_limit_s`` seconds or ``max_iterations`` moves, whichever is first.
     ``on_progress(fraction)``, when given, is called as the search advances (0 to 1).
     """
-    for name, v in (("rows", rows), ("cols", cols)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-            raise InputError(f"{name} must be a positive integer, got {v!r}")
+    rows, cols = validate.integer_in("rows", rows, 1), validate.integer_in("cols", cols, 1)
     n_pos = rows * cols
     if n_pos > codec.capacity:
         raise InputError(f"a {rows} x {cols} field needs {n_pos} distinct values but c={codec.colors}, "
                          f"n={codec.tiles} tags only have {codec.capacity}")
-    if time_limit_s <= 0:
-        raise InputError(f"time_limit_s must be > 0, got {time_limit_s}")
+    validate.positive_scalar("time_limit_s", time_limit_s)
     rng = np.random.default_rng(seed)
     dist = _Distance(codec)
     edges = king_edges(rows, cols)

@@ -35,7 +35,7 @@ class GpsFault:
         if self.kind not in FAULT_KINDS:
             raise InputError(f"GpsFault.kind must be one of {FAULT_KINDS}, got {self.kind!r}")
         validate.finite_scalar("GpsFault.start_s", self.start_s)
-        if not self.duration_s > 0:
+        if not self.duration_s > 0:  # inf: until the end of the run
             raise InputError(f"GpsFault.duration_s must be > 0, got {self.duration_s}")
         validate.positive_scalar("GpsFault.eph_m", self.eph_m)
         off = validate.finite_array("GpsFault.offset_enu_m", self.offset_enu_m)
@@ -72,11 +72,9 @@ class GpsReceiver:
         self.faults: list[GpsFault] = []
         self.disabled = False
         self.glitch_enu_m = np.zeros(3)
-        self.bias_sigma_m = float(bias_sigma_m)
+        self.bias_sigma_m = validate.nonnegative_scalar("bias_sigma_m", bias_sigma_m)
         self.bias_tau_s = validate.positive_scalar("bias_tau_s", bias_tau_s)
-        self.noise_sigma_m = float(noise_sigma_m)
-        if not (self.bias_sigma_m >= 0 and self.noise_sigma_m >= 0):
-            raise InputError(f"GpsReceiver sigmas must be >= 0, got bias {bias_sigma_m}, noise {noise_sigma_m}")
+        self.noise_sigma_m = validate.nonnegative_scalar("noise_sigma_m", noise_sigma_m)
         self._rng = np.random.default_rng(seed)
         self._bias = np.zeros(3)
 

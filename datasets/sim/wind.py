@@ -37,8 +37,7 @@ class WindField:
         if mean.shape != (3,):
             raise InputError(f"WindField.mean_enu_mps must have shape (3,), got {mean.shape}")
         self.mean_enu_mps = tuple(mean)
-        if validate.finite_scalar("WindField.gust_sigma_mps", self.gust_sigma_mps) < 0:
-            raise InputError("WindField.gust_sigma_mps must be >= 0")
+        validate.nonnegative_scalar("WindField.gust_sigma_mps", self.gust_sigma_mps)
         validate.positive_scalar("WindField.gust_tau_s", self.gust_tau_s)
         self._rng = np.random.default_rng(self.seed)
         self._gust = np.zeros(3)
