@@ -165,14 +165,26 @@ def _log_from_track(scene: MountainScene, t_s: np.ndarray, enu: np.ndarray, yaw_
 
 def orbit_log(scene: MountainScene, centre_en_m: tuple[float, float], *, radius_m: float, height_m: float,
               speed_mps: float = 8.0, laps: float = 1.0, rate_hz: float = 10.0, start_deg: float = 0.0,
-              clearance_m: float = 30.0) -> PoseLog:
+              clearance_m: float = 30.0, both_ways: bool = False, reverse_s: float = 6.0) -> PoseLog:
     """True pose log of an orbit around ``centre_en_m`` at ``radius_m``, ``height_m`` above
-    the highest ground under the circle, nose and stabilised gimbal aimed at the centre."""
+    the highest ground under the circle, nose and stabilised gimbal aimed at the centre,
+    ``laps`` clockwise. ``both_ways``: then slow down, stop and fly ``laps`` back
+    counter-clockwise (the speed ramps linearly through zero over ``reverse_s``): the
+    boresight calibration orbit of thermal/README.md."""
     r = validate.positive_scalar("radius_m", radius_m)
     v = validate.positive_scalar("speed_mps", speed_mps)
-    duration = validate.positive_scalar("laps", laps) * 2 * math.pi * r / v
-    t = np.arange(0.0, duration + 1e-9, 1.0 / validate.positive_scalar("rate_hz", rate_hz))
-    ang = math.radians(start_deg) + v * t / r  # position angle, clockwise from north
+    lap_s = validate.positive_scalar("laps", laps) * 2 * math.pi * r / v
+    dt = 1.0 / validate.positive_scalar("rate_hz", rate_hz)
+    if both_ways:
+        ramp = validate.positive_scalar("reverse_s", reverse_s) / 2.0
+        t_stop = lap_s + ramp / 2.0  # full speed to t_stop - ramp, then half on average: `laps` exactly
+        t = np.arange(0.0, 2.0 * t_stop + 1e-9, dt)
+        u = v * np.clip((t_stop - t) / ramp, -1.0, 1.0)  # signed speed, clockwise positive (m/s)
+        ang = math.radians(start_deg) + np.concatenate(([0.0], np.cumsum(0.5 * (u[1:] + u[:-1]) * dt))) / r
+    else:
+        t = np.arange(0.0, lap_s + 1e-9, dt)
+        u = np.full(t.size, v)
+        ang = math.radians(start_deg) + v * t / r  # position angle, clockwise from north
     ce, cn = (float(x) for x in centre_en_m)
     circle = np.linspace(0.0, 2 * math.pi, 720)
     under = scene.terrain.up_at(ce + r * np.sin(circle), cn + r * np.cos(circle))
@@ -181,9 +193,12 @@ def orbit_log(scene: MountainScene, centre_en_m: tuple[float, float], *, radius_
     up = float(under.max()) + validate.positive_scalar("height_m", height_m)
     enu = np.stack((ce + r * np.sin(ang), cn + r * np.cos(ang), np.full(t.size, up)), axis=1)
     yaw = (np.degrees(ang) + 180.0) % 360.0  # facing the centre
-    bank = np.full(t.size, math.degrees(math.atan(v * v / (r * GRAVITY_MPS2))))
+    # Facing the centre, the centripetal acceleration is along the nose (pitch down) and a
+    # clockwise speed-up is to the left (roll left).
+    pitch = -np.degrees(np.arctan(u * u / (r * GRAVITY_MPS2)))
+    roll = -np.degrees(np.arctan(np.gradient(u, t) / GRAVITY_MPS2))
     g_pitch = np.full(t.size, -math.degrees(math.atan2(up - float(scene.terrain.up_at(ce, cn)), r)))
-    return _log_from_track(scene, t, enu, yaw, bank, np.zeros(t.size), g_pitch, clearance_m)
+    return _log_from_track(scene, t, enu, yaw, roll, pitch, g_pitch, clearance_m)
 
 
 def lines_log(scene: MountainScene, waypoints_en_m, *, up_m: float, speed_mps: float = 8.0,

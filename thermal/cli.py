@@ -168,10 +168,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="replace a flight already in OUT_DIR (refused without it, so old frames never mix "
                         "with new poses)")
-    p.add_argument("--mountain", choices=("orbit", "pass"), default=None,
+    p.add_argument("--mountain", choices=("orbit", "pass", "calibration"), default=None,
                    help="instead: a flight over a seeded mountain (2 km, central Corsica) with a consumer "
                         "drone's pose errors (correlated GNSS, attitude drift, boresight, clock offset); writes "
                         "dem.tif (10 m, AMSL) too: locate with --dem dem.tif --dem-datum amsl --joint. "
+                        "'calibration' is the boresight calibration orbit of thermal/README.md (flown "
+                        "clockwise, then back; a frame every 2 s: --frames 567 is the recommended 19 min). "
                         "--frames, --fires, --seed apply")
     p.set_defaults(func=run_simulate)
 
@@ -461,7 +463,7 @@ def run_simulate(args: argparse.Namespace) -> int:
 
 
 def _simulate_mountain(args: argparse.Namespace, camera) -> int:
-    """``skyfix thermal simulate --mountain orbit|pass``."""
+    """``skyfix thermal simulate --mountain orbit|pass|calibration``."""
     from skyfix.datasets.mountain_flight import (
         fly,
         lines_log,
@@ -473,16 +475,18 @@ def _simulate_mountain(args: argparse.Namespace, camera) -> int:
     from skyfix.progress import progress
 
     scene = mountain_scene(args.seed, n_fires=max(args.fires, 1))
-    speed = 8.0
-    if args.mountain == "orbit":
-        laps = args.frames * speed / (2 * math.pi * 180.0)
-        log_ = orbit_log(scene, (0.0, 0.0), radius_m=180.0, height_m=100.0, laps=laps, speed_mps=speed)
+    speed, rate_hz = 8.0, 0.5 if args.mountain == "calibration" else 1.0
+    if args.mountain in ("orbit", "calibration"):
+        both = args.mountain == "calibration"
+        laps = args.frames / rate_hz * speed / (2 * math.pi * 180.0) / (2.0 if both else 1.0)
+        log_ = orbit_log(scene, (0.0, 0.0), radius_m=180.0, height_m=100.0, laps=laps, speed_mps=speed,
+                         both_ways=both)
     else:
         half = args.frames * speed / 2.0
         up = float(np.nanmax(scene.terrain.up_at(np.linspace(-half, half, 100), np.zeros(100)))) + 110.0
         log_ = lines_log(scene, [(-half, 0.0), (half, 0.0)], up_m=up, gimbal_pitch_deg=-60.0)
     errors = PoseErrorModel.draw(np.random.default_rng(1000 + args.seed))
-    flight = fly(scene, camera, log_, errors, frame_rate_hz=1.0, seed=args.seed)
+    flight = fly(scene, camera, log_, errors, frame_rate_hz=rate_hz, seed=args.seed)
     write_mountain_flight(args.out_dir, flight, progress=lambda it: progress(it, desc="render", total=len(
         flight.stamps_s), unit="frame"))
     d = args.out_dir

@@ -109,6 +109,33 @@ def test_lines_and_orbit_logs_refuse_paths_into_the_ground(terrain):
         orbit_log(scene, (0.0, 0.0), radius_m=2000.0, height_m=80.0)
 
 
+def test_calibration_orbit_flies_the_laps_back_facing_the_centre(terrain):
+    scene = MountainScene(terrain, [])
+    r_m, v_mps, laps = 150.0, 8.0, 0.5
+    log = orbit_log(scene, (0.0, 0.0), radius_m=r_m, height_m=80.0, laps=laps, speed_mps=v_mps, both_ways=True,
+                    reverse_s=6.0)
+    lap_s = laps * 2 * np.pi * r_m / v_mps
+    # Full speed, a 6 s linear ramp through zero, full speed back: 2 * (lap_s + 1.5 s).
+    assert log.time_s[-1] == pytest.approx(2 * lap_s + 3.0, abs=0.11)
+    enu, _ = log._samples_in(scene.frame)
+    np.testing.assert_allclose(np.hypot(enu[:, 0], enu[:, 1]), r_m, atol=1e-6)
+    ang = np.unwrap(np.arctan2(enu[:, 0], enu[:, 1]))  # clockwise from north
+    turn = int(np.argmax(ang))
+    # Half a lap out (to 0.01 rad: the trapezoid sum of the ramp), back to the start.
+    assert ang[turn] - ang[0] == pytest.approx(2 * np.pi * laps, abs=0.01)
+    assert abs(ang[-1] - ang[0]) < 0.01
+    assert log.time_s[turn] == pytest.approx(log.time_s[-1] / 2, abs=0.2)
+    speed = np.diff(ang) * r_m / np.diff(log.time_s)
+    assert speed[:10] == pytest.approx(v_mps, rel=1e-6) and speed[-10:] == pytest.approx(-v_mps, rel=1e-6)
+    # The camera keeps looking at the centre (yaw and gimbal pitch), both ways; the gimbal
+    # levels to the vertical at the drone, 150 m / 6371 km = 2.4e-5 rad off the frame's:
+    # ~6 mm at the ~230 m range.
+    cam, rot = log.camera_in_frame(scene.frame, log.time_s)
+    to_centre = np.column_stack((-enu[:, :2], terrain.up_at(0.0, 0.0) - enu[:, 2]))
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", np.transpose(rot, (0, 2, 1)), to_centre)[:, :2], 0.0,
+                               atol=0.01)
+
+
 def test_dem_ray_cast_first_hit_holes_and_coverage(terrain, tmp_path):
     from skyfix.errors import DataError
     from skyfix.thermal.ground import intersect
