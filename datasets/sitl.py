@@ -25,7 +25,10 @@ import signal
 import socket
 import subprocess
 import tempfile
+import threading
 import time
+from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -323,6 +326,37 @@ def arm_when_ready(vehicle, timeout_s: float) -> None:
             if time.monotonic() > deadline:
                 raise
             time.sleep(1.0)
+
+
+class SitlClock:
+    """Stamps the firmware's telemetry on another clock that runs at the same speed-up (e.g. the
+    :class:`skyfix.datasets.sim.Simulator` time sharing the world with it): a drivers record's
+    ``autopilot_time_s`` (the firmware's boot clock, s) plus an offset, the smallest
+    ``clock()``-at-reception minus ``autopilot_time_s`` over the last ``window_s`` wall seconds (the
+    least-delayed message bounds the link's delay; the window follows a drift of the two clocks, a
+    firmware short of CPU runs slower than its speed-up). A record without a stamp gets ``clock()``.
+    Stamping at processing instead puts a fix read 1 s late 10 m off at survey speed."""
+
+    def __init__(self, clock: Callable[[], float], speedup: float = 1.0, window_s: float = 5.0) -> None:
+        self.clock = clock
+        self.speedup = validate.positive_scalar("speedup", speedup)
+        self.window_s = validate.positive_scalar("window_s", window_s)
+        self._offsets: deque[tuple[float, float]] = deque()  # (wall s at the call, offset s)
+        self._lock = threading.Lock()
+
+    def __call__(self, record) -> float:
+        now = self.clock()
+        t_ap = float(getattr(record, "autopilot_time_s", math.nan))
+        if not math.isfinite(t_ap):
+            return now
+        wall = time.time()  # drivers records carry their reception time on this clock (time_s)
+        received = now - max(0.0, wall - float(record.time_s)) * self.speedup
+        with self._lock:
+            self._offsets.append((wall, received - t_ap))
+            while self._offsets[0][0] < wall - self.window_s:
+                self._offsets.popleft()
+            offset = min(o for _, o in self._offsets)
+        return t_ap + offset
 
 
 class SitlTruth:

@@ -80,3 +80,28 @@ def test_env_var_points_elsewhere(tmp_path, monkeypatch):
     (tmp_path / "arducopter").write_text("")
     monkeypatch.setenv(sitl.ENV_DIR, str(tmp_path))
     assert sitl.sitl_dir() == tmp_path
+
+
+def test_sitl_clock_stamps_on_the_other_clock_by_the_least_delayed_message(monkeypatch):
+    """A record is stamped with its own boot-clock time moved onto the other clock, however late it is
+    processed; the offset is the smallest link delay seen, and follows a drift once the window has passed."""
+    from types import SimpleNamespace
+
+    wall = [1000.0]
+    monkeypatch.setattr(sitl.time, "time", lambda: wall[0])
+    other = [50.0]  # the simulator's clock, s; the firmware booted 30 s of its time before it
+    clock = sitl.SitlClock(lambda: other[0], speedup=2.0, window_s=5.0)
+
+    def rec(t_boot_s: float, received_wall_s: float):
+        return SimpleNamespace(autopilot_time_s=t_boot_s, time_s=received_wall_s)
+
+    # sent at boot 20.0 (= 50.0 on the other clock), received 0.01 wall s later, processed 0.5 wall s later
+    wall[0], other[0] = 1000.5, 51.0
+    assert clock(rec(20.0, 1000.01)) == pytest.approx(50.02, abs=1e-9)  # 0.01 wall s of link delay x 2
+    # a later message with more link delay: stamped with the smaller offset seen, not its own
+    wall[0], other[0] = 1001.5, 53.0
+    assert clock(rec(21.0, 1001.2)) == pytest.approx(51.02, abs=1e-9)
+    assert clock(SimpleNamespace(autopilot_time_s=float("nan"), time_s=wall[0])) == 53.0  # no stamp: now
+    # the firmware fell 1 s behind (short of CPU): once the window has passed, the new offset rules
+    wall[0], other[0] = 1010.0, 70.0
+    assert clock(rec(39.0, 1010.0)) == pytest.approx(70.0, abs=1e-9)
