@@ -227,6 +227,7 @@ class _Run:
         from skyfix.crps.service import Service, ServiceConfig
         from skyfix.crps.transport import Endpoints, InProcessBus
         from skyfix.datasets.sim.world_camera import WorldCamera
+        from skyfix.datasets.sitl import SitlClock
 
         cfg = self.cfg
         self.bus = InProcessBus()
@@ -235,8 +236,9 @@ class _Run:
         for i, drone_id in enumerate(IDS):
             j = self.sim_index[i]
             if j is None:  # the external autopilot: asks for help, has no simulated camera
+                # its boot clock is another epoch: its stamps are moved onto the simulator's clock
                 cam, setup, url, time_of = None, HelpSetup(fault_response=cfg.fault_response), cfg.lost_vehicle_url, \
-                    lambda _m: self.sim.time_s  # its boot clock is another epoch: stamped on reception
+                    SitlClock(self.clock, cfg.speed)
             else:
                 cam = WorldCamera(self.sim, j, camera, seed=cfg.seed * 10 + i, extra_targets=extra)
                 eye = EyeConfig(frame_hz=cfg.frame_hz, speed=cfg.speed, target_span_m=cam.model.span_m,
