@@ -5,9 +5,9 @@
 drone) and acts on its decisions through :mod:`skyfix.drivers`:
 
 - as the requester (its own GNSS lost or rejected): the service injects the fused position
-  (GPS_INPUT) for as long as the recovery lasts; the autopilot holds (LOITER), then flies the
-  fault response once helpers position it (RTL by default, the mission, or LAND), lands when
-  no helper fix comes; normal again once fusion finds GNSS healthy and consistent (the
+  (GPS_INPUT) for as long as the recovery lasts; the autopilot holds (BRAKE on ArduPilot, AUTO.LOITER
+  on PX4), then flies the fault response once helpers position it (RTL by default, the mission,
+  or LAND), lands when no helper fix comes; normal again once fusion finds GNSS healthy and consistent (the
   autopilot keeps the mode it is in: a return home is finished, not undone);
 - as a helper: it flies to the vantage point with guided setpoints (kept >= 10 m from every
   drone by :func:`skyfix.crps.vantage.vantage_point`), aims the gimbal at the requester's
@@ -197,7 +197,7 @@ class HelpLoop:
             self._event(now_s, f"{dec.mode.value} ({dec.reason})")
             self.mode = dec.mode
             role = _ROLE_OF.get(dec.mode)
-            self._want = None if role is None else role_mode(self._flavour(), role)
+            self._want = None if role is None else _requester_mode(self._flavour(), role)
             self._want_sent_wall_s = -math.inf
         if dec.helpers != self.helpers:
             self.helpers = dec.helpers
@@ -270,3 +270,12 @@ class HelpLoop:
     def _flavour(self) -> str:
         vehicle = self.svc.vehicle
         return vehicle.autopilot if vehicle is not None and vehicle.autopilot in ("ardupilot", "px4") else "ardupilot"
+
+
+def _requester_mode(flavour: str, role: str) -> str:
+    """The autopilot mode the requester flies for ``role``. Hold on ArduPilot is BRAKE, not LOITER: ArduCopter's
+    LOITER climbs or sinks on the pilot's throttle stick wherever it rests (SITL's simulated stick at 1000 sank
+    the lost drone at 2.5 m/s to the ground), BRAKE holds the position whatever the sticks say."""
+    if role == "hold" and flavour == "ardupilot":
+        return "BRAKE"
+    return role_mode(flavour, role)
