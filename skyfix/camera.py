@@ -30,6 +30,13 @@ class Camera:
     ``fx, fy`` are focal lengths in pixels, ``(cx, cy)`` the principal point in OpenCV
     pixel coordinates. ``distortion`` maps ideal pinhole pixels to raw pixels
     (see :mod:`skyfix.distortion`); ``None`` means an ideal pinhole.
+
+    Example:
+        >>> cam = Camera.from_fov(640, 480, 90.0)  # fx = 320 px, centre (319.5, 239.5)
+        >>> cam.project([[1.0, 0.0, 2.0]])  # 1 m right, 2 m ahead (optical frame)
+        array([[479.5, 239.5]])
+        >>> cam.pixel_to_ray([[479.5, 239.5]]).round(4)  # back to a unit ray
+        array([[0.4472, 0.    , 0.8944]])
     """
 
     width: int
@@ -143,6 +150,11 @@ class CameraPose:
     angles are relative to the local horizontal and the vehicle heading, so vehicle
     roll and pitch do not move the camera; with ``stabilized=False`` the camera is
     hard-mounted and the mount angles compose with the full vehicle attitude.
+
+    Example:
+        >>> pose = CameraPose(47.0, 8.0, 500.0)  # gimbal straight down by default
+        >>> (pose.r_enu_from_cam() @ [0.0, 0.0, 1.0]).round(6) + 0.0  # optical axis, ENU
+        array([ 0.,  0., -1.])
     """
 
     lat: float
@@ -210,6 +222,13 @@ def ground_intersection(camera: Camera, pose: CameraPose, uv: np.ndarray, ground
     steps on the ray parameter starting from the local tangent plane. Returns ``(N, 3)``
     ENU metres in ``frame``. Raises :class:`GeometryError` naming the pixels whose
     rays are at or above the horizon, or that miss the surface within ``max_range_m``.
+
+    Example:
+        >>> from skyfix.geo import LocalFrame
+        >>> cam, frame = Camera.from_fov(640, 480, 90.0), LocalFrame(47.0, 8.0, 400.0)
+        >>> pose = CameraPose(47.0, 8.0, 500.0)  # 100 m above the ground, looking down
+        >>> ground_intersection(cam, pose, [[479.5, 239.5]], 400.0, frame).round(2) + 0.0  # 45 deg right
+        array([[50.,  0.,  0.]])
     """
     uv = validate.points("uv", uv, 2)
     h0 = validate.finite_scalar("ground_alt_m", ground_alt_m)
@@ -248,6 +267,12 @@ def world_to_pixel(camera: Camera, pose: CameraPose, frame: LocalFrame, enu_m: n
     """Project points ``(N, 3)`` given in ``frame``'s ENU metres to raw pixels ``(N, 2)``.
 
     Points at or behind the camera come back as NaN (see :meth:`Camera.project`).
+
+    Example:
+        >>> from skyfix.geo import LocalFrame
+        >>> cam, frame = Camera.from_fov(640, 480, 90.0), LocalFrame(47.0, 8.0, 400.0)
+        >>> world_to_pixel(cam, CameraPose(47.0, 8.0, 500.0), frame, [[50.0, 0.0, 0.0]]).round(2)
+        array([[479.5, 239.5]])
     """
     pts = validate.points("enu_m", enu_m, 3)
     cam_enu, r_frame_from_cam = pose.in_frame(frame)

@@ -64,7 +64,14 @@ _EXPECTED = ("a JSON object with width, height (pixels) and one of: "
 def camera_to_dict(camera: Camera, **extra: Any) -> dict:
     """JSON-ready dict of ``camera`` in the written form; ``extra`` items (e.g. ``rms_px``)
     are added as they are. InputError for an unknown distortion class or an ``extra`` key
-    that would overwrite a camera key."""
+    that would overwrite a camera key.
+
+    Example:
+        >>> cam = Camera(4000, 3000, 2900.0, 2900.0, 1999.5, 1499.5, BrownConrady(k1=-0.1))
+        >>> d = camera_to_dict(cam, rms_px=0.4)
+        >>> d["model"], d["coefficients"]["k1"], d["rms_px"], camera_from_dict(d) == cam
+        ('brown_conrady', -0.1, 0.4, True)
+    """
     if not isinstance(camera, Camera):
         raise InputError(f"camera must be a skyfix.camera.Camera, got {type(camera).__name__}")
     clash = sorted(set(extra) & set(CAMERA_KEYS))
@@ -89,6 +96,15 @@ def camera_from_dict(data: Any, source: str = "camera", *,
     missing width/height, and a camera stored at another size with the same aspect ratio is
     rescaled to it. DataError naming ``source`` on a malformed description or an aspect
     ratio mismatch; InputError on a malformed ``image_size``.
+
+    Example:
+        >>> cam = camera_from_dict({"width": 4000, "height": 3000, "hfov_deg": 84.0}, image_size=(1000, 750))
+        >>> cam.width, round(cam.fx, 2), cam.cx
+        (1000, 555.31, 499.5)
+        >>> camera_from_dict({"width": 4000, "height": 3000}, "cam.json")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        skyfix.errors.DataError: cam.json: expected a JSON object with width, height (pixels) and one of: ...
     """
     size = None if image_size is None else _image_size(image_size)
     if not isinstance(data, dict):
@@ -119,7 +135,15 @@ def camera_from_dict(data: Any, source: str = "camera", *,
 
 
 def save_camera(path: str | os.PathLike, camera: Camera, **extra: Any) -> None:
-    """Write ``camera`` (and ``extra`` JSON-able fields) to the JSON file ``path``."""
+    """Write ``camera`` (and ``extra`` JSON-able fields) to the JSON file ``path``.
+
+    Example:
+        >>> import tempfile
+        >>> with tempfile.TemporaryDirectory() as folder:  # read back at half the size
+        ...     save_camera(Path(folder) / "camera.json", Camera.from_fov(640, 480, 90.0), rms_px=0.3)
+        ...     round(load_camera(Path(folder) / "camera.json", image_size=(320, 240)).fx, 6)
+        160.0
+    """
     data = camera_to_dict(camera, **extra)
     try:
         text = json.dumps(data, indent=2, allow_nan=False)
@@ -133,6 +157,12 @@ def load_camera(path: str | os.PathLike, *, image_size: tuple[int, int] | None =
 
     ``image_size`` ``(width, height)`` pixels: see :func:`camera_from_dict`. InputError
     when the file does not exist, DataError when it is not a camera description.
+
+    Example:
+        >>> load_camera("no-such-camera.json")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        skyfix.errors.InputError: ...no-such-camera.json...
     """
     p = Path(path)
     return camera_from_dict(read_json(p, "camera file", missing=InputError), f"camera file {p}",

@@ -83,7 +83,16 @@ def _newton_invert_2d(forward, target: np.ndarray, tol: float = 1e-13, max_iter:
 
 @dataclass(frozen=True)
 class BrownConrady:
-    """OpenCV's radial-tangential model (k1, k2, p1, p2, k3) on normalised coordinates."""
+    """OpenCV's radial-tangential model (k1, k2, p1, p2, k3) on normalised coordinates.
+
+    Example:
+        >>> from skyfix.camera import Camera
+        >>> cam = Camera.from_fov(640, 480, 90.0)
+        >>> lens = BrownConrady(k1=-0.2, k2=0.05)
+        >>> raw = lens.distort(np.array([[600.0, 400.0]]), cam)  # barrel: pulled inwards
+        >>> raw.round(2), lens.undistort(raw, cam).round(6)
+        (array([[557.37, 375.61]]), array([[600., 400.]]))
+    """
 
     k1: float = 0.0
     k2: float = 0.0
@@ -122,6 +131,13 @@ class Fisheye:
 
     Through the ideal-pinhole intermediate it covers view angles below 90 degrees
     off-axis (fields of view under 180 degrees).
+
+    Example:
+        >>> from skyfix.camera import Camera
+        >>> cam, lens = Camera.from_fov(640, 480, 90.0), Fisheye(k1=0.05)
+        >>> raw = lens.distort(np.array([[600.0, 400.0]]), cam)
+        >>> raw.round(2), lens.undistort(raw, cam).round(6)
+        (array([[545.87, 369.03]]), array([[600., 400.]]))
     """
 
     k1: float = 0.0
@@ -177,6 +193,12 @@ class Barrel:
     scale is preserved at r = 1. The centre is the image centre, ImageMagick's
     (w/2, h/2) in pixel-edge coordinates, i.e. ((w-1)/2, (h-1)/2) in OpenCV's.
     The model ignores the camera's fx/cx: it is defined on the pixel grid.
+
+    Example:
+        >>> from skyfix.camera import Camera
+        >>> cam, lens = Camera.from_fov(640, 480, 90.0), Barrel(0.0, 0.0, -0.1)  # d = 1.1
+        >>> lens.distort(np.array([[439.5, 239.5]]), cam)  # r = 0.5: source at 1.05 r
+        array([[445.5, 239.5]])
     """
 
     a: float

@@ -6,6 +6,14 @@ reading skyfix's source.
 
 ``InputError`` also derives from ``ValueError`` and ``SkyfixTimeout`` from
 ``TimeoutError`` so that generic handlers in user code keep working.
+
+Example:
+    >>> from skyfix.geo import LocalFrame
+    >>> try:
+    ...     LocalFrame(95.0, 8.0)
+    ... except ValueError as exc:  # an InputError is a ValueError too
+    ...     print(type(exc).__name__, isinstance(exc, SkyfixError), exc)
+    InputError True lat0_deg must be within [-90, 90] degrees, got [95.]
 """
 
 from __future__ import annotations

@@ -29,14 +29,26 @@ def _geodetic_checked(lat, lon, alt) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 
 def geodetic_to_ecef(lat_deg, lon_deg, alt_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """WGS84 geodetic (deg, deg, m ellipsoidal) -> ECEF (x, y, z) metres."""
+    """WGS84 geodetic (deg, deg, m ellipsoidal) -> ECEF (x, y, z) metres.
+
+    Example:
+        >>> x, y, z = geodetic_to_ecef(0.0, 90.0, 10.0)  # equator, 90 deg east: on the +y axis
+        >>> print(f"{float(x):.3f} {float(y):.3f} {float(z):.3f}")
+        0.000 6378147.000 0.000
+    """
     lat, lon, alt = _geodetic_checked(lat_deg, lon_deg, alt_m)
     x, y, z = _TO_ECEF.transform(lon, lat, alt)
     return np.asarray(x), np.asarray(y), np.asarray(z)
 
 
 def ecef_to_geodetic(x_m, y_m, z_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """ECEF (x, y, z) metres -> WGS84 geodetic (lat_deg, lon_deg, alt_m ellipsoidal)."""
+    """ECEF (x, y, z) metres -> WGS84 geodetic (lat_deg, lon_deg, alt_m ellipsoidal).
+
+    Example:
+        >>> lat, lon, alt = ecef_to_geodetic(*geodetic_to_ecef(47.3769, 8.5417, 408.0))
+        >>> print(f"{float(lat):.7f} {float(lon):.7f} {float(alt):.4f}")
+        47.3769000 8.5417000 408.0000
+    """
     x, y, z = np.broadcast_arrays(*(validate.finite_array(n, v) for n, v in
                                     (("x_m", x_m), ("y_m", y_m), ("z_m", z_m))))
     lon, lat, alt = _TO_ECEF.transform(x, y, z, direction=pyproj.enums.TransformDirection.INVERSE)
@@ -47,7 +59,12 @@ _TO_ECEF = pyproj.Transformer.from_crs("EPSG:4979", "EPSG:4978", always_xy=True)
 
 
 def ecef_to_enu_rotation(lat_deg: float, lon_deg: float) -> np.ndarray:
-    """3x3 rotation taking ECEF vectors into the ENU axes at (lat, lon); rows are E, N, U."""
+    """3x3 rotation taking ECEF vectors into the ENU axes at (lat, lon); rows are E, N, U.
+
+    Example:
+        >>> ecef_to_enu_rotation(0.0, 0.0) @ [1.0, 0.0, 0.0]  # ECEF +x is "up" at (0, 0)
+        array([0., 0., 1.])
+    """
     lat = np.radians(lat_deg)
     lon = np.radians(lon_deg)
     sl, cl = np.sin(lat), np.cos(lat)
@@ -65,6 +82,14 @@ class LocalFrame:
 
     ``to_enu``/``to_geodetic`` are exact inverse transforms through ECEF (pyproj's
     ``cart`` + ``topocentric`` pipeline), valid at any distance from the origin.
+
+    Example:
+        >>> frame = LocalFrame(47.0, 8.0, 400.0)
+        >>> east, north, up = frame.to_enu(47.001, 8.0, 400.0)  # 0.001 deg north
+        >>> print(f"{float(north):.2f} m north, {abs(float(east)):.2f} m east")
+        111.18 m north, 0.00 m east
+        >>> frame.to_geodetic_points([[0.0, 0.0, 10.0]]).round(6)
+        array([[ 47.,   8., 410.]])
     """
 
     lat0_deg: float
@@ -135,6 +160,11 @@ def destination(lat_deg, lon_deg, bearing_deg, distance_m) -> tuple[np.ndarray, 
 
     ``bearing_deg`` is the initial azimuth, clockwise from true north. Returns
     (lat_deg, lon_deg) with longitude in [-180, 180).
+
+    Example:
+        >>> lat, lon = destination(47.0, 8.0, 90.0, 1000.0)  # 1 km east
+        >>> print(f"{float(lat):.6f} {float(lon):.6f}")
+        46.999999 8.013148
     """
     lat = validate.latitude("lat_deg", lat_deg)
     lon = validate.longitude("lon_deg", lon_deg)
@@ -149,7 +179,13 @@ def destination(lat_deg, lon_deg, bearing_deg, distance_m) -> tuple[np.ndarray, 
 
 
 def inverse(lat1_deg, lon1_deg, lat2_deg, lon2_deg) -> tuple[np.ndarray, np.ndarray]:
-    """Initial bearing (deg clockwise from north, in [0, 360)) and geodesic distance (m)."""
+    """Initial bearing (deg clockwise from north, in [0, 360)) and geodesic distance (m).
+
+    Example:
+        >>> bearing, dist = inverse(47.0, 8.0, *destination(47.0, 8.0, 225.0, 1500.0))
+        >>> print(f"{float(bearing):.6f} {float(dist):.6f}")
+        225.000000 1500.000000
+    """
     lat1 = validate.latitude("lat1_deg", lat1_deg)
     lon1 = validate.longitude("lon1_deg", lon1_deg)
     lat2 = validate.latitude("lat2_deg", lat2_deg)

@@ -40,7 +40,12 @@ def _candidate_dirs() -> list[Path]:
 
 
 def find_egm96_grid() -> Path:
-    """Path of an EGM96 15' grid file; NotAvailableError (with the fix) when there is none."""
+    """Path of an EGM96 15' grid file; NotAvailableError (with the fix) when there is none.
+
+    Example:
+        >>> find_egm96_grid().suffix in (".gtx", ".tif")
+        True
+    """
     override = os.environ.get("SKYFIX_GEOID_GRID")
     if override:
         path = Path(override)
@@ -82,12 +87,22 @@ def geoid_undulation_m(lat_deg, lon_deg) -> np.ndarray:
 
 
 def amsl_to_ellipsoidal_m(lat_deg, lon_deg, alt_amsl_m) -> np.ndarray:
-    """Height above mean sea level (EGM96) -> height above the WGS84 ellipsoid, metres."""
+    """Height above mean sea level (EGM96) -> height above the WGS84 ellipsoid, metres.
+
+    Example:
+        >>> round(float(amsl_to_ellipsoidal_m(47.0, 8.0, 500.0)), 2)  # the geoid is 48.39 m up there
+        548.39
+    """
     alt = validate.finite_array("alt_amsl_m", alt_amsl_m)
     return alt + geoid_undulation_m(lat_deg, lon_deg)
 
 
 def ellipsoidal_to_amsl_m(lat_deg, lon_deg, alt_m) -> np.ndarray:
-    """Height above the WGS84 ellipsoid -> height above mean sea level (EGM96), metres."""
+    """Height above the WGS84 ellipsoid -> height above mean sea level (EGM96), metres.
+
+    Example:
+        >>> round(float(ellipsoidal_to_amsl_m(47.0, 8.0, 548.39)), 2)
+        500.0
+    """
     alt = validate.finite_array("alt_m", alt_m)
     return alt - geoid_undulation_m(lat_deg, lon_deg)

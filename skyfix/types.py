@@ -26,6 +26,11 @@ class GeoFix:
 
     ``lat_deg``/``lon_deg`` WGS84, ``alt_m`` ellipsoidal height; ``cov_enu_m2`` is the
     3x3 covariance in the local ENU axes at the fix, m^2.
+
+    Example:
+        >>> fix = GeoFix(47.0, 8.0, 450.0, np.diag([4.0, 1.0, 9.0]))
+        >>> fix.sigma_horizontal_m, fix.sigma_up_m
+        (2.0, 3.0)
     """
 
     lat_deg: float
@@ -62,6 +67,11 @@ class RelativeObservation:
     covariance of the relative position ``range_m * bearing_enu`` (ENU, m^2), including
     the observer's attitude uncertainty but not its position uncertainty, which fusion
     takes from the observer's own estimate.
+
+    Example:
+        >>> obs = RelativeObservation("A", "B", 0.0, np.array([0.6, 0.8, 0.0]), 50.0, np.eye(3))
+        >>> obs.offset_enu_m, obs.has_observer_position
+        (array([30., 40.,  0.]), False)
     """
 
     observer_id: str

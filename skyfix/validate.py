@@ -14,7 +14,16 @@ from skyfix.errors import InputError
 
 
 def finite_scalar(name: str, value: Any) -> float:
-    """Return ``value`` as a float, or raise if it is not a finite real number."""
+    """Return ``value`` as a float, or raise if it is not a finite real number.
+
+    Example:
+        >>> finite_scalar("alt_m", "12.5")
+        12.5
+        >>> finite_scalar("alt_m", float("nan"))
+        Traceback (most recent call last):
+        ...
+        skyfix.errors.InputError: alt_m must be finite, got nan
+    """
     try:
         out = float(value)
     except (TypeError, ValueError):
@@ -25,7 +34,14 @@ def finite_scalar(name: str, value: Any) -> float:
 
 
 def positive_scalar(name: str, value: Any) -> float:
-    """Return ``value`` as a float, or raise if it is not finite and > 0."""
+    """Return ``value`` as a float, or raise if it is not finite and > 0.
+
+    Example:
+        >>> positive_scalar("tau_s", 0)
+        Traceback (most recent call last):
+        ...
+        skyfix.errors.InputError: tau_s must be > 0, got 0.0
+    """
     out = finite_scalar(name, value)
     if out <= 0.0:
         raise InputError(f"{name} must be > 0, got {out}")
@@ -50,7 +66,16 @@ def nonnegative_scalar(name: str, value: Any) -> float:
 
 
 def finite_array(name: str, value: Any) -> np.ndarray:
-    """Return ``value`` as a float64 array (a copy when conversion is needed); raise on NaN/inf."""
+    """Return ``value`` as a float64 array (a copy when conversion is needed); raise on NaN/inf.
+
+    Example:
+        >>> finite_array("enu_m", [[1, 2, 3]])
+        array([[1., 2., 3.]])
+        >>> finite_array("enu_m", [1.0, float("inf"), float("nan")])
+        Traceback (most recent call last):
+        ...
+        skyfix.errors.InputError: enu_m contains 2 NaN or infinite value(s)
+    """
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
@@ -95,6 +120,10 @@ def points(name: str, value: Any, ncols: int) -> np.ndarray:
     """Return ``value`` as a finite float64 ``(N, ncols)`` array.
 
     A single point of shape ``(ncols,)`` is accepted and returned as ``(1, ncols)``.
+
+    Example:
+        >>> points("uv", [320.0, 240.0], 2)
+        array([[320., 240.]])
     """
     arr = finite_array(name, value)
     if arr.ndim == 1 and arr.shape[0] == ncols:
@@ -105,7 +134,12 @@ def points(name: str, value: Any, ncols: int) -> np.ndarray:
 
 
 def latitude(name: str, value: Any) -> np.ndarray:
-    """Return latitudes in degrees as a finite array, raising outside [-90, 90]."""
+    """Return latitudes in degrees as a finite array, raising outside [-90, 90].
+
+    Example:
+        >>> latitude("lat_deg", [47.0, -90.0])
+        array([ 47., -90.])
+    """
     arr = finite_array(name, value)
     if (np.abs(arr) > 90.0).any():
         raise InputError(f"{name} must be within [-90, 90] degrees, got {arr[np.abs(arr) > 90.0].ravel()[:3]}")
@@ -113,7 +147,12 @@ def latitude(name: str, value: Any) -> np.ndarray:
 
 
 def longitude(name: str, value: Any) -> np.ndarray:
-    """Return longitudes in degrees as a finite array, raising outside [-180, 360]."""
+    """Return longitudes in degrees as a finite array, raising outside [-180, 360].
+
+    Example:
+        >>> longitude("lon_deg", 359.5)
+        array(359.5)
+    """
     arr = finite_array(name, value)
     if ((arr < -180.0) | (arr > 360.0)).any():
         raise InputError(f"{name} must be within [-180, 360] degrees, got {arr.ravel()[:3]}")
@@ -121,7 +160,14 @@ def longitude(name: str, value: Any) -> np.ndarray:
 
 
 def covariance(name: str, value: Any, dim: int) -> np.ndarray:
-    """Return a finite, symmetric, positive semi-definite ``(dim, dim)`` matrix."""
+    """Return a finite, symmetric, positive semi-definite ``(dim, dim)`` matrix.
+
+    Example:
+        >>> covariance("cov_m2", [[1.0, 2.0], [2.0, 1.0]], 2)  # eigenvalues 3 and -1
+        Traceback (most recent call last):
+        ...
+        skyfix.errors.InputError: cov_m2 must be positive semi-definite
+    """
     arr = finite_array(name, value)
     if arr.shape != (dim, dim):
         raise InputError(f"{name} must have shape ({dim}, {dim}), got {arr.shape}")
