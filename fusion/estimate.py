@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from skyfix.fusion.health import SourceHealth
+from skyfix.types import horizontal_sigma_m
 
 
 @dataclass(frozen=True)
@@ -35,7 +36,7 @@ class Estimate:
     @property
     def sigma_horizontal_m(self) -> float:
         """Square root of the larger horizontal covariance eigenvalue, metres (1-sigma)."""
-        return float(np.sqrt(np.linalg.eigvalsh(self.cov_enu_m2[:2, :2]).max()))
+        return horizontal_sigma_m(self.cov_enu_m2)
 
     def to_dict(self) -> dict:
         """JSON-ready form (lists and plain floats)."""

@@ -20,6 +20,17 @@ def _frozen_cov(name: str, value, dim: int) -> np.ndarray:
     return cov
 
 
+def horizontal_sigma_m(cov_enu_m2: np.ndarray) -> float:
+    """Largest horizontal 1-sigma (m) of an ENU covariance ``(>= 2, >= 2)`` (m^2): the
+    square root of the larger eigenvalue of its east-north block.
+
+    Example:
+        >>> horizontal_sigma_m(np.array([[3.0, 1.0, 0.0], [1.0, 3.0, 0.0], [0.0, 0.0, 9.0]]))
+        2.0
+    """
+    return float(np.sqrt(np.linalg.eigvalsh(cov_enu_m2[:2, :2]).max()))
+
+
 @dataclass(frozen=True)
 class GeoFix:
     """A geodetic position with its uncertainty.
@@ -50,7 +61,7 @@ class GeoFix:
     @property
     def sigma_horizontal_m(self) -> float:
         """Square root of the larger horizontal covariance eigenvalue, metres (1-sigma)."""
-        return float(np.sqrt(np.linalg.eigvalsh(self.cov_enu_m2[:2, :2]).max()))
+        return horizontal_sigma_m(self.cov_enu_m2)
 
     @property
     def sigma_up_m(self) -> float:

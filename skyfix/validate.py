@@ -98,9 +98,7 @@ def positive_array(name: str, value: Any) -> np.ndarray:
         skyfix.errors.InputError: focal_px must be > 0, got [ 0. -1.]
     """
     arr = finite_array(name, value)
-    if (arr <= 0.0).any():
-        raise InputError(f"{name} must be > 0, got {arr[arr <= 0.0].ravel()[:3]}")
-    return arr
+    return _refuse(name, arr, arr <= 0.0, "> 0")
 
 
 def nonnegative_array(name: str, value: Any) -> np.ndarray:
@@ -111,8 +109,13 @@ def nonnegative_array(name: str, value: Any) -> np.ndarray:
         array(0.)
     """
     arr = finite_array(name, value)
-    if (arr < 0.0).any():
-        raise InputError(f"{name} must be >= 0, got {arr[arr < 0.0].ravel()[:3]}")
+    return _refuse(name, arr, arr < 0.0, ">= 0")
+
+
+def _refuse(name: str, arr: np.ndarray, bad: np.ndarray, expected: str) -> np.ndarray:
+    """``arr``, or InputError quoting up to three of its ``bad`` elements."""
+    if bad.any():
+        raise InputError(f"{name} must be {expected}, got {arr[bad].ravel()[:3]}")
     return arr
 
 

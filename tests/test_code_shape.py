@@ -33,7 +33,6 @@ ALLOWED: dict[str, str] = {
     "drivers/vehicle.py": _NOT_YET,
     "mapping/cli.py::register": _NOT_YET,
     "tags/locate.py::locate_tiles": _NOT_YET,
-    "tags/placement.py::optimise_placement": _NOT_YET,
 }
 
 
