@@ -1,7 +1,9 @@
 """GPS-loss recovery benchmark (issue 18): the lost drone flies home on its helpers' cameras.
 
 Each seed is one world: three simulated ArduPilot copters surveying in wind (mean 3 m/s from a
-seeded direction, 20 % gusts), correlated (Gauss-Markov) GNSS errors on every receiver, one drone
+seeded direction, 20 % gusts), correlated (Gauss-Markov) GNSS errors on every receiver (``--gnss``:
+consumer by default, 1.5 m per axis wandering with a 60 s correlation time + 0.3 m white noise, each
+receiver's error drawn from its steady state at the start; ``mild``: 0.4 m / 60 s + 0.15 m), one drone
 losing its receiver at a seeded random moment and place along its survey. It is flown twice by
 :func:`skyfix.crps.recovery.run_recovery`:
 
@@ -72,10 +74,10 @@ def parse_seeds(text: str) -> list[int]:
 
 def fly_one(seed: int, healthy: bool, args: argparse.Namespace) -> dict:
     """One run (the recovery, or with ``healthy`` its baseline); its scores, JSON-ready."""
-    from skyfix.crps.recovery import RecoveryConfig, run_recovery
+    from skyfix.crps.recovery import GNSS_MODELS, RecoveryConfig, run_recovery
 
     kind = "baseline" if healthy else "recovery"
-    kwargs = {"seed": seed, "healthy": healthy,
+    kwargs = {"seed": seed, "healthy": healthy, "gnss": GNSS_MODELS[args.gnss],
               "output": None if args.no_files else args.output / f"seed_{seed}" / kind}
     if args.speed is not None:
         kwargs["speed"] = args.speed
@@ -95,8 +97,26 @@ def fly_one(seed: int, healthy: bool, args: argparse.Namespace) -> dict:
 
 def fly_seed(seed: int, args: argparse.Namespace) -> dict:
     """The recovery and its healthy-GNSS baseline for one seed."""
-    return {"seed": seed, "speed": args.speed, "recovery": fly_one(seed, False, args),
-            "baseline": fly_one(seed, True, args)}
+    rev, dirty = revision()
+    return {"seed": seed, "speed": args.speed, "gnss": args.gnss, "revision": rev, "uncommitted": dirty,
+            "recovery": fly_one(seed, False, args), "baseline": fly_one(seed, True, args)}
+
+
+def revision() -> tuple[str, list[str]]:
+    """The commit flown (``+dirty`` when code the runs import has uncommitted changes) and those files."""
+    import subprocess
+
+    root = Path(__file__).resolve().parent.parent
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
+                              check=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", "skyfix", "crps",
+                                "fusion", "drivers", "datasets", "benchmarks/recovery.py"],
+                               cwd=root, capture_output=True, text=True, check=True, timeout=10).stdout.split("\n")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown", []
+    files = [line[3:] for line in dirty if line.strip()]
+    return head + ("+dirty" if files else ""), files
 
 
 def _num(x) -> float | None:
@@ -121,7 +141,8 @@ def print_run(r: dict) -> None:
           f"max recovery error {_f(rec['max_recovery_error_h_m'])} m, "
           f"closest approach {_f(rec['min_separation_m'], '.1f')} m, "
           f"target detected in {_f(None if rec['detection_share'] is None else 100 * rec['detection_share'], '.0f')} % "
-          f"of helper frames with it in view; {rec['outcome']} "
+          f"of helper frames with it in view, fused-fix NEES {_f(rec['figures'].get('recovery_mean_nees_3dof'))} "
+          f"(3 = honest), {_f(rec['figures'].get('helper_frames_dropped'), '.0f')} frame slots skipped; {rec['outcome']} "
           f"(wall {rec['wall_s']:.0f} + {base['wall_s']:.0f} s)", flush=True)
 
 
@@ -176,6 +197,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="seeds to fly now, e.g. 0-9 or 0,3,5 (default 0-9; --quick: 0-1)")
     ap.add_argument("--runs", type=int, default=10, help="seeds the goals are judged on (default 10)")
     ap.add_argument("--quick", action="store_true", help="two seeds, no files: a smoke test of the whole road")
+    ap.add_argument("--gnss", choices=("consumer", "mild"), default="consumer",
+                    help="every drone's receiver errors: consumer (default; 1.5 m per axis wandering over 60 s + "
+                         "0.3 m noise, a u-blox M8/M9-class receiver) or mild (0.4 m / 60 s + 0.15 m)")
     ap.add_argument("--speed", type=float, default=None,
                     help="simulated seconds per wall second (default: RecoveryConfig's)")
     ap.add_argument("-o", "--output", type=Path, default=Path("benchmarks/out/recovery"),
@@ -202,14 +226,22 @@ def main(argv: list[str] | None = None) -> int:
             (args.output / f"seed_{seed}.json").write_text(json.dumps(record, indent=1))
             print_run(record)
     records = sorted((json.loads(p.read_text()) for p in args.output.glob("seed_*.json")), key=lambda r: r["seed"])
-    print(f"all seeds in {args.output} ({len(records)}):")
+    other = [r["seed"] for r in records if r.get("gnss", "mild") != args.gnss]
+    if other:  # never judge a mix of error models
+        print(f"seeds {other} in {args.output} were flown with another --gnss model than {args.gnss}: not judged")
+        records = [r for r in records if r["seed"] not in other]
+    revisions = sorted({r.get("revision", "unknown") for r in records})
+    print(f"all seeds in {args.output} ({len(records)}, gnss {args.gnss}, revision(s) {', '.join(revisions)}):")
+    dirty = sorted({f for r in records for f in r.get("uncommitted", [])})
+    if dirty:
+        print(f"  flown with uncommitted changes to: {', '.join(dirty)}")
     for r in records:
         print_run(r)
     goals, headline = judge(records, 2 if args.quick else args.runs)
     for name, ok, figures in goals:
         print(f"  goal {name}: {'MET' if ok else 'NOT MET'} ({figures})")
     print(f"load average at end: {os.getloadavg()[0]:.1f}")
-    print(headline)
+    print(f"{headline} [gnss {args.gnss}, revision {', '.join(revisions)}]")
     if len(records) < (2 if args.quick else args.runs):
         return 2
     return 0 if all(ok for _, ok, _ in goals) else 1
