@@ -125,6 +125,35 @@ def motion_blur_kernel(length_px: float, angle_deg: float) -> np.ndarray:
     return kernel / kernel.sum()
 
 
+def _sensor_effects(img: np.ndarray, camera: Camera, vignetting: float, blur_sigma_px: float,
+                    motion_blur_px: float, motion_blur_angle_deg: float, noise_sigma: float,
+                    rng: np.random.Generator | None) -> np.ndarray:
+    """Vignetting, Gaussian blur, motion blur and noise on a rendered image, in that order."""
+    if vignetting > 0:
+        vv, uu = np.mgrid[0:camera.height, 0:camera.width]
+        r2 = ((uu - camera.cx) ** 2 + (vv - camera.cy) ** 2) / (camera.cx ** 2 + camera.cy ** 2)
+        gain = (1.0 - vignetting * r2).astype(np.float32)
+        img = img * (gain[..., None] if img.ndim == 3 else gain)
+    if blur_sigma_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
+    if motion_blur_px > 0:
+        img = cv2.filter2D(img, -1, motion_blur_kernel(motion_blur_px, motion_blur_angle_deg))
+    if noise_sigma > 0:
+        rng = rng if rng is not None else np.random.default_rng()
+        img = img + rng.normal(0.0, noise_sigma, img.shape).astype(np.float32)
+    return img
+
+
+def _pixel_mask(inside: np.ndarray, camera: Camera, s: int) -> np.ndarray:
+    """Per-pixel validity from the ``s`` x ``s`` subsamples' ``inside`` mask."""
+    if s == 1:
+        return inside
+    if s % 2 == 1:
+        return inside[s // 2::s, s // 2::s]
+    # even supersampling has no sample at the pixel centre: require all samples inside
+    return inside.reshape(camera.height, s, camera.width, s).all(axis=(1, 3))
+
+
 def render_ground(texture: GroundTexture, camera: Camera, pose: CameraPose, *,
                   background: float = 0.0, supersample: int = 1, blur_sigma_px: float = 0.0,
                   motion_blur_px: float = 0.0, motion_blur_angle_deg: float = 0.0,
@@ -186,26 +215,9 @@ def render_ground(texture: GroundTexture, camera: Camera, pose: CameraPose, *,
     if s > 1:
         hh, ww = camera.height, camera.width
         img = img.reshape(hh, s, ww, s, *img.shape[2:]).mean(axis=(1, 3)).astype(np.float32)
-    if vignetting > 0:
-        vv, uu = np.mgrid[0:camera.height, 0:camera.width]
-        r2 = ((uu - camera.cx) ** 2 + (vv - camera.cy) ** 2) / (camera.cx ** 2 + camera.cy ** 2)
-        gain = (1.0 - vignetting * r2).astype(np.float32)
-        img = img * (gain[..., None] if img.ndim == 3 else gain)
-    if blur_sigma_px > 0:
-        img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
-    if motion_blur_px > 0:
-        img = cv2.filter2D(img, -1, motion_blur_kernel(motion_blur_px, motion_blur_angle_deg))
-    if noise_sigma > 0:
-        rng = rng if rng is not None else np.random.default_rng()
-        img = img + rng.normal(0.0, noise_sigma, img.shape).astype(np.float32)
-
-    centre = (slice(s // 2, None, s), slice(s // 2, None, s)) if s % 2 == 1 else None
-    if s == 1:
-        mask = inside
-    elif centre is not None:
-        mask = inside[centre]
-    else:  # even supersampling has no sample at the pixel centre: require all samples inside
-        mask = inside.reshape(camera.height, s, camera.width, s).all(axis=(1, 3))
+    img = _sensor_effects(img, camera, vignetting, blur_sigma_px, motion_blur_px, motion_blur_angle_deg,
+                          noise_sigma, rng)
+    mask = _pixel_mask(inside, camera, s)
     ground = None
     if return_ground:
         rays_c = _pixel_rays(camera, 1) @ r_frame_from_cam.T

@@ -26,7 +26,6 @@ ALLOWED: dict[str, str] = {
     "crps/silhouette.py::SilhouetteDetector._measure": _NOT_YET,
     "datasets/fusion_scenario.py": _NOT_YET,
     "datasets/fusion_scenario.py::survey_scenario": _NOT_YET,
-    "datasets/render.py::render_ground": _NOT_YET,
     "datasets/sim/server.py": _NOT_YET,
     "datasets/sim/server.py::VehicleServer._execute": _NOT_YET,
     "datasets/sim/vehicle.py": _NOT_YET,
