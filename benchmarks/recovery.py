@@ -163,7 +163,8 @@ def judge(records: list[dict], runs_wanted: int) -> tuple[list[tuple[str, bool, 
     # a missing score (NaN: no fused fix at all, nothing recorded) counts as a miss
     goals = [
         (f">= {GOAL_HOME_SHARE:.0%} of runs land <= {GOAL_HOME_M:.0f} m from home",
-         home >= math.ceil(GOAL_HOME_SHARE * n), f"{home} of {n}"),
+         home >= math.ceil(GOAL_HOME_SHARE * n),
+         f"{home} of {n}; the healthy-GNSS RTL of the same runs: {int(np.sum(healthy <= GOAL_HOME_M))} of {n}"),
         (f"median landing error <= {GOAL_MEDIAN_RATIO}x the healthy-GNSS RTL's", ratio <= GOAL_MEDIAN_RATIO,
          f"{med:.2f} m vs {med_h:.2f} m = {ratio:.2f}x"),
         (f"loss -> first fused fix <= {GOAL_FIRST_FIX_S:.0f} s in every run", bool(np.all(first <= GOAL_FIRST_FIX_S)),
