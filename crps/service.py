@@ -44,6 +44,18 @@ BACKOFF_S = (0.5, 5.0)      # first and longest wait between MAVLink connection 
 GNSS_OK_FIX_TYPE = 3
 
 
+
+def fusion_config(roster: tuple[str, ...] | None, lag_s: float) -> FusionConfig:
+    """The node's fusion settings: ``roster`` the trusted observers; a relative source is silent, and no
+    longer among an estimate's sources, only when nothing came for the engine's usual time-out AFTER the
+    lag. Peers' camera observations reach the node a frame's pipeline late (seconds on a loaded companion)
+    and are still fused while inside the lag; the plain 2 s time-outs called such a helper silent between
+    two of its frames and kept it on 5 s of probation, unfused."""
+    base = FusionConfig()
+    return FusionConfig(roster=tuple(roster or ()), relative_timeout_s=float(lag_s) + base.relative_timeout_s,
+                        contributing_window_s=float(lag_s) + base.contributing_window_s)
+
+
 @dataclass(frozen=True)
 class ServiceConfig:
     """Everything ``skyfix serve`` is told; see ``skyfix serve --help`` for each field."""
@@ -249,7 +261,7 @@ class Service:
             if origin is None:
                 return
             # the swarm's roster is the fusion's roster of trusted observers
-            config = FusionConfig(roster=self.cfg.roster) if self.cfg.roster else None
+            config = fusion_config(self.cfg.roster, self.cfg.lag_s)
             self.node = Node(self.cfg.drone_id, origin, lag_s=self.cfg.lag_s, config=config,
                              make_sink=self.outputs.fusion_sink)
             log.info("fusion origin %.7f, %.7f, %.2f m", *origin)
