@@ -72,8 +72,9 @@ def euler_zyx_from_r_ned_from_frd(r: np.ndarray) -> tuple[float, float, float]:
         >>> [round(a, 9) for a in euler_zyx_from_r_ned_from_frd(r_ned_from_frd(200.0, -5.0, 10.0))]
         [-160.0, -5.0, 10.0]
     """
-    r = np.asarray(r, dtype=float)
-    pitch = np.degrees(np.arcsin(np.clip(-r[2, 0], -1.0, 1.0)))
-    yaw = np.degrees(np.arctan2(r[1, 0], r[0, 0]))
-    roll = np.degrees(np.arctan2(r[2, 1], r[2, 2]))
-    return float((yaw + 180.0) % 360.0 - 180.0), float(pitch), float(roll)
+    (r10, r00), (r20, r21, r22) = (float(r[1][0]), float(r[0][0])), (float(v) for v in r[2])
+    # math on five scalars: numpy's per-call overhead is 5x the work here (a hot path of tags)
+    pitch = math.degrees(math.asin(min(max(-r20, -1.0), 1.0)))
+    yaw = math.degrees(math.atan2(r10, r00))
+    roll = math.degrees(math.atan2(r21, r22))
+    return (yaw + 180.0) % 360.0 - 180.0, pitch, roll
