@@ -72,32 +72,11 @@ def locate_tiles(image, field: TagField, camera: Camera, *, prior: AttitudePrior
     # Per-tag tolerance on the pose residual: a quarter of the tile pitch, in pixels. A tag
     # read in the wrong orientation is off by a whole pitch and drops out here.
     tol2_px2 = (0.25 * field.geometry.pitch_m / field.geometry.tile_m * sizes_all) ** 2
+    sol, used = _planar_pose_of_agreeing_tags(ground, uv, keep, sigma_all, tol2_px2, camera, prior, mount,
+                                              min_tags)
     n_tiles = ground.shape[1]
-    flat = ground.reshape(-1, 2)
-    flat3 = np.zeros((len(flat), 3))
-    flat3[:, :2] = flat
-    uv_flat = uv.reshape(-1, 2)
-    for _ in range(4):
-        n_keep = int(np.count_nonzero(keep))
-        if n_keep < min_tags:
-            raise EstimationError(f"{int(known.sum())} decoded tags but only {n_keep} agree with the "
-                                  f"field layout; need {min_tags}")
-        used = keep
-        g_tag, uv_tag = ground[used].reshape(-1, 2), uv[used].reshape(-1, 2)
-        sigma_tag = np.repeat(sigma_all[used], n_tiles)
-        # The planar (IPPE) pose is well inside the tolerances below; the final solve refines.
-        sol = _solve(g_tag, uv_tag, camera.K, prior, mount, sigma_tag, iterations=0)
-        # Every decoded tag is re-judged by this pose: tags the vote missed come back, tags
-        # off by more than the tolerance (misreads) leave.
-        d = _project(sol.state, flat3, camera.K, mount) - uv_flat
-        with np.errstate(invalid="ignore"):
-            new_keep = np.einsum("ij,ij->i", d, d).reshape(-1, n_tiles).max(axis=1) < tol2_px2
-        if np.count_nonzero(new_keep) < min_tags:
-            raise EstimationError(f"{n_keep} decoded tags agreed on a place but only "
-                                  f"{int(new_keep.sum())} fit one camera pose; need {min_tags}")
-        if np.array_equal(new_keep, keep):
-            break
-        keep = new_keep
+    g_tag, uv_tag = ground[used].reshape(-1, 2), uv[used].reshape(-1, 2)
+    sigma_tag = np.repeat(sigma_all[used], n_tiles)
     n_used = int(np.count_nonzero(used))
     # In a frame of this field nearly every decoded tag fits; in a frame of another field
     # (or garbage) a few values can agree by chance, but never most of them.
@@ -119,6 +98,40 @@ def locate_tiles(image, field: TagField, camera: Camera, *, prior: AttitudePrior
     if sol.rms_px > 3.0:
         raise EstimationError(f"tag points fit the pose with {sol.rms_px:.1f} px RMS; expected < 3 px")
     return make_fix(sol, n_used, n_decoded - n_used, blur, BLUR_FLAG_PX, time_s, source_id)
+
+
+def _planar_pose_of_agreeing_tags(ground: np.ndarray, uv: np.ndarray, keep: np.ndarray, sigma_all: np.ndarray,
+                                  tol2_px2: np.ndarray, camera: Camera, prior: AttitudePrior | None,
+                                  mount: np.ndarray, min_tags: int):
+    """Planar pose of the ``keep`` tags (floor points ``(T, n, 2)``, ideal pixels ``(T, n, 2)``),
+    every decoded tag re-judged by it until the kept set stops changing (at most 4 rounds):
+    (the pose solution, the mask ``(T,)`` of the tags it was solved from)."""
+    n_tiles = ground.shape[1]
+    flat3 = np.zeros((ground.shape[0] * n_tiles, 3))
+    flat3[:, :2] = ground.reshape(-1, 2)
+    uv_flat = uv.reshape(-1, 2)
+    for _ in range(4):
+        n_keep = int(np.count_nonzero(keep))
+        if n_keep < min_tags:
+            raise EstimationError(f"{len(keep)} decoded tags but only {n_keep} agree with the "
+                                  f"field layout; need {min_tags}")
+        used = keep
+        sigma_tag = np.repeat(sigma_all[used], n_tiles)
+        # The planar (IPPE) pose is well inside the tolerances below; the final solve refines.
+        sol = _solve(ground[used].reshape(-1, 2), uv[used].reshape(-1, 2), camera.K, prior, mount, sigma_tag,
+                     iterations=0)
+        # Every decoded tag is re-judged by this pose: tags the vote missed come back, tags
+        # off by more than the tolerance (misreads) leave.
+        d = _project(sol.state, flat3, camera.K, mount) - uv_flat
+        with np.errstate(invalid="ignore"):
+            new_keep = np.einsum("ij,ij->i", d, d).reshape(-1, n_tiles).max(axis=1) < tol2_px2
+        if np.count_nonzero(new_keep) < min_tags:
+            raise EstimationError(f"{n_keep} decoded tags agreed on a place but only "
+                                  f"{int(new_keep.sum())} fit one camera pose; need {min_tags}")
+        if np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    return sol, used
 
 
 def _guided_tiles(det: TileDetections, field: TagField, camera: Camera, state: np.ndarray,

@@ -31,7 +31,6 @@ ALLOWED: dict[str, str] = {
     "datasets/sim/vehicle.py": _NOT_YET,
     "drivers/vehicle.py": _NOT_YET,
     "mapping/cli.py::register": _NOT_YET,
-    "tags/locate.py::locate_tiles": _NOT_YET,
 }
 
 
