@@ -141,7 +141,10 @@ class _Worker:
                 self.tables[key] = self.spec.undistortion(width, height)
             return self.tables[key]
 
-    def decode(self, src: Path) -> tuple[bytes, np.ndarray]:
+    def decode(self, src: Path, colorspace: str = "BGRX") -> tuple[bytes, np.ndarray]:
+        """The photo's bytes and its pixels, ``BGRX`` (H, W, 4) by default: OpenCV remaps
+        4-channel pixels ~1.7x faster than 3-channel ones, and libjpeg-turbo writes and
+        reads the padding byte at no cost."""
         data = src.read_bytes()
         if not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
             raise DataError(f"{src}: corrupt JPEG (truncated: no end-of-image marker)")
@@ -149,7 +152,7 @@ class _Worker:
         # libjpeg-turbo through simplejpeg in strict mode: damaged data raises with libjpeg's
         # own words instead of being printed on stderr and decoded into grey blocks (OpenCV).
         try:
-            image = simplejpeg.decode_jpeg(data, colorspace="BGR", strict=True)
+            image = simplejpeg.decode_jpeg(data, colorspace=colorspace, strict=True)
         except ValueError as exc:
             raise DataError(f"{src}: corrupt JPEG ({exc})") from None
         return data, image
@@ -175,7 +178,8 @@ class _Worker:
     def finish(self, src: Path, dst: Path, data: bytes, corrected: np.ndarray, tables: Undistortion) -> PhotoResult:
         quality = self.spec.jpeg_quality or jpeg_quality(data) or 95
         sampling = simplejpeg.decode_jpeg_header(data)[3]  # the photo's own chroma subsampling
-        encoded = simplejpeg.encode_jpeg(np.ascontiguousarray(corrected), quality, colorspace="BGR",
+        encoded = simplejpeg.encode_jpeg(np.ascontiguousarray(corrected), quality,
+                                         colorspace="BGRX" if corrected.shape[2] == 4 else "BGR",
                                          colorsubsampling=sampling if sampling in _SUBSAMPLING else "444")
         out = tables.output
         blob = transfer_metadata(data, encoded, focal_scale=tables.focal_scale,
@@ -226,7 +230,7 @@ def _torch_results(worker: _Worker, jobs: list[tuple[Path, Path]], device: str |
         decoded, pending = [], []
         for src, dst in jobs[start:start + batch_size]:
             try:
-                decoded.append((src, dst, *worker.decode(src)))
+                decoded.append((src, dst, *worker.decode(src, "BGR")))
             except (SkyfixError, OSError, cv2.error) as exc:
                 pending.append(PhotoResult(str(src), None, reason(exc, src)))
         by_size: dict[tuple[int, int], list] = {}

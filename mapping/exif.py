@@ -214,6 +214,97 @@ def _rational(value: float) -> tuple[int, int]:
     return frac.numerator, frac.denominator
 
 
+_TIFF_TYPE_BYTES = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 6: 1, 7: 1, 8: 2, 9: 4, 10: 8, 11: 4, 12: 8}
+
+
+def _ifd(tiff: bytearray, offset: int, order: str) -> tuple[dict[int, tuple[int, int, int]], int]:
+    """A TIFF IFD at ``offset``: tag -> (type, count, value position), and the position of
+    its next-IFD pointer."""
+    n = int.from_bytes(tiff[offset:offset + 2], order)
+    entries = {}
+    for k in range(n):
+        e = offset + 2 + 12 * k
+        tag, kind = int.from_bytes(tiff[e:e + 2], order), int.from_bytes(tiff[e + 2:e + 4], order)
+        count = int.from_bytes(tiff[e + 4:e + 8], order)
+        inline = _TIFF_TYPE_BYTES.get(kind, 1) * count <= 4
+        entries[tag] = (kind, count, e + 8 if inline else 6 + int.from_bytes(tiff[e + 8:e + 12], order))
+    return entries, offset + 2 + 12 * n
+
+
+def _patched_exif(payload: bytes, focal_scale: float, width: int, height: int) -> bytes | None:
+    """``payload`` (the APP1 segment's "Exif" header and TIFF block) with the focal length,
+    35 mm equivalent and image size rewritten in place and the thumbnail IFD unlinked; None when a tag it must change
+    is missing or not a plain number. piexif's load + dump does the same in ~4 ms per
+    photo (a deep copy of every tag), more than the JPEG encoding in ``skyfix lens``."""
+    try:
+        tiff = bytearray(payload)  # offsets below are from the TIFF header at byte 6
+        order = {b"II": "little", b"MM": "big"}[bytes(tiff[6:8])]
+        zeroth, next_ptr = _ifd(tiff, 6 + int.from_bytes(tiff[10:14], order), order)
+        exif, _ = _ifd(tiff, 6 + int.from_bytes(tiff[zeroth[0x8769][2]:zeroth[0x8769][2] + 4], order), order)
+
+        def put_int(entry, value: int) -> None:
+            kind, count, pos = entry
+            size = {3: 2, 4: 4}[kind]
+            if count != 1 or value >= 1 << (8 * size):
+                raise ValueError("not a single SHORT/LONG that holds the value")
+            tiff[pos:pos + size] = int(value).to_bytes(size, order)
+
+        def get_int(tag: int, ifd: dict) -> int | None:
+            if tag not in ifd or ifd[tag][0] not in (3, 4):
+                return None
+            kind, _, pos = ifd[tag]
+            return int.from_bytes(tiff[pos:pos + (2 if kind == 3 else 4)], order)
+
+        old_w = get_int(0xA002, exif) or get_int(0x0100, zeroth) or width
+        old_h = get_int(0xA003, exif) or get_int(0x0101, zeroth) or height
+        put_int(exif[0xA002], width)
+        put_int(exif[0xA003], height)
+        for tag, value in ((0x0100, width), (0x0101, height)):
+            if tag in zeroth:
+                put_int(zeroth[tag], value)
+        if 0x920A in exif:
+            kind, _, pos = exif[0x920A]
+            num, den = int.from_bytes(tiff[pos:pos + 4], order), int.from_bytes(tiff[pos + 4:pos + 8], order)
+            if kind != 5 or not den:
+                return None
+            num, den = _rational(num / den * focal_scale)
+            tiff[pos:pos + 8] = num.to_bytes(4, order) + den.to_bytes(4, order)
+        f35 = get_int(0xA405, exif)
+        if f35:
+            put_int(exif[0xA405], max(1, round(f35 * focal_scale * math.hypot(old_w, old_h) / math.hypot(width, height))))
+        tiff[next_ptr:next_ptr + 4] = bytes(4)  # the stale thumbnail's IFD is no longer linked
+        return bytes(tiff)
+    except (KeyError, ValueError, IndexError):
+        return None
+
+
+def _redumped_exif(payload: bytes, focal_scale: float, width: int, height: int) -> bytes:
+    """The same update through piexif (tags added where missing)."""
+    import piexif
+
+    exif = piexif.load(payload)
+    ex, zeroth = exif.setdefault("Exif", {}), exif.setdefault("0th", {})
+    old_w = ex.get(piexif.ExifIFD.PixelXDimension) or zeroth.get(piexif.ImageIFD.ImageWidth) or width
+    old_h = ex.get(piexif.ExifIFD.PixelYDimension) or zeroth.get(piexif.ImageIFD.ImageLength) or height
+    focal = _ratio(ex.get(piexif.ExifIFD.FocalLength))
+    if focal:
+        ex[piexif.ExifIFD.FocalLength] = _rational(focal * focal_scale)
+    f35 = ex.get(piexif.ExifIFD.FocalLengthIn35mmFilm)
+    if f35:
+        diag_ratio = math.hypot(old_w, old_h) / math.hypot(width, height)
+        ex[piexif.ExifIFD.FocalLengthIn35mmFilm] = max(1, round(f35 * focal_scale * diag_ratio))
+    ex[piexif.ExifIFD.PixelXDimension] = int(width)
+    ex[piexif.ExifIFD.PixelYDimension] = int(height)
+    for tag in (piexif.ImageIFD.ImageWidth, piexif.ImageIFD.ImageLength):
+        zeroth.pop(tag, None)
+    exif["1st"], exif["thumbnail"] = {}, None
+    try:
+        return piexif.dump(exif)
+    except Exception:  # some maker notes do not survive a re-dump; keep the rest
+        ex.pop(piexif.ExifIFD.MakerNote, None)
+        return piexif.dump(exif)
+
+
 def transfer_metadata(original: bytes, corrected: bytes, *, focal_scale: float, width: int, height: int,
                       source: str = "photo") -> bytes:
     """``corrected`` (a JPEG from any encoder) with ``original``'s APPn segments, EXIF updated.
@@ -221,8 +312,6 @@ def transfer_metadata(original: bytes, corrected: bytes, *, focal_scale: float, 
     ``focal_scale`` multiplies FocalLength; FocalLengthIn35mmFilm is recomputed for the new
     focal length and image diagonal; the image size tags become ``width x height``.
     """
-    import piexif
-
     if not corrected.startswith(_SOI):
         raise DataError("corrected image is not a JPEG stream")
     segments = _segments(original, source)
@@ -233,27 +322,9 @@ def transfer_metadata(original: bytes, corrected: bytes, *, focal_scale: float, 
     new_segments = []
     for seg in segments:
         if seg[1] == 0xE1 and seg[4:10] == b"Exif\x00\x00":
-            exif = piexif.load(seg[4:])
-            ex, zeroth = exif.setdefault("Exif", {}), exif.setdefault("0th", {})
-            old_w = ex.get(piexif.ExifIFD.PixelXDimension) or zeroth.get(piexif.ImageIFD.ImageWidth) or width
-            old_h = ex.get(piexif.ExifIFD.PixelYDimension) or zeroth.get(piexif.ImageIFD.ImageLength) or height
-            focal = _ratio(ex.get(piexif.ExifIFD.FocalLength))
-            if focal:
-                ex[piexif.ExifIFD.FocalLength] = _rational(focal * focal_scale)
-            f35 = ex.get(piexif.ExifIFD.FocalLengthIn35mmFilm)
-            if f35:
-                diag_ratio = math.hypot(old_w, old_h) / math.hypot(width, height)
-                ex[piexif.ExifIFD.FocalLengthIn35mmFilm] = max(1, round(f35 * focal_scale * diag_ratio))
-            ex[piexif.ExifIFD.PixelXDimension] = int(width)
-            ex[piexif.ExifIFD.PixelYDimension] = int(height)
-            for tag in (piexif.ImageIFD.ImageWidth, piexif.ImageIFD.ImageLength):
-                zeroth.pop(tag, None)
-            exif["1st"], exif["thumbnail"] = {}, None
-            try:
-                payload = piexif.dump(exif)
-            except Exception:  # some maker notes do not survive a re-dump; keep the rest
-                ex.pop(piexif.ExifIFD.MakerNote, None)
-                payload = piexif.dump(exif)
+            payload = _patched_exif(seg[4:], focal_scale, width, height)
+            if payload is None:  # a layout the in-place patch does not cover
+                payload = _redumped_exif(seg[4:], focal_scale, width, height)
             seg = b"\xff\xe1" + (len(payload) + 2).to_bytes(2, "big") + payload
         new_segments.append(seg)
     return _SOI + b"".join(new_segments) + body

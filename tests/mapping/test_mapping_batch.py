@@ -136,3 +136,32 @@ def test_jpeg_quality_estimate_and_default_keeps_input_quality(tmp_path):
     assert len(report.written) == 1
     with pytest.raises(InputError, match="jpeg_quality"):
         CorrectionSpec(barrel=BARREL, jpeg_quality=101)
+
+
+@pytest.mark.parametrize("with_size_tags", [True, False])
+def test_exif_transfer_in_place_and_by_redump_agree(with_size_tags):
+    # The in-place patch (size tags present) and piexif's re-dump (PixelXDimension missing,
+    # so it must be added) give the same tags: focal 4.3 mm x 1.25, the 35 mm equivalent
+    # 24 mm x 1.25 x (old diagonal 1000 / new diagonal 500) = 60, the new size, no thumbnail.
+    from skyfix.mapping.exif import transfer_metadata
+
+    exif_ifd = {piexif.ExifIFD.FocalLength: (43, 10), piexif.ExifIFD.FocalLengthIn35mmFilm: 24}
+    if with_size_tags:
+        exif_ifd.update({piexif.ExifIFD.PixelXDimension: 800, piexif.ExifIFD.PixelYDimension: 600})
+    zeroth = {piexif.ImageIFD.Make: b"Canon", piexif.ImageIFD.ImageWidth: 800, piexif.ImageIFD.ImageLength: 600}
+    gps = {piexif.GPSIFD.GPSAltitude: (2821, 10)}
+    import io
+
+    buffer = io.BytesIO()
+    piexif.insert(piexif.dump({"0th": zeroth, "Exif": exif_ifd, "GPS": gps}),
+                  cv2.imencode(".jpg", np.zeros((600, 800), np.uint8))[1].tobytes(), buffer)
+    raw = buffer.getvalue()
+    out = transfer_metadata(raw, cv2.imencode(".jpg", np.zeros((300, 400), np.uint8))[1].tobytes(),
+                            focal_scale=1.25, width=400, height=300)
+    tags = piexif.load(out)
+    num, den = tags["Exif"][piexif.ExifIFD.FocalLength]
+    assert num / den == 4.3 * 1.25
+    assert tags["Exif"][piexif.ExifIFD.FocalLengthIn35mmFilm] == 60
+    assert (tags["Exif"][piexif.ExifIFD.PixelXDimension], tags["Exif"][piexif.ExifIFD.PixelYDimension]) == (400, 300)
+    assert tags["GPS"] == gps and tags["0th"][piexif.ImageIFD.Make] == b"Canon" and not tags["1st"]
+    assert cv2.imdecode(np.frombuffer(out, np.uint8), cv2.IMREAD_GRAYSCALE).shape == (300, 400)
