@@ -20,7 +20,7 @@ def test_unreachable_url_gives_link_error(udp_port):
     t0 = time.monotonic()
     with pytest.raises(LinkError, match="no HEARTBEAT") as err:
         Vehicle.connect(f"udpout:127.0.0.1:{udp_port}", timeout_s=0.5)
-    assert "udpout:127.0.0.1" in str(err.value) and time.monotonic() - t0 < 2.0
+    assert "udpout:127.0.0.1" in str(err.value) and time.monotonic() - t0 < 5.0  # 0.5 s asked; slack for load
     with pytest.raises(LinkError, match="cannot open"):
         Vehicle.connect(f"tcp:127.0.0.1:{udp_port}", timeout_s=0.5)  # nobody listens: refused
     with pytest.raises(LinkError, match="cannot open"):

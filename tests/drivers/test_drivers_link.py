@@ -26,7 +26,7 @@ def test_heartbeat_loss_is_surfaced_and_link_recovers():
         # checked every 50 ms (slack for a loaded CI machine)
         with pytest.raises(LinkError, match="lost the heartbeat"):
             v.wait_until(lambda s: False, 5.0, what="never")
-        assert time.monotonic() - t0 < 1.0 + 0.5 + 1.0
+        assert time.monotonic() - t0 < 1.0 + 0.5 + 2.5
         assert any(e.kind == "link_lost" for e in v.events)
         # the autopilot comes back on the same port (reboot): state flows again, streams re-requested
         sim2 = Simulator(SimulatorConfig(vehicles=1, speed=2.0, bind_ports=[port])).start()
