@@ -33,6 +33,13 @@ log = logging.getLogger(__name__)
 
 #: Velocity 1-sigma of GLOBAL_POSITION_INT's velocity, m/s (an EKF's output, not raw Doppler).
 TELEMETRY_VELOCITY_SIGMA_MPS = 0.2
+#: While the autopilot flies on the position skyfix injects, an EKF that takes no other velocity source
+#: (ArduPilot with EK3_SRC2_VELXY 0) follows the injected positions about ECHO_CORRELATION_S behind, so
+#: its velocity echoes the injected fix's own error rate (ECHO_VELOCITY_SIGMA_MPS; seen on ArduPilot SITL:
+#: 1-2.5 m/s off the truth while the fix ran ahead). Taken as independent at 0.2 m/s it outvoted the
+#: helpers' observations and the drone ran away.
+ECHO_VELOCITY_SIGMA_MPS = 1.0
+ECHO_CORRELATION_S = 1.0
 
 
 class LogSink(Protocol):
@@ -73,19 +80,24 @@ class Node:
 
     # -- inputs ---------------------------------------------------------------------------
     def add_telemetry(self, drone_id: str, state, time_of: Callable[[object], float], *,
-                      use_gnss: bool = True) -> None:
+                      use_gnss: bool = True, velocity_sigma_mps: float | None = None) -> None:
         """Velocity and (new) GNSS of ``drone_id`` from a drivers ``VehicleState`` snapshot.
 
         ``time_of(message)`` maps a telemetry record to the node's clock. ``use_gnss`` False
         while skyfix injects this drone's position: the receiver report would only echo it.
+        ``velocity_sigma_mps``: the velocity's 1-sigma error when it is not the EKF's usual one (None),
+        e.g. the echo of the injected fix (:data:`ECHO_VELOCITY_SIGMA_MPS`); an error correlated over
+        :data:`ECHO_CORRELATION_S` is spread over the engine's state steps, which it takes as independent.
         Heights: the fix's ellipsoidal height (``GpsStatus.alt_ellipsoid_m``); sigmas: the
         receiver's h_acc/v_acc in metres, else HDOP (unitless) for the engine's UERE model.
         """
         vel = state.velocity
         if vel is not None:
+            sigma = TELEMETRY_VELOCITY_SIGMA_MPS
+            if velocity_sigma_mps is not None:
+                sigma = velocity_sigma_mps * math.sqrt(ECHO_CORRELATION_S / self.engine.config.state_dt_s)
             self._call("velocity", drone_id=drone_id, time_s=time_of(vel),
-                       vel_enu_mps=[vel.east_mps, vel.north_mps, -vel.down_mps],
-                       sigma_mps=TELEMETRY_VELOCITY_SIGMA_MPS)
+                       vel_enu_mps=[vel.east_mps, vel.north_mps, -vel.down_mps], sigma_mps=sigma)
         gps = state.gps
         if gps is None or not use_gnss or gps.time_s == self._gps_seen.get(drone_id):
             return

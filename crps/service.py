@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from skyfix.crps import messages as M
-from skyfix.crps.node import Node
+from skyfix.crps.node import ECHO_VELOCITY_SIGMA_MPS, Node
 from skyfix.crps.outputs import Outputs
 from skyfix.crps.swarm import PeerTable
 from skyfix.crps.transport import Endpoints, Transport, ZenohTransport, split_key
@@ -72,6 +72,10 @@ class ServiceConfig:
     estimate_hz: float = 10.0
     inject_hz: float = 5.0  # GPS_INPUT rate, per wall second (ArduPilot calls a GPS unhealthy beyond ~245 ms gaps)
     lag_s: float = 2.0      # fusion's smoothing window, s of the clock (late camera observations within it count)
+    # 1-sigma error (m/s) of the autopilot's velocity while it flies on the injected fix: its EKF, with no other
+    # velocity source, echoes that fix (node.ECHO_VELOCITY_SIGMA_MPS); None: its velocity does not depend on the
+    # injected position (optical flow, or a simulator reporting its true velocity)
+    injected_velocity_sigma_mps: float | None = ECHO_VELOCITY_SIGMA_MPS
     heartbeat_hz: float = 2.0
     inject: bool = False
     safety: object | None = None  # a drivers SafetyGate installed on the vehicle at every (re)connection
@@ -267,7 +271,8 @@ class Service:
             log.info("fusion origin %.7f, %.7f, %.2f m", *origin)
         if state is not None and state.link_ok:
             self.node.add_telemetry(self.cfg.drone_id, state, self.cfg.time_of or (lambda m: m.time_s),
-                                    use_gnss=self.injector is None or not self._gnss_echo)
+                                    use_gnss=self.injector is None or not self._gnss_echo,
+                                    velocity_sigma_mps=None if self.injector is None else self.cfg.injected_velocity_sigma_mps)
         estimates = self.node.update((self.cfg.drone_id,))  # peers publish their own
         now = self.clock()
         fix = self.node.fix(self.cfg.drone_id, now)

@@ -60,3 +60,40 @@ def test_late_observations_inside_the_lag_keep_the_helper_live_and_contributing(
     # the engine's defaults (2 s) call the same stream silent: not fused while on probation
     default = _fly(FusionConfig(roster=("a", "h")))
     assert sum(state is not HealthState.OK or not used for state, used in default) > len(default) // 2
+
+
+def test_velocity_of_an_autopilot_flying_on_the_injected_fix_is_fused_with_the_echo_sigma():
+    """While the autopilot flies on skyfix's injected fix its velocity echoes that fix: fused with the echo's
+    error spread over its correlation time (the engine takes each state step as independent), else the EKF's."""
+    from skyfix.crps.node import (
+        ECHO_CORRELATION_S,
+        ECHO_VELOCITY_SIGMA_MPS,
+        TELEMETRY_VELOCITY_SIGMA_MPS,
+        Node,
+    )
+    from skyfix.drivers.state import VehicleState, Velocity
+
+    class Sink:
+        def __init__(self):
+            self.sigmas = []
+
+        def record(self, op, args=None):
+            if op == "velocity":
+                self.sigmas.append(float(np.max(args["sigma_mps"])))
+
+        def truth(self, *args):
+            pass
+
+        def close(self):
+            pass
+
+    sink = Sink()
+    node = Node("a", (LAT0, LON0, ALT0), make_sink=lambda _header: sink)
+    state = VehicleState(1, velocity=Velocity(1.0, 0.0, 0.0, 0.0))
+    node.add_telemetry("a", state, lambda m: m.time_s)
+    node.add_telemetry("a", state, lambda m: 0.2, velocity_sigma_mps=ECHO_VELOCITY_SIGMA_MPS)
+    node.close()
+    step_s = node.engine.config.state_dt_s
+    assert sink.sigmas[0] == TELEMETRY_VELOCITY_SIGMA_MPS
+    assert sink.sigmas[1] == pytest.approx(ECHO_VELOCITY_SIGMA_MPS * np.sqrt(ECHO_CORRELATION_S / step_s))
+    assert sink.sigmas[1] > 5 * TELEMETRY_VELOCITY_SIGMA_MPS  # the helpers' observations, not the echo, place it
