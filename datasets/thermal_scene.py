@@ -75,8 +75,7 @@ def random_fires(n: int, rng: np.random.Generator, *, half_extent_m: float = 20.
                  growth_m_per_s: float = 0.0, start_s: float = 0.0, smoke_opacity: float = 0.0) -> list[FireSpec]:
     """``n`` fires uniformly within +-``half_extent_m`` of the scene origin, radius and peak
     temperature uniform in the given (low, high) ranges, all starting at ``start_s``."""
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
-        raise InputError(f"n must be an integer >= 0, got {n!r}")
+    n = validate.integer_in("n", n, 0)
     half = validate.positive_scalar("half_extent_m", half_extent_m)
     return [FireSpec(float(rng.uniform(-half, half)), float(rng.uniform(-half, half)),
                      float(rng.uniform(*radius_m)), float(rng.uniform(*peak_c)), growth_m_per_s=growth_m_per_s,

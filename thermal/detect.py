@@ -175,9 +175,7 @@ def detect_hotspots(frame: np.ndarray, *, threshold: float | None = None, palett
     frame.
     """
     frame = _check_frame(frame)
-    if isinstance(min_area_px, bool) or not isinstance(min_area_px, (int, np.integer)) or min_area_px < 2:
-        raise InputError(f"min_area_px must be an integer >= 2 (single pixels are never fires), "
-                         f"got {min_area_px!r}")
+    min_area_px = validate.integer_in("min_area_px", min_area_px, 2)  # a single pixel is never a fire
     kpc = validate.positive_scalar("kelvin_per_count", kelvin_per_count)
     work, thr, units, scale = _to_work(frame, palette, threshold, kpc)
     if units == "level":

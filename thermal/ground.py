@@ -32,10 +32,7 @@ class FlatGround:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "alt_m", validate.finite_scalar("FlatGround.alt_m", self.alt_m))
-        sigma = validate.finite_scalar("FlatGround.sigma_m", self.sigma_m)
-        if sigma < 0:
-            raise InputError(f"FlatGround.sigma_m must be >= 0, got {sigma}")
-        object.__setattr__(self, "sigma_m", sigma)
+        object.__setattr__(self, "sigma_m", validate.nonnegative_scalar("FlatGround.sigma_m", self.sigma_m))
 
     @classmethod
     def from_amsl(cls, alt_amsl_m: float, *, geoid_undulation_m: float, sigma_m: float = 0.0) -> FlatGround:

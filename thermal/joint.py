@@ -69,9 +69,7 @@ class PoseErrorPrior:
 
     def __post_init__(self) -> None:
         for name in self.__dataclass_fields__:
-            v = validate.finite_scalar(f"PoseErrorPrior.{name}", getattr(self, name))
-            if v <= 0:
-                raise InputError(f"PoseErrorPrior.{name} must be > 0, got {v}")
+            validate.positive_scalar(f"PoseErrorPrior.{name}", getattr(self, name))
 
 
 @dataclass(frozen=True)

@@ -74,10 +74,7 @@ class PoseUncertainty:
             value = getattr(self, name)
             if value is None:
                 continue
-            v = validate.finite_scalar(f"PoseUncertainty.{name}", value)
-            if v < 0:
-                raise InputError(f"PoseUncertainty.{name} must be >= 0, got {v}")
-            object.__setattr__(self, name, v)
+            object.__setattr__(self, name, validate.nonnegative_scalar(f"PoseUncertainty.{name}", value))
 
     @property
     def vertical_m(self) -> float:
