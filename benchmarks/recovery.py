@@ -141,7 +141,7 @@ def print_run(r: dict) -> None:
           f"max recovery error {_f(rec['max_recovery_error_h_m'])} m, "
           f"closest approach {_f(rec['min_separation_m'], '.1f')} m, "
           f"target detected in {_f(None if rec['detection_share'] is None else 100 * rec['detection_share'], '.0f')} % "
-          f"of helper frames with it in view, fused-fix NEES {_f(rec['figures'].get('recovery_mean_nees_3dof'))} "
+          f"of helper frames searched with it in view, fused-fix NEES {_f(rec['figures'].get('recovery_mean_nees_3dof'))} "
           f"(3 = honest), {_f(rec['figures'].get('helper_frames_dropped'), '.0f')} frame slots skipped; {rec['outcome']} "
           f"(wall {rec['wall_s']:.0f} + {base['wall_s']:.0f} s)", flush=True)
 

@@ -79,7 +79,8 @@ class HelperEye:
     def __init__(self, camera, drone_id: str, own_fix: Callable[[float], GeoFix | None],
                  clock: Callable[[], float], cfg: EyeConfig | None = None,
                  on_frame: Callable[[object, str, bool], None] | None = None, *, run: bool = True) -> None:
-        """``on_frame(frame, target_id, detected)`` after every processed frame (a harness scores with it);
+        """``on_frame(frame, target_id, detected)`` after every processed frame (a harness scores with it;
+        ``detected`` None: the frame was not searched, e.g. the target below the horizon or no own pose);
         ``run`` False: no worker thread (call :meth:`observe_frame` yourself)."""
         self.camera, self.drone_id, self.own_fix, self.clock = camera, str(drone_id), own_fix, clock
         self.on_frame = on_frame
@@ -95,6 +96,7 @@ class HelperEye:
         self._tracker: Tracker | None = None
         self._tracker_camera: Camera | None = None
         self._fresh = False
+        self.last_searched = False  # whether observe_frame's last frame was searched for the target
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True, name=f"skyfix-eye-{drone_id}")
         if run:
@@ -158,7 +160,7 @@ class HelperEye:
             obs = self.observe_frame(frame, *target)
             self.frames.append((frame.t_s, target[0], obs is not None))
             if self.on_frame is not None:
-                self.on_frame(frame, target[0], obs is not None)
+                self.on_frame(frame, target[0], obs is not None if self.last_searched else None)
             if obs is None:
                 return
             self.latency_s.append(self.clock() - frame.t_s)
@@ -183,12 +185,14 @@ class HelperEye:
     def observe_frame(self, frame, target_id: str, prior: GeoFix) -> RelativeObservation | None:
         """The observation of ``target_id`` (last known at ``prior``) in ``frame``, or None when not found.
         Frames must come in time order (the tracker's state carries over)."""
+        self.last_searched = False
         posed = self._pose(frame)
         if posed is None:
             return None
         pose, own = posed
         if _elevation_deg(own, prior) < self.cfg.min_elevation_deg:
             return None  # the target against the ground: clutter a single silhouette cannot be told from
+        self.last_searched = True
         camera = frame.camera
         tracker = self._tracker  # only this (worker) thread replaces it
         if tracker is None or self._fresh or self._tracker_camera is not camera:

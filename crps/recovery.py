@@ -256,9 +256,11 @@ class _Run:
                 setup = HelpSetup(fault_response=cfg.fault_response, camera=cam, eye=eye,
                                   on_frame=self.recorder.frame_scorer(i, cam, self.target_key))
                 url, time_of = self.faults.mavlink_url(i, self.sim.url(j)), self.time_of
+            # the simulator reports its true velocity (+ noise), not an estimator's echo of the injected fix
+            echo = {} if j is None else {"injected_velocity_sigma_mps": None}
             self.cameras.append(cam)
             scfg = ServiceConfig(drone_id, url, Endpoints((), ()), self.key, roster=IDS, inject=True,
-                                 estimate_hz=5.0 * cfg.speed, inject_hz=5.0 * cfg.speed, help=setup,
+                                 estimate_hz=5.0 * cfg.speed, inject_hz=5.0 * cfg.speed, help=setup, **echo,
                                  lag_s=2.0 * max(1.0, cfg.speed / 1.5),  # a frame's wall latency x speed; longer costs CPU
                                  clock=self.clock, time_of=time_of,
                                  log_path=None if cfg.output is None else Path(cfg.output) / f"{drone_id}.mcap")
@@ -349,6 +351,8 @@ class _Run:
         figures = {**rec.figures(), **self.faults.figures()}
         lost = self.services[LOST]
         figures["forged_rejected"] = float(lost.codec.dropped.get("forged", 0))
+        # inputs the lost drone's fusion refused (mostly observations older than its lag: late under load)
+        figures["lost_inputs_refused"] = float(lost.node.n_refused) if lost.node is not None else math.nan
         if lost.help is not None:
             events = lost.help.agent.requester.protocol.events
             figures["helpers_replaced"] = float(sum(what.startswith("dropped") for _, what, _ in events))

@@ -26,7 +26,9 @@ class Recorder:
         self.sim, self.ids, self.lost = sim, ids, lost
         self.truth = truth or sim.truth
         self.rows: list[dict] = []
-        self.frames: list[tuple[int, float, str, bool, bool]] = []  # (helper index, t_s, target, detected, in view)
+        # (helper index, t_s, target, detected, in view, searched: False when the eye did not look, e.g. the
+        # target below the helper's horizon)
+        self.frames: list[tuple[int, float, str, bool, bool, bool]] = []
         self.home_enu: np.ndarray | None = None
         self.t_loss: float | None = None
         self._lock = threading.Lock()
@@ -39,11 +41,12 @@ class Recorder:
     def frame_scorer(self, index: int, camera, key_of):
         """``on_frame`` for helper ``index``'s eye: whether the target was in view (the camera's truth, where
         ``key_of(drone_id)`` names the target)."""
-        def score(frame, target_id: str, detected: bool) -> None:
+        def score(frame, target_id: str, detected: bool | None) -> None:
             truth = getattr(camera, "last_truth", None)
             in_view = truth is not None and target_id in self.ids and truth.in_view(key_of(target_id))
             with self._lock:
-                self.frames.append((index, float(frame.t_s), target_id, bool(detected), bool(in_view)))
+                self.frames.append((index, float(frame.t_s), target_id, bool(detected), bool(in_view),
+                                    detected is not None))
         return score
 
     def sample(self, services) -> None:
@@ -117,8 +120,9 @@ class Recorder:
         return next((r["t_s"] for r in self.rows if r["t_s"] >= back_s and "gnss" in r["sources"].split()), math.nan)
 
     def detection_share(self) -> float:
+        """Share of the frames searched with the target in view in which it was detected (NaN: none)."""
         with self._lock:
-            in_view = [f for f in self.frames if f[4]]
+            in_view = [f for f in self.frames if f[4] and f[5]]
         return float(np.mean([f[3] for f in in_view])) if in_view else math.nan
 
     def figures(self) -> dict[str, float]:
@@ -131,6 +135,7 @@ class Recorder:
                 if len(err) else math.nan,
                 "recovery_mean_nees_3dof": float(np.mean(nees)) if nees else math.nan,
                 "helper_frames": float(len(frames)), "helper_frames_in_view": float(sum(f[4] for f in frames)),
+                "helper_frames_searched_in_view": float(sum(f[4] and f[5] for f in frames)),
                 "helper_frames_detected": float(sum(f[3] for f in frames))}
 
 
