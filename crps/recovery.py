@@ -357,6 +357,10 @@ class _Run:
             events = lost.help.agent.requester.protocol.events
             figures["helpers_replaced"] = float(sum(what.startswith("dropped") for _, what, _ in events))
         figures["gnss_trusted_again_t_s"] = rec.gnss_trusted_again_s(figures["gnss_back_t_s"])
+        if self.faults.outage is not None:  # no GPS_INPUT reaches the autopilot then: the error is not flown on
+            start, end = self.faults.outage
+            around = rec.error_around(start, end + lost.cfg.lag_s)  # telemetry back into the fusion window
+            figures.update({f"mav_outage_{k}": v for k, v in around.items()})
         eyes = [s.help.eye for s in self.services if s.help is not None and s.help.eye is not None]
         figures["helper_frames_dropped"] = float(sum(e.frames_dropped for e in eyes))  # skipped, never queued
         latency = [x for e in eyes for x in e.latency_s]  # exposure -> observation ready, simulated s

@@ -105,6 +105,20 @@ class Recorder:
         err, _ = self._errors()
         return float(np.hypot(err[:, 0], err[:, 1]).max()) if len(err) else math.nan
 
+    def error_around(self, t0_s: float, t1_s: float) -> dict[str, float]:
+        """While recovering: the largest horizontal error outside [t0_s, t1_s] (m) and, inside it, the largest
+        error in units of the stated horizontal sigma (honesty while a window of inputs was missing)."""
+        rows, (err, _) = self._recovering(), self._errors()
+        if not rows:
+            return {"max_error_outside_h_m": math.nan, "max_error_inside_over_sigma": math.nan}
+        t = np.array([r["t_s"] for r in rows])
+        err_h = np.hypot(err[:, 0], err[:, 1])
+        sigma_h = np.array([r["fused_sigma_h_m"] for r in rows])
+        inside = (t >= t0_s) & (t <= t1_s)
+        return {"max_error_outside_h_m": float(err_h[~inside].max()) if (~inside).any() else math.nan,
+                "max_error_inside_over_sigma": float((err_h[inside] / sigma_h[inside]).max()) if inside.any()
+                else math.nan}
+
     def min_separation_m(self) -> float:
         if not self.rows:
             return math.nan
