@@ -334,8 +334,9 @@ class SitlClock:
     ``autopilot_time_s`` (the firmware's boot clock, s) plus an offset, the smallest
     ``clock()``-at-reception minus ``autopilot_time_s`` over the last ``window_s`` wall seconds (the
     least-delayed message bounds the link's delay; the window follows a drift of the two clocks, a
-    firmware short of CPU runs slower than its speed-up). A record without a stamp gets ``clock()``.
-    Stamping at processing instead puts a fix read 1 s late 10 m off at survey speed."""
+    firmware short of CPU runs slower than its speed-up). A record without a stamp gets ``clock()``, a
+    GNSS report without a fix its reception time (ArduPilot repeats the last fix's time in it). Stamping
+    at processing instead puts a fix read 1 s late 10 m off at survey speed."""
 
     def __init__(self, clock: Callable[[], float], speedup: float = 1.0, window_s: float = 5.0) -> None:
         self.clock = clock
@@ -351,6 +352,8 @@ class SitlClock:
             return now
         wall = time.time()  # drivers records carry their reception time on this clock (time_s)
         received = now - max(0.0, wall - float(record.time_s)) * self.speedup
+        if getattr(record, "fix_type", 3) < 2:  # a dead receiver's report: "no fix" is news now, not then
+            return received
         with self._lock:
             self._offsets.append((wall, received - t_ap))
             while self._offsets[0][0] < wall - self.window_s:

@@ -102,6 +102,9 @@ def test_sitl_clock_stamps_on_the_other_clock_by_the_least_delayed_message(monke
     wall[0], other[0] = 1001.5, 53.0
     assert clock(rec(21.0, 1001.2)) == pytest.approx(51.02, abs=1e-9)
     assert clock(SimpleNamespace(autopilot_time_s=float("nan"), time_s=wall[0])) == 53.0  # no stamp: now
+    # a receiver without a fix repeats its last fix's time: its report is stamped when it came (0.1 wall s ago)
+    assert clock(SimpleNamespace(autopilot_time_s=12.0, time_s=1001.4, fix_type=1)) == pytest.approx(52.8)
+    assert clock(SimpleNamespace(autopilot_time_s=21.0, time_s=1001.2, fix_type=3)) == pytest.approx(51.02)
     # the firmware fell 1 s behind (short of CPU): once the window has passed, the new offset rules
     wall[0], other[0] = 1010.0, 70.0
     assert clock(rec(39.0, 1010.0)) == pytest.approx(70.0, abs=1e-9)
