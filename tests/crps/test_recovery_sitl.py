@@ -24,14 +24,19 @@ HOME = (46.52, 6.63, 372.0, 0.0)  # the SITL drone's home: lat, lon (deg), alt A
 SPEED = 2.0
 
 
-@pytest.mark.xfail(strict=True, reason="issue 18 open: the helpers aim at the SITL drone (in view in 45 of 47 frames) "
-                   "but detect it in none, so no fused fix and it lands ~90 m away; the autopilot side alone "
-                   "passes (tests/drivers/test_drivers_sitl_lost.py)")
+@pytest.mark.xfail(strict=True, reason="issue 18 open: helpers now detect the SITL drone (80-95 % of in-view frames, "
+                   "first fused fix 4-6 s after the loss) and it starts home, but while it flies on the injected fix its "
+                   "EKF velocity echoes that fix (1-2.5 m/s off SIM_STATE), the requester's fusion keeps it as a slowly "
+                   "wandering bias it cannot learn (FusionConfig.bias_walk 0.01 m/s/sqrt s) and the helpers are known "
+                   "to it only by 2 Hz fixes: over home the truth drifted 10-15 m from the fix, it lands 40-50 m away; "
+                   "the autopilot side alone passes (tests/drivers/test_drivers_sitl_lost.py)")
 def test_sitl_lost_drone_returns_home_on_the_helpers_cameras():
     from skyfix.crps.recovery import RecoveryConfig, run_recovery
     from skyfix.drivers.injection import ARDUPILOT_INJECTED_GPS2_PARAMS
 
-    with sitl.SitlFleet(1, speedup=SPEED, homes=[HOME], params=ARDUPILOT_INJECTED_GPS2_PARAMS) as fleet:
+    # the simulated copters' 5 m/s survey and return speed (ArduPilot's own default is 10 m/s): the same flow
+    params = {**ARDUPILOT_INJECTED_GPS2_PARAMS, "WPNAV_SPEED": 500}
+    with sitl.SitlFleet(1, speedup=SPEED, homes=[HOME], params=params) as fleet:
         fleet[0].release_start_wait()  # the truth link (second port) may connect before the drone's service
         cfg = RecoveryConfig(seed=0, speed=SPEED, lost_vehicle_url=fleet[0].url,
                              lost_vehicle_truth_url=fleet[0].url_secondary, lost_vehicle_home=HOME[:3],
