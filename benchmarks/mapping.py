@@ -6,7 +6,9 @@ End-to-end time = wall time of both processes; peak memory = the larger peak RSS
 
 Goals (issues 7 and 19): >= 31/32 registered, mean reprojection error <= 1 px,
 georeference RMS residual against the photos' GPS <= 5 m, DSM cells measured by dense
-matching >= 95 % of the surveyed area (convex hull of measured cells), a dense cloud
+matching >= 95 % of the stereo area (the DSM grid's cells inside the ground footprints of
+two or more registered photos, cast at the median ground height; interpolated cells are
+not counted), a dense cloud
 (>= 10x the sparse points), the orthophoto a Cloud-Optimized GeoTIFF at the photos' GSD
 with the UTM zone's CRS and an extent covering every camera, adjacent photos lining up in
 the mosaic (each overlapping pair rectified separately, residual shift by phase

@@ -19,7 +19,7 @@ from skyfix import validate
 from skyfix.errors import DataError
 from skyfix.mapping.grid import Grid
 
-__all__ = ["Dsm", "auto_dsm_resolution_m", "build_dsm", "cell_median", "enclosed_holes"]
+__all__ = ["Dsm", "auto_dsm_resolution_m", "build_dsm", "cell_median", "cell_medians", "enclosed_holes"]
 
 
 @dataclass(frozen=True)
@@ -45,14 +45,22 @@ def auto_dsm_resolution_m(points_utm_m: np.ndarray, min_m: float = 0.5, max_m: f
     return float(np.clip(2.0 * math.sqrt(area_m2 / max(len(pts), 1)), min_m, max_m))
 
 
-def cell_median(cells: np.ndarray, heights_m: np.ndarray, n_cells: int) -> np.ndarray:
-    """Median height per cell index (``n_cells`` long, NaN where no point falls), vectorised."""
+def cell_medians(cells: np.ndarray, heights_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(sorted distinct cell indices, median height of each, number of heights in each), vectorised."""
+    if len(cells) == 0:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64)
     order = np.lexsort((heights_m, cells))
     cells, heights_m = cells[order], heights_m[order]
     starts = np.flatnonzero(np.r_[True, cells[1:] != cells[:-1]])
     counts = np.diff(np.r_[starts, len(cells)])
+    return cells[starts], 0.5 * (heights_m[starts + (counts - 1) // 2] + heights_m[starts + counts // 2]), counts
+
+
+def cell_median(cells: np.ndarray, heights_m: np.ndarray, n_cells: int) -> np.ndarray:
+    """Median height per cell index (``n_cells`` long, NaN where no point falls), vectorised."""
+    index, median, _ = cell_medians(cells, heights_m)
     out = np.full(n_cells, np.nan)
-    out[cells[starts]] = 0.5 * (heights_m[starts + (counts - 1) // 2] + heights_m[starts + counts // 2])
+    out[index] = median
     return out
 
 

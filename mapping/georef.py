@@ -251,8 +251,9 @@ def attach_pair(pair_rec, main_rec, main_georef: ModelGeoref, pair: PairModel, p
     ground leaves the baseline's tilt loose: on Seneca it put IMG_0460 9.8 m off).
     The photo's own GPS is not used to place it and checks it: the partner must be a GPS
     inlier of the main model and the photo's centre within ``max_offset_m`` of its GPS
-    horizontally and ``max_vertical_m`` vertically (GPS heights wander by metres: 3x a
-    4 m sigma), the GPS moved by ``gps_shift_enu`` (the GPS lag correction) when given.
+    horizontally and vertically within 3x the vertical RMS of the main model's photos
+    against their own GPS (this flight's GPS height noise; at most ``max_vertical_m``, at
+    least 1 m), the GPS moved by ``gps_shift_enu`` (the GPS lag correction) when given.
     ``pair_rec`` is moved in place by the similarity that gives the photo that pose (its
     scale from the baseline) and the partner is deregistered from it, leaving one photo.
     """
@@ -295,6 +296,10 @@ def attach_pair(pair_rec, main_rec, main_georef: ModelGeoref, pair: PairModel, p
                          centre_new - scale * rotation @ pair_new.projection_center())
     offset = centre_new - gps_new
     horizontal_m, vertical_m = float(np.linalg.norm(offset[:2])), float(abs(offset[2]))
+    host_z = np.array([main_georef.residuals_enu_m[n][2] for n in main_georef.inliers
+                       if n in main_georef.residuals_enu_m])
+    if len(host_z) >= 3:
+        max_vertical_m = float(np.clip(3.0 * np.sqrt(np.mean(host_z ** 2)), 1.0, max_vertical_m))
     result.two_view.update({"baseline_m": float(np.linalg.norm(centre_new - main_partner.projection_center())),
                             "baseline_gps_m": float(np.linalg.norm(gps_new - gps_partner)),
                             "offset_m": float(np.linalg.norm(offset)), "offset_horizontal_m": horizontal_m,
@@ -302,7 +307,8 @@ def attach_pair(pair_rec, main_rec, main_georef: ModelGeoref, pair: PairModel, p
     if horizontal_m > max_offset_m or vertical_m > max_vertical_m:
         result.reason = (f"{pair.photo}: placed from {pair.partner} {horizontal_m:.1f} m horizontally and "
                          f"{vertical_m:.1f} m vertically from its GPS (limits {max_offset_m:g} m, "
-                         f"{max_vertical_m:g} m); not placed")
+                         f"{max_vertical_m:.1f} m: 3x the vertical GPS RMS of model {main_georef.model_index}'s "
+                         "photos); not placed")
         log.warning("model %d: %s", model_index, result.reason)
         return result
     pair_rec.transform(sim)

@@ -35,12 +35,15 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class View:
     """A registered photo: ``cam_from_enu`` (3, 4) rigid transform (ENU metres -> camera),
-    ``camera`` a ``pycolmap.Camera`` (pixel centres at +0.5, as pycolmap)."""
+    ``camera`` a ``pycolmap.Camera`` (pixel centres at +0.5, as pycolmap), ``model`` the
+    index of the reconstruction it was posed in (photos of different models were placed
+    by different similarity fits, so their relative poses are not a stereo geometry)."""
 
     name: str
     path: str
     cam_from_enu: np.ndarray
     camera: object
+    model: int = 0
 
 
 @dataclass(frozen=True)
@@ -156,9 +159,10 @@ def orthomosaic(views: list[View], grid: Grid, dsm: Dsm, to_enu: UtmToEnu, *, bl
 def load_views(models: list, image_dir: Path) -> list[View]:
     """Views of every registered image of georeferenced ``pycolmap.Reconstruction`` models."""
     views = []
-    for rec in models:
+    for index, rec in enumerate(models):
         for image in rec.images.values():
             if image.has_pose:
                 matrix = np.asarray(image.cam_from_world().matrix(), dtype=np.float64)
-                views.append(View(image.name, str(image_dir / image.name), matrix, rec.cameras[image.camera_id]))
+                views.append(View(image.name, str(image_dir / image.name), matrix, rec.cameras[image.camera_id],
+                                  index))
     return views

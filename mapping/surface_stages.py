@@ -106,6 +106,7 @@ def _dense(config, project, state, sparse_enu: np.ndarray, epsg: int) -> tuple:
     np.savez(project.work / "dense_points.npz", xyz=cloud.xyz_utm_m, rgb=cloud.rgb)
     area = stereo_area(views, grid, to_utm, float(np.median(sparse_enu[:, 2])))
     return dsm, {"stereo_area": area, "valid_area": "cells inside the footprints of two or more photos", "dense_points": len(cloud.xyz_utm_m), "dense_pairs": cloud.pairs, "dense_scale": cloud.scale,
+                 "dense_pairs_dropped": list(cloud.dropped),
                  "enu_to_utm_max_residual_m": to_utm.max_residual_m}
 
 
@@ -128,6 +129,9 @@ def dsm_load(config, project, state, report, marker) -> None:
         report.outputs["dsm_interpolated"] = str(project.root / "dsm_interpolated.tif")
     report.dense_points = marker.get("dense_points", 0)
     report.dense_pairs = marker.get("dense_pairs", 0)
+    if marker.get("dense_pairs_dropped"):
+        report.warnings.append("dense pairs left out of the DSM, their heights off the other pairs' (wrong relative "
+                               "pose or a repetitive-texture false match): " + ", ".join(marker["dense_pairs_dropped"]))
     if marker.get("flying_height_suspicious"):
         report.warnings.append(report.flying_height["line"] + ": the model's heights are probably wrong (focal "
                                "length?) unless the take-off point was that far above or below the ground surveyed")

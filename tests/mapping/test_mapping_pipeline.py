@@ -134,7 +134,8 @@ def _main_model(report, out):
 
     m = report.models[0]
     inliers = sorted(set(m["residuals_enu_m"]) - set(m["outliers"]))
-    return sfm.load_models(out / "work" / "georef")[0], ModelGeoref(0, m["registered"], True, inliers=inliers)
+    return sfm.load_models(out / "work" / "georef")[0], ModelGeoref(0, m["registered"], True, inliers=inliers,
+                                                                     residuals_enu_m=m["residuals_enu_m"])
 
 
 def test_two_view_pose_agrees_with_bundle_adjusted_pose(run, photos_dir, tmp_path):

@@ -136,3 +136,45 @@ def test_enclosed_holes_only_small_ones_inside_measured_cells():
     assert holes[5:7, 5:7].all() and holes[25, 3] and holes[26, 4]
     assert not holes[12:18, 12:18].any() and not holes[0:3, 20:23].any()
     assert holes.sum() == 6 and not (holes & observed).any()
+
+
+def test_pair_offsets_single_out_the_pair_off_the_others():
+    # Ground at 100 m. Pairs a, b, c measure cells 0-5999 (5 cm noise, stereo at survey
+    # scale); d measures 3000-8999 but 8 m low (a wrong relative pose); e measures
+    # 5000-9999 right. d is judged where a, b, c agree (3000-5999); a on 0-2999 (b and c
+    # agree; where d joins them they do not); e nowhere: its cells shared with two or
+    # more others hold d's wrong heights too, so it is neither judged nor dropped.
+    from skyfix.mapping.dense import pair_offsets_m
+
+    rng = np.random.default_rng(3)
+
+    def pair(lo, hi, offset_m):
+        cells = np.repeat(np.arange(lo, hi), 3)
+        return cells, 100.0 + offset_m + rng.normal(0.0, 0.05, len(cells))
+
+    offsets = pair_offsets_m({0: pair(0, 6000, 0.0), 1: pair(0, 6000, 0.0), 2: pair(0, 6000, 0.0),
+                              3: pair(3000, 9000, -8.0), 4: pair(5000, 10000, 0.0)})
+    assert abs(offsets[3] + 8.0) < 0.1
+    assert all(abs(offsets[n]) < 0.1 for n in (0, 1, 2)) and 4 not in offsets
+
+
+def test_stereo_pairs_stay_inside_one_model():
+    # Six nadir photos 25 m apart along a line at 65 m (footprints ~84 m long: they all
+    # overlap). Photos of models 0 and 1 were georeferenced by different similarity fits
+    # and never pair; model 2 holds one photo placed on its partner's ground, which may
+    # pair with any.
+    import pycolmap
+
+    from skyfix.mapping.dense import stereo_pairs
+    from skyfix.mapping.ortho import View
+
+    camera = pycolmap.Camera(model="SIMPLE_PINHOLE", width=1200, height=900, params=[925.0, 600.0, 450.0])
+    rot = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # camera x east, y south, z down
+    views = []
+    for k, model in enumerate((0, 0, 0, 1, 1, 2)):
+        centre = np.array([25.0 * k, 0.0, 65.0])
+        views.append(View(f"p{k}", "", np.hstack((rot, (-rot @ centre)[:, None])), camera, model))
+    pairs = stereo_pairs(views, 65.0)
+    assert (0, 1) in pairs and (3, 4) in pairs
+    assert not any(views[i].model != views[j].model and 5 not in (i, j) for i, j in pairs)
+    assert any(5 in p for p in pairs)
