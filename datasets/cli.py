@@ -20,6 +20,10 @@ Synthetic data sets (exact ground truth included).
       120 s from t = 200 s and B's GNSS is spoofed 50 m away for 30 s from t = 420 s.
       Everything is fed to a FusionEngine that records the measurement log OUT.jsonl
       (with truth). Then: skyfix fusion replay OUT.jsonl
+
+  skyfix datasets thermal-flight OUT_DIR [--mountain orbit|pass|calibration]
+      a synthetic thermal flight (frames, poses.csv, camera.json, truth.json; dem.tif
+      over a mountain) for skyfix thermal locate
 """
 
 
@@ -41,7 +45,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="during the outage the receiver is silent, or reports fix type 1 (default silent)")
     f.set_defaults(func=run_fusion_log)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
+    from skyfix.datasets import thermal_cli  # `skyfix datasets thermal-flight`: thermal flights
     from skyfix.datasets.sim import cli as sim_cli  # `skyfix sim`: the MAVLink simulator harness
+
+    thermal_cli.register(sub)
 
     sim_cli.register(subparsers)
 
