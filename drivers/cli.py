@@ -104,10 +104,13 @@ def _connect(args: argparse.Namespace):
 
 
 def run_status(args: argparse.Namespace) -> int:
+    from skyfix.drivers.mav import mavlink
+
     with _connect(args) as vehicle:
         try:
-            st = vehicle.wait_until(lambda s: s.position is not None and s.home is not None and s.gps
-                                    is not None and s.gps.fix_type >= 3, args.wait, what="GPS fix and home")
+            st = vehicle.wait_until(lambda s: s.position is not None and s.home is not None and s.gps is not None
+                                    and s.gps.fix_type >= mavlink.GPS_FIX_TYPE_3D_FIX, args.wait,
+                                    what="GPS fix and home")
         except SkyfixTimeout:
             st = vehicle.state  # report what there is: a vehicle without GPS is worth seeing too
         if args.json:

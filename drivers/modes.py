@@ -8,7 +8,7 @@ PX4 mode ever reads as UNKNOWN.
 
 from __future__ import annotations
 
-from skyfix.drivers.mav import AUTOPILOT_PX4, mavlink
+from skyfix.drivers.mav import AUTOPILOT_PX4
 from skyfix.errors import InputError
 
 #: ArduCopter mode numbers (ArduCopter/mode.h).
@@ -77,6 +77,3 @@ def role_mode(flavour: str, role: str) -> str:
         return ROLE_MODES[role][flavour]
     except KeyError:
         raise InputError(f"role must be one of {sorted(ROLE_MODES)}, got {role!r}") from None
-
-
-BASE_MODE_CUSTOM = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED

@@ -16,6 +16,7 @@ import math
 import struct
 from functools import lru_cache
 
+from skyfix.drivers.mav import mavlink
 from skyfix.drivers.state import Battery, EkfStatus, GpsStatus, Home, Position, Velocity
 
 UINT16_UNKNOWN = 65535
@@ -57,7 +58,7 @@ def gps_status(msg, now_s: float) -> GpsStatus:
     lat, lon = msg.lat / 1e7, msg.lon / 1e7
     alt_amsl = msg.alt / 1000.0
     alt_ell_mm = getattr(msg, "alt_ellipsoid", 0)
-    has_fix = msg.fix_type >= 2 and (msg.lat or msg.lon)
+    has_fix = msg.fix_type >= mavlink.GPS_FIX_TYPE_2D_FIX and (msg.lat or msg.lon)
     if alt_ell_mm:
         alt_ell, source = alt_ell_mm / 1000.0, "autopilot"
     elif has_fix:

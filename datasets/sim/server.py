@@ -21,7 +21,6 @@ import numpy as np
 from skyfix.datasets.sim.vehicle import (
     FORCE_MAGIC,
     INT_PARAMS,
-    MAV_RESULT_DENIED,
     MissionItem,
     Refusal,
     SimVehicle,
@@ -271,7 +270,7 @@ class VehicleServer:
     def _msg_gps_raw_int(self):
         v = self.vehicle
         r = v.gps_report()
-        if r is None or r.fix_type < 2 or not np.all(np.isfinite(r.pos_enu_m)):
+        if r is None or r.fix_type < M.GPS_FIX_TYPE_2D_FIX or not np.all(np.isfinite(r.pos_enu_m)):
             return M.MAVLink_gps_raw_int_message(int(v.t_s * 1e6), 1 if r else 0, 0, 0, 0, 65535,
                                                  65535, 65535, 65535, 0, 0, 0, 0, 0, 0, 0)
         lat, lon, alt_ell = v.geodetic(r.pos_enu_m)
@@ -409,15 +408,7 @@ class VehicleServer:
             v.set_mode(name)
             return ACCEPTED
         if cmd == M.MAV_CMD_NAV_TAKEOFF:
-            if v.flavour == "px4":
-                alt_ell = p[6] + v.geoid_m if math.isfinite(p[6]) else \
-                    v.home_enu_m[2] + v.world.alt0_m + v.param("MIS_TAKEOFF_ALT")
-                up = alt_ell - v.world.alt0_m
-            else:
-                if not math.isfinite(p[6]) or p[6] <= 0:
-                    raise Refusal(M.MAV_RESULT_DENIED, "Takeoff: altitude must be > 0")
-                up = v.home_enu_m[2] + p[6] if v.home_set else v.est_pos_enu_m[2] + p[6]
-            v.takeoff(up)
+            v.takeoff(self._takeoff_up_m(p))
             return ACCEPTED
         if cmd in (M.MAV_CMD_NAV_LAND, M.MAV_CMD_NAV_RETURN_TO_LAUNCH):
             name = ("AUTO.LAND" if v.flavour == "px4" else "LAND") if cmd == M.MAV_CMD_NAV_LAND \
@@ -441,17 +432,7 @@ class VehicleServer:
             return ACCEPTED
         if cmd in (M.MAV_CMD_REQUEST_MESSAGE, M.MAV_CMD_GET_HOME_POSITION,
                    M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
-            msg_id = {M.MAV_CMD_GET_HOME_POSITION: M.MAVLINK_MSG_ID_HOME_POSITION,
-                      M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: M.MAVLINK_MSG_ID_AUTOPILOT_VERSION
-                      }.get(cmd, int(p[0]))
-            name = _MSG_NAME_BY_ID.get(msg_id, "")
-            if not hasattr(self, "_msg_" + name.lower()):
-                return UNSUPPORTED  # once, before anything else
-            if name == "HOME_POSITION" and not v.home_set:
-                raise Refusal(M.MAV_RESULT_FAILED, "Home position not set")
-            self._ack(msg, cmd, ACCEPTED, addr)
-            self.send_message_named(name, addr)
-            return None
+            return self._request_message(cmd, p, msg, addr)
         if cmd == M.MAV_CMD_DO_REPOSITION:
             return self._reposition(p, msg)
         if cmd == M.MAV_CMD_SET_EKF_SOURCE_SET and v.flavour == "ardupilot":
@@ -468,18 +449,41 @@ class VehicleServer:
             return ACCEPTED
         if cmd == M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
             if v.armed:
-                raise Refusal(MAV_RESULT_DENIED, "Reboot: disarm first")
+                raise Refusal(M.MAV_RESULT_DENIED, "Reboot: disarm first")
             self.statustext("Reboot requested: simulated settings apply immediately")
             return ACCEPTED
         if cmd == M.MAV_CMD_DO_SET_HOME:
-            if p[0] >= 0.5:
-                v.home_enu_m = v.est_pos_enu_m.copy()
-            else:
-                v.home_enu_m = v.enu_amsl(p[4], p[5], p[6])
+            v.home_enu_m = v.est_pos_enu_m.copy() if p[0] >= 0.5 else v.enu_amsl(p[4], p[5], p[6])
             v.home_set = True
             v.events.append(("home",))
             return ACCEPTED
         return UNSUPPORTED
+
+    def _takeoff_up_m(self, p: list[float]) -> float:
+        """MAV_CMD_NAV_TAKEOFF's target height, m up in the world frame (param7: PX4 AMSL,
+        NaN = MIS_TAKEOFF_ALT above home; ArduPilot metres above home, > 0)."""
+        v = self.vehicle
+        if v.flavour == "px4":
+            alt_ell = p[6] + v.geoid_m if math.isfinite(p[6]) else \
+                v.home_enu_m[2] + v.world.alt0_m + v.param("MIS_TAKEOFF_ALT")
+            return alt_ell - v.world.alt0_m
+        if not math.isfinite(p[6]) or p[6] <= 0:
+            raise Refusal(M.MAV_RESULT_DENIED, "Takeoff: altitude must be > 0")
+        return v.home_enu_m[2] + p[6] if v.home_set else v.est_pos_enu_m[2] + p[6]
+
+    def _request_message(self, cmd: int, p: list[float], msg, addr) -> int | None:
+        """REQUEST_MESSAGE and its older forms: ack first, then send the message once."""
+        msg_id = {M.MAV_CMD_GET_HOME_POSITION: M.MAVLINK_MSG_ID_HOME_POSITION,
+                  M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: M.MAVLINK_MSG_ID_AUTOPILOT_VERSION
+                  }.get(cmd, int(p[0]))
+        name = _MSG_NAME_BY_ID.get(msg_id, "")
+        if not hasattr(self, "_msg_" + name.lower()):
+            return UNSUPPORTED  # once, before anything else
+        if name == "HOME_POSITION" and not self.vehicle.home_set:
+            raise Refusal(M.MAV_RESULT_FAILED, "Home position not set")
+        self._ack(msg, cmd, ACCEPTED, addr)
+        self.send_message_named(name, addr)
+        return None
 
     def _reposition(self, p: list[float], msg) -> int:
         """MAV_CMD_DO_REPOSITION (MAVSDK's goto_location): fly to (lat, lon, alt) and hold there.
@@ -487,7 +491,7 @@ class VehicleServer:
         (PX4 holds in AUTO.LOITER, ArduPilot flies it in GUIDED)."""
         v = self.vehicle
         if not v.armed or v.landed:
-            raise Refusal(MAV_RESULT_DENIED, "Reposition: not flying")
+            raise Refusal(M.MAV_RESULT_DENIED, "Reposition: not flying")
         frame = msg.frame if msg.get_type() == "COMMAND_INT" else M.MAV_FRAME_GLOBAL
         lat, lon, alt_amsl = v.geodetic_amsl(v.est_pos_enu_m)
         if math.isfinite(p[4]) and math.isfinite(p[5]) and (p[4] or p[5]):
@@ -505,7 +509,7 @@ class VehicleServer:
             return ACCEPTED
         if v.mode != "GUIDED":
             if not change_mode:
-                raise Refusal(MAV_RESULT_DENIED, "Reposition: not in GUIDED")
+                raise Refusal(M.MAV_RESULT_DENIED, "Reposition: not in GUIDED")
             v.set_mode("GUIDED")
         v.position_target(target, None)
         return ACCEPTED
@@ -646,7 +650,7 @@ class VehicleServer:
         self.send(M.MAVLink_mission_request_int_message(up["sys"], up["comp"], up["next"], 0), up["addr"])
 
     def _on_mission_count(self, msg, addr) -> None:
-        if getattr(msg, "mission_type", 0) != 0:
+        if getattr(msg, "mission_type", M.MAV_MISSION_TYPE_MISSION) != M.MAV_MISSION_TYPE_MISSION:
             self._mission_ack(addr, M.MAV_MISSION_UNSUPPORTED, msg)
             return
         if msg.count == 0:
@@ -709,7 +713,7 @@ class VehicleServer:
         self._request_item()
 
     def _on_mission_list(self, msg, addr) -> None:
-        if getattr(msg, "mission_type", 0) != 0:
+        if getattr(msg, "mission_type", M.MAV_MISSION_TYPE_MISSION) != M.MAV_MISSION_TYPE_MISSION:
             self.send(M.MAVLink_mission_count_message(msg.get_srcSystem(), msg.get_srcComponent(), 0,
                                                       msg.mission_type), addr)
             return

@@ -19,6 +19,7 @@ import numpy as np
 
 from skyfix.datasets.sim.gps import GpsReading, GpsReceiver
 from skyfix.datasets.sim.wind import WindField
+from skyfix.drivers.mav import mavlink as M
 from skyfix.drivers.modes import ARDUCOPTER_MODES, PX4_MODES
 from skyfix.errors import InputError
 from skyfix.geo import LocalFrame
@@ -26,12 +27,6 @@ from skyfix.geo import LocalFrame
 G_MPS2 = 9.80665
 FORCE_MAGIC = 21196  # param2 of MAV_CMD_COMPONENT_ARM_DISARM that bypasses checks
 
-# MAV_CMD numbers executed from missions
-NAV_WAYPOINT, NAV_LOITER_TIME, NAV_RTL, NAV_LAND, NAV_TAKEOFF = 16, 19, 20, 21, 22
-DO_CHANGE_SPEED, DO_SET_CAM_TRIGG_DIST = 178, 206
-# MAV_FRAME numbers used by mission items and targets
-FRAME_GLOBAL, FRAME_GLOBAL_REL, FRAME_GLOBAL_INT, FRAME_GLOBAL_REL_INT = 0, 3, 5, 6
-FRAME_GLOBAL_TERRAIN, FRAME_GLOBAL_TERRAIN_INT = 10, 11
 
 _BEHAVIOUR = {
     "ardupilot": {"GUIDED": "guided", "AUTO": "mission", "RTL": "rtl", "SMART_RTL": "rtl",
@@ -81,9 +76,6 @@ class Refusal(Exception):
         super().__init__(text)
         self.result = result
         self.text = text
-
-
-MAV_RESULT_DENIED, MAV_RESULT_FAILED = 2, 4
 
 
 @dataclass
@@ -252,7 +244,7 @@ class SimVehicle:
 
     def global_target_enu(self, frame: int, lat_deg: float, lon_deg: float, z_m: float) -> np.ndarray:
         """World ENU of a global (lat, lon, z) in a MAV_FRAME (AMSL or relative to home)."""
-        if frame in (FRAME_GLOBAL, FRAME_GLOBAL_INT):
+        if frame in (M.MAV_FRAME_GLOBAL, M.MAV_FRAME_GLOBAL_INT):
             alt = z_m + self.geoid_m
         else:
             alt = self.home_enu_m[2] + self.world.alt0_m + z_m
@@ -349,14 +341,14 @@ class SimVehicle:
         for inst in self._fix_instances():
             if inst == "real":
                 r = self.last_gps
-                if r is not None and r.fix_type >= 3 and r.satellites >= 6:
+                if r is not None and r.fix_type >= M.GPS_FIX_TYPE_3D_FIX and r.satellites >= 6:
                     if not self._gps_fresh:
                         return np.full(3, np.nan), 0.0  # good source, no new sample this step
                     self._gps_fresh = False
                     return r.pos_enu_m - self.pos_enu_m, r.eph_m
             else:
                 m = self.mav_gps
-                if m is not None and m.fix_type >= 3 and self.t_s - m.time_s < 1.0:
+                if m is not None and m.fix_type >= M.GPS_FIX_TYPE_3D_FIX and self.t_s - m.time_s < 1.0:
                     if m.consumed:
                         return np.full(3, np.nan), 0.0  # good source, no new sample this step
                     m.consumed = True
@@ -370,9 +362,9 @@ class SimVehicle:
         for inst in self._fix_instances():
             if inst == "real":
                 r = self.gps.read(self.t_s, self.pos_enu_m, self.vel_enu_mps)
-                if r.fix_type >= 3 and r.satellites >= 6:
+                if r.fix_type >= M.GPS_FIX_TYPE_3D_FIX and r.satellites >= 6:
                     return True
-            elif self.mav_gps is not None and self.mav_gps.fix_type >= 3 \
+            elif self.mav_gps is not None and self.mav_gps.fix_type >= M.GPS_FIX_TYPE_3D_FIX \
                     and self.t_s - self.mav_gps.time_s < 1.0:
                 return True
         return False
@@ -479,14 +471,14 @@ class SimVehicle:
             return
         if not force:
             if self.flavour == "ardupilot" and self.mode in ("AUTO", "RTL", "LAND"):
-                raise Refusal(MAV_RESULT_FAILED, f"Arm: Mode not armable ({self.mode})")
+                raise Refusal(M.MAV_RESULT_FAILED, f"Arm: Mode not armable ({self.mode})")
             if self.behaviour in _NEEDS_POSITION or self.mode == "STABILIZE":
                 if not self.position_source_ok_now():
-                    raise Refusal(MAV_RESULT_FAILED, "PreArm: Need Position Estimate"
+                    raise Refusal(M.MAV_RESULT_FAILED, "PreArm: Need Position Estimate"
                                   if self.flavour == "ardupilot"
                                   else "Preflight Fail: No valid global position")
             if self.battery_remaining_pct() < 10.0:
-                raise Refusal(MAV_RESULT_FAILED, "PreArm: Battery below minimum arming capacity")
+                raise Refusal(M.MAV_RESULT_FAILED, "PreArm: Battery below minimum arming capacity")
         self.armed = True
         self._armed_at_s = self.t_s
         self.home_enu_m = self.est_pos_enu_m.copy()
@@ -498,7 +490,7 @@ class SimVehicle:
         if not self.armed:
             return
         if not self.landed and not force:
-            raise Refusal(MAV_RESULT_FAILED, "Disarm: vehicle is flying" if self.flavour == "ardupilot"
+            raise Refusal(M.MAV_RESULT_FAILED, "Disarm: vehicle is flying" if self.flavour == "ardupilot"
                           else "Disarming denied: not landed")
         self._disarm()
 
@@ -510,16 +502,16 @@ class SimVehicle:
     def set_mode(self, name: str) -> None:
         table = PX4_MODES if self.flavour == "px4" else ARDUCOPTER_MODES
         if name not in table:
-            raise Refusal(MAV_RESULT_DENIED, f"Unknown mode {name}")
+            raise Refusal(M.MAV_RESULT_DENIED, f"Unknown mode {name}")
         behaviour = _BEHAVIOUR[self.flavour].get(name, "manual")
         if behaviour in _NEEDS_POSITION and not self.position_ok:
-            raise Refusal(MAV_RESULT_FAILED, f"Flight mode change failed: {name} requires position")
+            raise Refusal(M.MAV_RESULT_FAILED, f"Flight mode change failed: {name} requires position")
         if behaviour == "mission" and self._first_mission_index() >= len(self.mission):
-            raise Refusal(MAV_RESULT_FAILED, f"Mode change to {name} failed: no mission")
+            raise Refusal(M.MAV_RESULT_FAILED, f"Mode change to {name} failed: no mission")
         if name == "OFFBOARD" and self.t_s - self._offboard_setpoint_s > 0.5:
-            raise Refusal(MAV_RESULT_DENIED, "Switching to Offboard failed: no offboard setpoints")
+            raise Refusal(M.MAV_RESULT_DENIED, "Switching to Offboard failed: no offboard setpoints")
         if name == "AUTO.TAKEOFF" and not self.armed:
-            raise Refusal(MAV_RESULT_DENIED, "Takeoff denied: disarmed")
+            raise Refusal(M.MAV_RESULT_DENIED, "Takeoff denied: disarmed")
         self._enter_mode(name)
 
     def _enter_mode(self, name: str) -> None:
@@ -542,12 +534,12 @@ class SimVehicle:
     def takeoff(self, alt_up_world_m: float) -> None:
         """Climb to a world ENU up-coordinate (the MAVLink layer converts the frames)."""
         if not self.armed:
-            raise Refusal(MAV_RESULT_FAILED, "Takeoff: vehicle not armed")
+            raise Refusal(M.MAV_RESULT_FAILED, "Takeoff: vehicle not armed")
         if self.flavour == "ardupilot":
             if self.mode != "GUIDED":
-                raise Refusal(MAV_RESULT_FAILED, f"Takeoff: not in GUIDED mode ({self.mode})")
+                raise Refusal(M.MAV_RESULT_FAILED, f"Takeoff: not in GUIDED mode ({self.mode})")
             if not self.landed:
-                raise Refusal(MAV_RESULT_FAILED, "Takeoff: already flying")
+                raise Refusal(M.MAV_RESULT_FAILED, "Takeoff: already flying")
             self._takeoff_alt_up_m = alt_up_world_m
             self.target_pos_enu_m = np.array([*self.est_pos_enu_m[:2], alt_up_world_m])
         else:
@@ -662,9 +654,9 @@ class SimVehicle:
         est = self.est_pos_enu_m
         while self.mission_seq < len(self.mission):
             item = self.mission[self.mission_seq]
-            if item.command == DO_CHANGE_SPEED:
+            if item.command == M.MAV_CMD_DO_CHANGE_SPEED:
                 self.speed_override_mps = item.param2 if item.param2 > 0 else None
-            elif item.command == DO_SET_CAM_TRIGG_DIST:
+            elif item.command == M.MAV_CMD_DO_SET_CAM_TRIGG_DIST:
                 self.cam_trigger_dist_m = max(0.0, item.param1)
                 self._cam_dist_acc_m = 0.0
             else:
@@ -679,23 +671,23 @@ class SimVehicle:
             self._mission_item_started = True
             self._hold_enu_m = est.copy()
             self._loiter_until_s = math.inf
-            if item.command in (NAV_RTL, NAV_LAND):
+            if item.command in (M.MAV_CMD_NAV_RETURN_TO_LAUNCH, M.MAV_CMD_NAV_LAND):
                 self._land_xy = est[:2].copy()
-                if item.command == NAV_LAND and (item.x or item.y):
+                if item.command == M.MAV_CMD_NAV_LAND and (item.x or item.y):
                     self._land_xy = self.global_target_enu(item.frame, item.x / 1e7, item.y / 1e7, 0.0)[:2]
                 self._rtl_phase = "climb"
-        if item.command == NAV_TAKEOFF:
-            goal = self.home_enu_m[2] + item.z if item.frame != FRAME_GLOBAL_INT else \
+        if item.command == M.MAV_CMD_NAV_TAKEOFF:
+            goal = self.home_enu_m[2] + item.z if item.frame != M.MAV_FRAME_GLOBAL_INT else \
                 item.z + self.geoid_m - self.world.alt0_m
             if self.landed and not self.armed:
                 return np.zeros(3)
             if est[2] >= goal - 0.3:
                 self._advance_mission()
             return self._pos_control(np.array([*self._hold_enu_m[:2], goal]))
-        if item.command in (NAV_WAYPOINT, NAV_LOITER_TIME):
+        if item.command in (M.MAV_CMD_NAV_WAYPOINT, M.MAV_CMD_NAV_LOITER_TIME):
             target = self.global_target_enu(item.frame, item.x / 1e7, item.y / 1e7, item.z) \
                 if (item.x or item.y) else np.array([*est[:2], self.home_enu_m[2] + item.z])
-            radius = item.param2 if item.command == NAV_WAYPOINT and item.param2 > 0 \
+            radius = item.param2 if item.command == M.MAV_CMD_NAV_WAYPOINT and item.param2 > 0 \
                 else self.acceptance_radius_m()
             hold_s = item.param1
             if math.isinf(self._loiter_until_s):
@@ -704,11 +696,11 @@ class SimVehicle:
             elif self.t_s >= self._loiter_until_s:
                 self._advance_mission()
             return self._pos_control(target)
-        if item.command == NAV_LAND:
+        if item.command == M.MAV_CMD_NAV_LAND:
             v = self._pos_control(np.array([*self._land_xy, est[2]]))
             v[2] = -self._descent_speed_mps()
             return v
-        if item.command == NAV_RTL:
+        if item.command == M.MAV_CMD_NAV_RETURN_TO_LAUNCH:
             self._enter_mode("AUTO.RTL" if self.flavour == "px4" else "RTL")
             return np.zeros(3)
         self.statustext(f"Mission: skipping unsupported command {item.command}", 4)
@@ -778,7 +770,7 @@ class SimVehicle:
             self.battery_current_a = 1.0 if self.landed else self.config.hover_current_a + 1.2 * speed
             landing = self.behaviour == "land" or self._rtl_phase == "land" or (
                 self.behaviour == "mission" and self.mission_seq < len(self.mission)
-                and self.mission[self.mission_seq].command == NAV_LAND)
+                and self.mission[self.mission_seq].command == M.MAV_CMD_NAV_LAND)
             if self.landed and landing and self.t_s - self._landed_since_s > 1.0:
                 self._disarm()
                 if self.behaviour == "mission":
