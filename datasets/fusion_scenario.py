@@ -51,7 +51,7 @@ from skyfix.datasets.fusion_messages import (
     truth_at,
     velocity_table,
 )
-from skyfix.datasets.fusion_world import (  # noqa: F401 - re-exported: the scenario's public types
+from skyfix.datasets.fusion_world import (
     DEFAULT_FORMATIONS,
     DRONE_IDS,
     KINDS,
