@@ -267,6 +267,21 @@ def fill_holes(surface_m: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(surface_m), surface_m, up)
 
 
+def _drop_offset_pairs(matched: dict[int, tuple], views: list[View], pairs: list[tuple[int, int]],
+                       max_pair_offset_m: float) -> list[str]:
+    """Remove from ``matched`` (in place) the pairs whose heights sit more than
+    ``max_pair_offset_m`` off the other pairs'; their names and offsets, for the report."""
+    offsets = pair_offsets_m({n: m[:2] for n, m in matched.items()})
+    dropped = []
+    for n, offset in [(n, o) for n, o in offsets.items() if abs(o) > max_pair_offset_m]:
+        names = f"{views[pairs[n][0]].name}/{views[pairs[n][1]].name}"
+        log.warning("dense pair %s dropped: its heights are %+.1f m off the other pairs' (limit %g m)", names,
+                    offset, max_pair_offset_m)
+        dropped.append(f"{names} ({offset:+.1f} m)")
+        del matched[n]
+    return dropped
+
+
 def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.ndarray, to_utm: EnuToUtm,
               grid: Grid, *, scale: float = 0.5, neighbours: int = 6, max_ratio: float = 1.2, block_px: int = 5,
               min_pairs: int = 1, min_shared: int = 1, spike_m: float = 2.0, max_pair_offset_m: float = 1.0,
@@ -322,14 +337,7 @@ def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.nda
                 del images[name]
     if not matched:
         raise DataError("dense matching found no point in any pair")
-    offsets = pair_offsets_m({n: m[:2] for n, m in matched.items()})
-    dropped = []
-    for n, offset in [(n, o) for n, o in offsets.items() if abs(o) > max_pair_offset_m]:
-        names = f"{views[pairs[n][0]].name}/{views[pairs[n][1]].name}"
-        log.warning("dense pair %s dropped: its heights are %+.1f m off the other pairs' (limit %g m)", names,
-                    offset, max_pair_offset_m)
-        dropped.append(f"{names} ({offset:+.1f} m)")
-        del matched[n]
+    dropped = _drop_offset_pairs(matched, views, pairs, max_pair_offset_m)
     cells = np.concatenate([m[0] for m in matched.values()])
     heights = np.concatenate([m[1] for m in matched.values()])
     surface = cell_median(cells, heights, grid.width * grid.height).reshape(grid.height, grid.width)

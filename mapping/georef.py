@@ -238,6 +238,28 @@ def _pose_on_partner_ground(pair_rec, pair_new, pair_partner, main_partner, came
     return found["cam_from_world"], int(found["num_inliers"])
 
 
+def _pair_refusal(pair: PairModel, new_p: Photo | None, partner_p: Photo | None, pair_images: dict,
+                 main_images: dict, main_georef: ModelGeoref) -> str:
+    """Why a two-photo model cannot be placed on its partner's ground ('' when it can)."""
+    if new_p is None or partner_p is None or not (new_p.has_gps and partner_p.has_gps):
+        return f"{pair.photo}: two-view model needs GPS on both photos"
+    if pair.partner not in main_georef.inliers or pair.partner not in main_images:
+        return f"{pair.photo}: partner {pair.partner} is not a GPS inlier of model {main_georef.model_index}"
+    if set(pair_images) != {pair.photo, pair.partner}:
+        return f"{pair.photo}: the two-view model does not pose both photos"
+    return ""
+
+
+def _vertical_limit_m(main_georef: ModelGeoref, max_vertical_m: float) -> float:
+    """3x the vertical RMS of the host model's photos against their GPS (this flight's GPS
+    height noise), within [1 m, ``max_vertical_m``]; ``max_vertical_m`` with < 3 photos."""
+    host_z = np.array([main_georef.residuals_enu_m[n][2] for n in main_georef.inliers
+                       if n in main_georef.residuals_enu_m])
+    if len(host_z) < 3:
+        return max_vertical_m
+    return float(np.clip(3.0 * np.sqrt(np.mean(host_z ** 2)), 1.0, max_vertical_m))
+
+
 def attach_pair(pair_rec, main_rec, main_georef: ModelGeoref, pair: PairModel, photos: list[Photo],
                 frame: LocalFrame, model_index: int, *, max_offset_m: float = 5.0, max_vertical_m: float = 12.0,
                 min_inliers: int = 30, gps_shift_enu: dict[str, np.ndarray] | None = None) -> ModelGeoref:
@@ -265,12 +287,7 @@ def attach_pair(pair_rec, main_rec, main_georef: ModelGeoref, pair: PairModel, p
     new_p, partner_p = by_name.get(pair.photo), by_name.get(pair.partner)
     pair_images = {im.name: im for im in pair_rec.images.values() if im.has_pose}
     main_images = {im.name: im for im in main_rec.images.values() if im.has_pose}
-    if new_p is None or partner_p is None or not (new_p.has_gps and partner_p.has_gps):
-        result.reason = f"{pair.photo}: two-view model needs GPS on both photos"
-    elif pair.partner not in main_georef.inliers or pair.partner not in main_images:
-        result.reason = f"{pair.photo}: partner {pair.partner} is not a GPS inlier of model {main_georef.model_index}"
-    elif set(pair_images) != {pair.photo, pair.partner}:
-        result.reason = f"{pair.photo}: the two-view model does not pose both photos"
+    result.reason = _pair_refusal(pair, new_p, partner_p, pair_images, main_images, main_georef)
     if result.reason:
         log.warning("model %d: %s", model_index, result.reason)
         return result
@@ -296,10 +313,7 @@ def attach_pair(pair_rec, main_rec, main_georef: ModelGeoref, pair: PairModel, p
                          centre_new - scale * rotation @ pair_new.projection_center())
     offset = centre_new - gps_new
     horizontal_m, vertical_m = float(np.linalg.norm(offset[:2])), float(abs(offset[2]))
-    host_z = np.array([main_georef.residuals_enu_m[n][2] for n in main_georef.inliers
-                       if n in main_georef.residuals_enu_m])
-    if len(host_z) >= 3:
-        max_vertical_m = float(np.clip(3.0 * np.sqrt(np.mean(host_z ** 2)), 1.0, max_vertical_m))
+    max_vertical_m = _vertical_limit_m(main_georef, max_vertical_m)
     result.two_view.update({"baseline_m": float(np.linalg.norm(centre_new - main_partner.projection_center())),
                             "baseline_gps_m": float(np.linalg.norm(gps_new - gps_partner)),
                             "offset_m": float(np.linalg.norm(offset)), "offset_horizontal_m": horizontal_m,
