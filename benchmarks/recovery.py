@@ -75,6 +75,7 @@ def parse_seeds(text: str) -> list[int]:
 def fly_one(seed: int, healthy: bool, args: argparse.Namespace) -> dict:
     """One run (the recovery, or with ``healthy`` its baseline); its scores, JSON-ready."""
     from skyfix.crps.recovery import GNSS_MODELS, RecoveryConfig, run_recovery
+    from skyfix.errors import SkyfixError
 
     kind = "baseline" if healthy else "recovery"
     kwargs = {"seed": seed, "healthy": healthy, "gnss": GNSS_MODELS[args.gnss],
@@ -89,7 +90,12 @@ def fly_one(seed: int, healthy: bool, args: argparse.Namespace) -> dict:
             print(f"    seed {seed} {kind}: {what} ({frac:.0%}, {time.monotonic() - t0:.0f} s)", flush=True)
         stage[0] = what
 
-    res = run_recovery(RecoveryConfig(**kwargs), progress=progress)
+    try:
+        res = run_recovery(RecoveryConfig(**kwargs), progress=progress)
+    except SkyfixError as exc:  # the run could not be flown to its end (e.g. a take-off timed out): a miss
+        print(f"    seed {seed} {kind}: {exc}", flush=True)
+        return {**dict.fromkeys(SCORES), "outcome": f"error: {exc}", "wall_s": time.monotonic() - t0,
+                "figures": {}, "timeline": []}
     return {**{k: _num(getattr(res, k)) for k in SCORES}, "outcome": res.outcome,
             "wall_s": time.monotonic() - t0, "figures": {k: _num(v) for k, v in res.figures.items()},
             "timeline": [[round(t, 2), what] for t, what in res.timeline]}
