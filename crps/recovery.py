@@ -40,6 +40,7 @@ STRIP_HALF_WIDTH_M = 6.0
 STRIP_LENGTH_M = 90.0
 SURVEY_LOOPS = 2
 LOSS_WINDOW_S = (15.0, 45.0)  # the loss comes this long after the survey starts (uniform, from the seed)
+TAKEOFF_STALL_S = 20.0   # a drone not at cruise height this long after its take-off command is sent up again
 
 
 @dataclass(frozen=True)
@@ -303,12 +304,40 @@ class _Run:
             arm_when_ready(s.vehicle, 60.0 / self.cfg.speed + 30.0)  # a real autopilot's EKF settles first
             s.vehicle.takeoff(CRUISE_ALT_M, wait=False)
         self.note("all three drones take off")
-        self.wait("take-off", lambda: all(s.vehicle.state.position is not None and
-                                          s.vehicle.state.position.alt_rel_m > CRUISE_ALT_M - 1.0
-                                          for s in self.services), 120.0)
+        sent = [self.sim.time_s]
+
+        def up() -> bool:
+            if all(_climbed(s) for s in self.services):
+                return True
+            if self.sim.time_s - sent[0] > TAKEOFF_STALL_S:
+                sent[0] = self.sim.time_s
+                for s in self.services:
+                    if not _climbed(s) and s.help is not None and not s.help.recovering:
+                        self._climb(s)
+            return False
+
+        self.wait("take-off", up, 120.0)
         for s in self.services:
             s.vehicle.start_mission()
         self.note("surveys start")
+
+    def _climb(self, service) -> None:
+        """A take-off that stalled (a GNSS rejection during the climb held the drone, BRAKE, and it stays there
+        once GNSS is trusted again): GUIDED, up to cruise height where it is. On a thread: commands wait for ACKs."""
+        pos = service.vehicle.state.position
+        if pos is None:
+            return
+        vehicle = service.vehicle
+        self.note(f"{service.cfg.drone_id}'s take-off stalled at {pos.alt_rel_m:.1f} m: sent up again")
+
+        def go() -> None:
+            try:
+                vehicle.set_mode("GUIDED")
+                vehicle.goto(pos.lat_deg, pos.lon_deg, CRUISE_ALT_M)
+            except SkyfixError as exc:
+                log.warning("%s: take-off again failed: %s", service.cfg.drone_id, exc)
+
+        threading.Thread(target=go, daemon=True, name="skyfix-recovery-climb").start()
 
     def fly(self) -> RecoveryResult:
         cfg = self.cfg
@@ -377,6 +406,11 @@ class _Run:
         if self.sitl_truth is not None:
             self.sitl_truth.close()
         self.sim.stop()
+
+
+def _climbed(service) -> bool:
+    pos = service.vehicle.state.position if service.vehicle is not None else None
+    return pos is not None and pos.alt_rel_m > CRUISE_ALT_M - 1.0
 
 
 def run_recovery(cfg: RecoveryConfig, progress: Callable[[str, float], None] | None = None) -> RecoveryResult:
