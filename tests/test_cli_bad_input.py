@@ -148,6 +148,11 @@ CASES = [
      ["--frames"]),
     ("thermal simulate", lambda f, fl, _: ["thermal", "simulate", str(f["dir"] / "s2"), "--size", "big"],
      ["--size"]),
+    ("datasets thermal-flight", lambda f, fl, _: ["datasets", "thermal-flight", str(f["afile"])], ["afile"]),
+    ("datasets thermal-flight", lambda f, fl, _: ["datasets", "thermal-flight", str(f["dir"] / "s3"),
+                                                  "--frames", "0"], ["--frames"]),
+    ("datasets thermal-flight", lambda f, fl, _: ["datasets", "thermal-flight", str(f["dir"] / "s4"),
+                                                  "--size", "big"], ["--size"]),
     # tags
     ("tags generate", lambda f, fl, _: ["tags", "generate", "-o", str(f["unwritable"]), "--rows", "2", "--cols", "2",
                                          "--time-limit-s", "0.1"], ["afile"]),
