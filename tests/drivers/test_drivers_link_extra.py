@@ -80,9 +80,12 @@ def test_streams_arrive_at_requested_rates(sim):
             while not q.empty():
                 counts[q.get()[0].get_type()] += 1
         sim_s = t1 - t0
-        # rates run on simulated time; +-2 messages for the window edges
-        assert abs(counts["GLOBAL_POSITION_INT"] - 20.0 * sim_s) <= 2 + 0.05 * 20 * sim_s
-        assert abs(counts["ATTITUDE"] - 2.0 * sim_s) <= 2
+        # rates run on simulated time; the window's edges are read from the simulator's clock
+        # while messages are still in flight (at 5x, 0.1 s of wall is 0.5 s of sim): +-2
+        # messages for those, +-20 % for timing jitter on a loaded machine. The default 10 Hz
+        # ATTITUDE (~50 here) stays far outside the 2 Hz band (~6-14).
+        assert abs(counts["GLOBAL_POSITION_INT"] - 20.0 * sim_s) <= 2 + 0.2 * 20 * sim_s
+        assert abs(counts["ATTITUDE"] - 2.0 * sim_s) <= 2.5 + 0.2 * 2 * sim_s
     finally:
         v.close()
 
