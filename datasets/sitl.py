@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from skyfix import validate
+from skyfix.drivers.mav import mavlink as M
 from skyfix.errors import ConfigurationError, InputError, LinkError
 
 log = logging.getLogger(__name__)
@@ -352,7 +353,7 @@ class SitlClock:
             return now
         wall = time.time()  # drivers records carry their reception time on this clock (time_s)
         received = now - max(0.0, wall - float(record.time_s)) * self.speedup
-        if getattr(record, "fix_type", 3) < 2:  # a dead receiver's report: "no fix" is news now, not then
+        if getattr(record, "fix_type", M.GPS_FIX_TYPE_3D_FIX) < M.GPS_FIX_TYPE_2D_FIX:  # a dead receiver's report: "no fix" is news now, not then
             return received
         with self._lock:
             self._offsets.append((wall, received - t_ap))
