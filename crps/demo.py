@@ -25,7 +25,9 @@ skyfix demo: GPS-loss recovery by a swarm, cameras in the loop.
      cameras at it, find it in the pixels (detector, tracker, model fit) and send range/bearing
      observations; d2 fuses them, flies home (RTL) on the result and lands;
   4. writes trajectory.png, trajectory.csv, report.json and each drone's MCAP log to --output.
-It takes 1-3 minutes."""
+It takes 1-3 minutes. Exit status 0 when d2 is back on the ground (the text says how far from home and
+whether that met the 3 m goal; benchmarks/recovery.py judges the rate over 10 seeds), 1 when it was still
+in the air when the run ended, 2 on bad arguments."""
 
 NEES_TEXT = ("consistency (NEES, 3-D) {nees:.2f}: the squared error of d2's fused position divided by the "
              "uncertainty fusion stated for it, averaged while recovering. A consistent estimate averages 3 "
@@ -57,7 +59,8 @@ def _report(result, out: Path, elapsed_s: float) -> str:
     lines += [f"  {t:6.1f} s  {what}" for t, what in result.timeline]
     verdict = {"home": "landed home", "landed_elsewhere": "landed away from home",
                "holding": "was still flying when the run ended"}.get(result.outcome, result.outcome)
-    lines += ["", f"d2 {verdict}: {result.landing_error_m:.2f} m from its take-off point (goal <= 3 m)",
+    met = "met" if result.landing_error_m <= 3.0 else "not met in this run"
+    lines += ["", f"d2 {verdict}: {result.landing_error_m:.2f} m from its take-off point (goal <= 3 m: {met})",
               f"  GNSS lost -> first position from the helpers' cameras: {result.loss_to_first_fused_fix_s:.1f} s",
               f"  largest horizontal error of d2's fused position while recovering: "
               f"{result.max_recovery_error_h_m:.2f} m (RMS {f.get('recovery_error_rms_h_m', math.nan):.2f} m)",
@@ -96,5 +99,6 @@ def run(args: argparse.Namespace) -> int:
 
         result = run_recovery(cfg, progress=report)
     sys.stdout.write(f"skyfix demo (seed {seed})\n" + _report(result, out, time.monotonic() - t0))
-    landed_as_asked = args.response == "land" and result.outcome == "landed_elsewhere"
-    return 0 if result.outcome == "home" or landed_as_asked else 1
+    # a demo shows one flight: landing 3.4 m from home is a result to read, not a failure to run; a drone
+    # still in the air when the run ends is (the recovery did not finish)
+    return 0 if result.outcome in ("home", "landed_elsewhere") else 1
