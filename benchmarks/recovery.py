@@ -2,8 +2,10 @@
 
 Each seed is one world: three simulated ArduPilot copters surveying in wind (mean 3 m/s from a
 seeded direction, 20 % gusts), correlated (Gauss-Markov) GNSS errors on every receiver (``--gnss``:
-consumer by default, 1.5 m per axis wandering with a 60 s correlation time + 0.3 m white noise, each
-receiver's error drawn from its steady state at the start; ``mild``: 0.4 m / 60 s + 0.15 m), one drone
+``realistic`` by default, 1.5 m per axis per receiver of which 1.4 m is common to the area's receivers
+and wanders over 30 min, 0.45 m / 20 s its own multipath, 0.3 m white noise, see
+:mod:`skyfix.datasets.gnss_error`; ``independent``, the stress case: each its own 1.5 m / 60 s + 0.3 m,
+nothing shared; ``mild``: its own 0.4 m / 60 s + 0.15 m; each own error drawn from its steady state), one drone
 losing its receiver at a seeded random moment and place along its survey. It is flown twice by
 :func:`skyfix.crps.recovery.run_recovery`:
 
@@ -204,9 +206,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="seeds to fly now, e.g. 0-9 or 0,3,5 (default 0-9; --quick: 0-1)")
     ap.add_argument("--runs", type=int, default=10, help="seeds the goals are judged on (default 10)")
     ap.add_argument("--quick", action="store_true", help="two seeds, no files: a smoke test of the whole road")
-    ap.add_argument("--gnss", choices=("consumer", "mild"), default="consumer",
-                    help="every drone's receiver errors: consumer (default; 1.5 m per axis wandering over 60 s + "
-                         "0.3 m noise, a u-blox M8/M9-class receiver) or mild (0.4 m / 60 s + 0.15 m)")
+    ap.add_argument("--gnss", choices=("realistic", "independent", "mild"), default="realistic",
+                    help="the receivers' errors (skyfix.datasets.gnss_error): realistic (default), independent "
+                         "(the stress case: nothing shared) or mild")
     ap.add_argument("--speed", type=float, default=None,
                     help="simulated seconds per wall second (default: RecoveryConfig's)")
     ap.add_argument("-o", "--output", type=Path, default=Path("benchmarks/out/recovery"),

@@ -17,7 +17,7 @@ from pathlib import Path
 PLAN = """\
 skyfix demo: GPS-loss recovery by a swarm, cameras in the loop.
   1. starts the built-in MAVLink simulator (3 ArduPilot copters, wind, GNSS errors that wander
-     slowly as real receivers' do: --gnss) and one skyfix serve service per drone (MAVLink telemetry,
+     slowly and are mostly shared by nearby receivers, as real ones' are: --gnss) and one skyfix serve service per drone (MAVLink telemetry,
      fusion, signed swarm messages);
   2. every drone surveys its own strip; at a random moment d2's GNSS receiver stops;
   3. d2's service holds position on its fused estimate (injected as GPS_INPUT) and asks for help;
@@ -44,9 +44,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="simulated seconds per wall second (default: 2; the flight lasts ~2-3 simulated minutes)")
     p.add_argument("--seed", type=int, default=None,
                    help="random seed: when GNSS is lost, wind, receiver errors (default: a new one each run)")
-    p.add_argument("--gnss", choices=("consumer", "mild"), default="consumer",
-                   help="every drone's GNSS receiver errors: consumer (default; 1.5 m per axis wandering over ~60 s "
-                        "+ 0.3 m noise, a u-blox M8/M9-class receiver) or mild (0.4 m / 60 s + 0.15 m)")
+    p.add_argument("--gnss", choices=("realistic", "independent", "mild"), default="realistic",
+                   help="GNSS errors of the drones' receivers: realistic (default; 1.5 m per axis each, most of it "
+                        "shared by receivers this close: same satellites, same atmosphere), independent (each its "
+                        "own 1.5 m wandering over 60 s: the stress case) or mild (0.4 m, own)")
     p.add_argument("--response", choices=("return_home", "continue", "land"), default="return_home",
                    help="what the drone does once its helpers position it (default: return_home)")
     p.set_defaults(func=run)

@@ -28,6 +28,7 @@ import numpy as np
 from skyfix import validate
 from skyfix.crps.recovery_faults import Faults, LossyLink
 from skyfix.crps.recovery_report import HOME_RADIUS_M, Recorder, write_outputs
+from skyfix.datasets.gnss_error import INDEPENDENT, MILD, REALISTIC, CommonGnssError, GnssErrorModel
 from skyfix.errors import InputError, SkyfixError
 
 log = logging.getLogger(__name__)
@@ -43,20 +44,11 @@ LOSS_WINDOW_S = (15.0, 45.0)  # the loss comes this long after the survey starts
 TAKEOFF_STALL_S = 20.0   # a drone not at cruise height this long after its take-off command is sent up again
 
 
-@dataclass(frozen=True)
-class GnssModel:
-    """Errors of every simulated receiver: Gauss-Markov bias (1-sigma m per axis, correlation s) + white noise (m).
-    The default is a consumer receiver (u-blox M8/M9 class, single frequency, no corrections): ~1.5 m per axis
-    wandering over about a minute plus ~0.3 m of noise; :data:`GNSS_MODELS` names it and the milder one."""
-
-    bias_sigma_m: float = 1.5
-    bias_tau_s: float = 60.0
-    noise_sigma_m: float = 0.3
-
-
 GNSS_MODELS = {
-    "consumer": GnssModel(),                   # the world as a consumer receiver sees it (issue 15's figures)
-    "mild": GnssModel(0.4, 60.0, 0.15),        # the simulator's own default: a good multi-band receiver, open sky
+    # receivers tens of metres apart share most of their error (orbits, clocks, atmosphere), 1.5 m per axis each
+    "realistic": REALISTIC,
+    "independent": INDEPENDENT,  # the stress case: each receiver its own 1.5 m / 60 s error, nothing shared
+    "mild": MILD,                # a good multi-band receiver, open sky, nothing shared
 }
 
 
@@ -69,7 +61,7 @@ class RecoveryConfig:
     output: Path | None = None            # folder for trajectory.png, report.json, the MCAP logs; None: none
     loss_time_s: float | None = None      # GNSS loss, s after the survey starts; None: drawn from the seed
     wind_mps: float = 3.0                 # mean wind speed (direction from the seed), gusts 20 % of it
-    gnss: GnssModel = field(default_factory=GnssModel)  # every drone's receiver (GNSS_MODELS: consumer, mild)
+    gnss: GnssErrorModel = REALISTIC      # every simulated receiver's errors (GNSS_MODELS)
     healthy: bool = False                 # no GNSS loss: the same drone flies RTL at the loss time (baseline)
     fault_response: str = "return_home"
     helper_dropout_s: float | None = None  # the first assigned helper goes silent this long after the loss
@@ -129,17 +121,21 @@ def _wind(cfg: RecoveryConfig, rng: np.random.Generator):
     return WindField(mean_enu_mps=mean, gust_sigma_mps=0.2 * cfg.wind_mps, seed=cfg.seed)
 
 
-def _apply_gnss_model(sim, model: GnssModel) -> None:
-    """Give every receiver the run's error model, its wandering error drawn from the model's steady state (a
-    receiver switched on minutes before take-off, not one whose error starts at zero with the simulation)."""
+def _apply_gnss_model(sim, model: GnssErrorModel, seed: int) -> None:
+    """Give every simulated receiver the run's error model: the area's common error (one seeded track that
+    all of them sample at their own fix times) and its own wandering error, drawn from the model's steady
+    state (a receiver switched on minutes before take-off, not one whose error starts at zero)."""
+    common = CommonGnssError(seed * 7919 + 11, model.common_sigma_m, model.common_tau_s) \
+        if model.common_sigma_m > 0 else None
     with sim.lock:
         for server in sim.servers:
             gps = server.vehicle.gps
-            for name in ("bias_sigma_m", "bias_tau_s", "noise_sigma_m"):
+            for name in ("bias_sigma_m", "bias_tau_s", "noise_sigma_m", "common"):
                 if not hasattr(gps, name):
                     raise NotImplementedError(f"the simulator's GpsReceiver has no {name}")
-                setattr(gps, name, getattr(model, name))
-            gps.step(20.0 * model.bias_tau_s)  # forgets its start: a steady-state draw
+            gps.bias_sigma_m, gps.bias_tau_s = model.own_sigma_m, model.own_tau_s
+            gps.noise_sigma_m, gps.common = model.white_sigma_m, common
+            gps.step(20.0 * model.own_tau_s)  # forgets its start: a steady-state draw
 
 
 def _west_of(cfg: RecoveryConfig) -> tuple[float, float, float]:
@@ -194,7 +190,7 @@ class _Run:
         self.sim = Simulator(SimulatorConfig(vehicles=len(IDS) - self.external, speed=cfg.speed, seed=cfg.seed,
                                              spacing_m=spacing, home=home, geoid_m=geoid_m, wind=_wind(cfg, self.rng),
                                              params={"GPS_AUTO_SWITCH": 0})).start()  # GPS_PRIMARY picks
-        _apply_gnss_model(self.sim, cfg.gnss)
+        _apply_gnss_model(self.sim, cfg.gnss, cfg.seed)
         self.sitl_truth = None
         if self.external:
             from skyfix.datasets.sitl import SitlTruth

@@ -9,6 +9,7 @@ import numpy as np
 
 from skyfix import validate
 from skyfix.datasets.gauss_markov import gauss_markov_step
+from skyfix.datasets.gnss_error import CommonGnssError
 from skyfix.errors import InputError
 
 FAULT_KINDS = ("loss", "degraded", "jump", "spoof")
@@ -64,17 +65,20 @@ class GpsReading:
 class GpsReceiver:
     """A u-blox-like receiver: a slowly varying bias per axis (first-order Gauss-Markov,
     stationary sigma ``bias_sigma_m``, correlation time ``bias_tau_s``) plus white noise
-    of ``noise_sigma_m``, all in metres, ENU. The attributes may be changed between steps
-    (a scenario with larger correlated errors); the bias keeps its current value."""
+    of ``noise_sigma_m``, all in metres, ENU; plus, when ``common`` is set, the error every
+    receiver of the area shares (:class:`skyfix.datasets.gnss_error.CommonGnssError`, sampled at
+    the fix's time). The attributes may be changed between steps (a scenario with larger
+    correlated errors); the bias keeps its current value."""
 
     def __init__(self, seed: int = 0, *, bias_sigma_m: float = 0.4, bias_tau_s: float = 60.0,
-                 noise_sigma_m: float = 0.15) -> None:
+                 noise_sigma_m: float = 0.15, common: CommonGnssError | None = None) -> None:
         self.faults: list[GpsFault] = []
         self.disabled = False
         self.glitch_enu_m = np.zeros(3)
         self.bias_sigma_m = validate.nonnegative_scalar("bias_sigma_m", bias_sigma_m)
         self.bias_tau_s = validate.positive_scalar("bias_tau_s", bias_tau_s)
         self.noise_sigma_m = validate.nonnegative_scalar("noise_sigma_m", noise_sigma_m)
+        self.common = common
         self._rng = np.random.default_rng(seed)
         self._bias = np.zeros(3)
 
@@ -84,6 +88,8 @@ class GpsReceiver:
     def read(self, t_s: float, true_pos_enu_m: np.ndarray, true_vel_enu_mps: np.ndarray) -> GpsReading:
         """The fix at simulation time ``t_s`` for the vehicle's true state."""
         pos = true_pos_enu_m + self._bias + self.noise_sigma_m * self._rng.standard_normal(3) + self.glitch_enu_m
+        if self.common is not None:
+            pos = pos + self.common.at(t_s)
         # a healthy receiver: HDOP 1.2 / VDOP 1.9 with 14 satellites (as SITL's u-blox reports),
         # accuracies in metres that are not the DOPs (a client mixing them up is visibly wrong)
         eph, epv, sats, fix, hdop, vdop = 0.8, 1.2, 14, 3, 1.2, 1.9
