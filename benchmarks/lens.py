@@ -48,6 +48,7 @@ import numpy as np
 
 from skyfix.mapping.batch import CorrectionSpec, correct_photos, list_photos
 from skyfix.mapping.correct import Undistortion
+from skyfix.mapping.exif import jpeg_quality
 from skyfix.mapping.lens import parse_barrel
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "seneca-subset"
@@ -95,8 +96,6 @@ def floor_batch(photos: list[Path], out_dir: Path, threads: int = 2, colorspace:
 
     import simplejpeg
 
-    from skyfix.mapping.exif import jpeg_quality
-
     out_dir.mkdir(parents=True, exist_ok=True)
 
     def one(src: Path) -> None:
@@ -111,6 +110,44 @@ def floor_batch(photos: list[Path], out_dir: Path, threads: int = 2, colorspace:
     with ThreadPoolExecutor(threads) as pool:
         list(pool.map(one, photos))
     return time.perf_counter() - start
+
+
+def stage_profile(photos: list[Path], spec: CorrectionSpec, rounds: int = 3) -> dict[str, float]:
+    """CPU milliseconds per photo of each step of one correction, on one thread (the best of
+    ``rounds`` passes over ``photos``): file read, decode (BGRX), remap, encode, metadata
+    (EXIF read, quality estimate, EXIF carried over), and for scale a remap of the same
+    photo through the identity table (what ``cv2.remap`` costs before any lens geometry)."""
+    import simplejpeg
+
+    from skyfix.mapping.exif import read_metadata, transfer_metadata
+
+    datas = [p.read_bytes() for p in photos]
+    images = [simplejpeg.decode_jpeg(d, colorspace="BGRX") for d in datas]
+    h, w = images[0].shape[:2]
+    tables = spec.undistortion(w, h)
+    ident_y, ident_x = (a.astype(np.float32) for a in np.mgrid[0:h, 0:w])
+    corrected = [tables.apply(im) for im in images]
+    encoded = [simplejpeg.encode_jpeg(c, 90, colorspace="BGRX") for c in corrected]
+    steps = {
+        "file read": lambda i: photos[i].read_bytes(),
+        "decode": lambda i: simplejpeg.decode_jpeg(datas[i], colorspace="BGRX"),
+        "remap": lambda i: tables.apply(images[i]),
+        "encode": lambda i: simplejpeg.encode_jpeg(corrected[i], jpeg_quality(datas[i]) or 95, colorspace="BGRX",
+                                                   colorsubsampling=simplejpeg.decode_jpeg_header(datas[i])[3]),
+        "metadata": lambda i: (read_metadata(datas[i], "p"), transfer_metadata(
+            datas[i], encoded[i], focal_scale=tables.focal_scale, width=w, height=h, source="p")),
+        "identity remap": lambda i: cv2.remap(images[i], ident_x, ident_y, cv2.INTER_LINEAR),
+    }
+    out = {}
+    for name, step in steps.items():
+        best = float("inf")
+        for _ in range(rounds):
+            cpu0 = time.process_time()
+            for i in range(len(photos)):
+                step(i)
+            best = min(best, (time.process_time() - cpu0) / len(photos))
+        out[name] = best * 1000.0
+    return out
 
 
 def main() -> int:
@@ -219,6 +256,15 @@ def main() -> int:
         print(f"peak resident memory: {m_small:.0f} MB for {len(photos)} photos, "
               f"{m_big:.0f} MB for {len(batch_photos)} photos")
         ok &= m_big <= 1.2 * m_small + 20
+
+        # Where the time goes: each step on one thread, against the floor's decode + encode.
+        prof = stage_profile(photos, spec)
+        floor_ms = prof["decode"] + prof["encode"]
+        print("profile, CPU ms per photo on one thread: " + ", ".join(f"{k} {v:.2f}" for k, v in prof.items()))
+        print(f"  decode+encode {floor_ms:.2f} ms; the correction adds remap {prof['remap']:.2f} + metadata "
+              f"{prof['metadata']:.2f} ms = {(prof['remap'] + prof['metadata']) / floor_ms:.2f} of it (the goal "
+              f"leaves 0.25); cv2.remap through the identity table alone costs {prof['identity remap']:.2f} ms = "
+              f"{prof['identity remap'] / floor_ms:.2f} of it")
 
         # One core, CPU time per photo (tables included once).
         cpu0 = time.process_time()
