@@ -32,19 +32,22 @@ image (:meth:`~skyfix.camera.Camera.scaled`).
 from __future__ import annotations
 
 import json
-import math
-import numbers
 import os
-from dataclasses import MISSING, asdict, fields
+from dataclasses import asdict, fields
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
+import msgspec
+from msgspec import Meta
+
+from skyfix import validate
 from skyfix.camera import Camera
 from skyfix.distortion import Barrel, BrownConrady, Fisheye
 from skyfix.errors import DataError, InputError
-from skyfix.jsonfile import read_json
+from skyfix.jsonfile import convert, json_schema, read_json
 
-__all__ = ["CAMERA_KEYS", "LENS_MODELS", "camera_from_dict", "camera_to_dict", "load_camera", "save_camera"]
+__all__ = ["CAMERA_KEYS", "LENS_MODELS", "CameraFile", "camera_from_dict", "camera_json_schema", "camera_to_dict",
+           "load_camera", "save_camera"]
 
 LENS_MODELS = {"brown_conrady": BrownConrady, "fisheye": Fisheye, "barrel": Barrel}
 """Lens model name in the file -> distortion class (``pinhole`` means no distortion)."""
@@ -59,6 +62,62 @@ _FORMS = {  # the three ways a file may give the intrinsics -> keys each one nee
 }
 _EXPECTED = ("a JSON object with width, height (pixels) and one of: "
              + "; ".join(_FORMS) + " (see skyfix.camera_io)")
+
+_Pixels = Annotated[float, Meta(gt=0, multiple_of=1, description="pixels, a positive integer (640.0 reads as 640)")]
+_FocalPx = Annotated[float, Meta(gt=0, description="focal length, pixels")]
+_CentrePx = Annotated[float, Meta(description="principal point, OpenCV pixels (top-left pixel centre is 0)")]
+_Fov = Annotated[float, Meta(gt=0, lt=180, description="field of view across the full image, degrees")]
+_Model = Annotated[str, Meta(extra_json_schema={"enum": ["pinhole", *LENS_MODELS], "default": "pinhole"})]
+
+
+class CameraFile(msgspec.Struct, kw_only=True):
+    """skyfix camera JSON as read: a camera's image size, intrinsics and lens (see skyfix.camera_io).
+
+    Exactly one of the three intrinsics forms is given (checked by :func:`camera_from_dict`);
+    other keys are ignored.
+
+    Example:
+        >>> file = convert({"width": 640, "height": 480, "hfov_deg": 60, "note": "x"}, CameraFile, "cam.json")
+        >>> file.width, file.hfov_deg, file.model
+        (640.0, 60.0, 'pinhole')
+    """
+
+    width: _Pixels | None = None
+    height: _Pixels | None = None
+    fx_px: _FocalPx | None = None
+    fy_px: _FocalPx | None = None
+    cx_px: _CentrePx | None = None
+    cy_px: _CentrePx | None = None
+    fx: _FocalPx | None = None
+    fy: _FocalPx | None = None
+    cx: _CentrePx | None = None
+    cy: _CentrePx | None = None
+    hfov_deg: _Fov | None = None
+    vfov_deg: _Fov | None = None
+    model: _Model = "pinhole"
+    coefficients: dict[str, Any] | None = None  # typed per model by the lens class (schema: allOf)
+
+
+def camera_json_schema() -> dict:
+    """JSON Schema of the camera file: :class:`CameraFile` plus each lens model's coefficients.
+
+    Example:
+        >>> schema = camera_json_schema()
+        >>> sorted(schema["$defs"]), schema["$defs"]["Barrel"]["required"]
+        (['Barrel', 'BrownConrady', 'CameraFile', 'Fisheye'], ['a', 'b', 'c'])
+    """
+    schema = json_schema(CameraFile, *LENS_MODELS.values())
+    rules = []
+    for name, cls in LENS_MODELS.items():
+        lens = schema["$defs"][cls.__name__]
+        lens["description"] = f"coefficients of the {name} lens model (skyfix.distortion.{cls.__name__})"
+        lens["additionalProperties"] = False
+        rules.append({"if": {"properties": {"model": {"const": name}}, "required": ["model"]},
+                      "then": {"properties": {"coefficients": {"$ref": f"#/$defs/{cls.__name__}"}}}})
+    schema["allOf"] = rules
+    schema["oneOf"] = [{"required": list(keys)} for keys in _FORMS.values()]  # one intrinsics form
+    schema["title"] = "skyfix camera JSON"
+    return schema
 
 
 def camera_to_dict(camera: Camera, **extra: Any) -> dict:
@@ -109,25 +168,23 @@ def camera_from_dict(data: Any, source: str = "camera", *,
     size = None if image_size is None else _image_size(image_size)
     if not isinstance(data, dict):
         raise DataError(f"{source}: expected {_EXPECTED}; got JSON {type(data).__name__}")
-    width, height = _file_size(data, source, size)
-    distortion = _distortion(data, source)
-    forms = [name for name, keys in _FORMS.items() if any(k in data for k in keys)]
+    file = convert(data, CameraFile, source)
+    width, height = _file_size(file, source, size)
+    distortion = _distortion(file, source)
+    forms = [name for name, keys in _FORMS.items() if any(getattr(file, k) is not None for k in keys)]
     if len(forms) != 1:
         found = "none of them" if not forms else f"{len(forms)} of them ({'; '.join(forms)})"
         raise DataError(f"{source}: expected {_EXPECTED}; found {found}")
     keys = _FORMS[forms[0]]
-    missing = [k for k in keys if k not in data]
+    missing = [k for k in keys if getattr(file, k) is None]
     if missing:
         raise DataError(f"{source}: lacks {missing}; with {forms[0]} all of them are needed ({_EXPECTED})")
     try:
         if keys[0] == "hfov_deg":
-            camera = Camera.from_fov(width, height, _number(data, "hfov_deg", source),
-                                     None if data.get("vfov_deg") is None else _number(data, "vfov_deg", source),
-                                     distortion)
+            camera = Camera.from_fov(width, height, file.hfov_deg, file.vfov_deg, distortion)
         else:
-            fx, fy, cx, cy = (_number(data, k, source) for k in keys)
-            camera = Camera(width, height, fx, fy, cx, cy, distortion)
-    except InputError as exc:  # a value Camera refuses (e.g. fx_px <= 0): the file is at fault
+            camera = Camera(width, height, *(getattr(file, k) for k in keys), distortion)
+    except InputError as exc:  # a value Camera refuses (e.g. a NaN from Python's json): the file is at fault
         raise DataError(f"{source}: {exc}") from exc
     if size is None or size == (camera.width, camera.height):
         return camera
@@ -172,27 +229,14 @@ def load_camera(path: str | os.PathLike, *, image_size: tuple[int, int] | None =
 def _image_size(image_size: Any) -> tuple[int, int]:
     try:
         w, h = image_size
-        if all(_is_int(v) and v > 0 for v in (w, h)):
-            return int(w), int(h)
+        return validate.integer_in("image width", w, 1), validate.integer_in("image height", h, 1)
     except (TypeError, ValueError):
-        pass
-    raise InputError(f"image_size must be (width, height) in pixels, positive integers; got {image_size!r}")
+        raise InputError(f"image_size must be (width, height) in pixels, positive integers; "
+                         f"got {image_size!r}") from None
 
 
-def _is_int(value: Any) -> bool:
-    """An integer, or a float with an integer value (JSON writers may add ``.0``); not a bool."""
-    if isinstance(value, bool):
-        return False
-    if isinstance(value, numbers.Integral):
-        return True
-    try:
-        return isinstance(value, float) and math.isfinite(value) and value == int(value)
-    except (TypeError, ValueError, OverflowError):
-        return False
-
-
-def _file_size(data: dict, source: str, size: tuple[int, int] | None) -> tuple[int, int]:
-    given = [k for k in ("width", "height") if k in data]
+def _file_size(file: CameraFile, source: str, size: tuple[int, int] | None) -> tuple[int, int]:
+    given = [k for k in ("width", "height") if getattr(file, k) is not None]
     if not given:
         if size is None:
             raise DataError(f"{source}: lacks width and height and no image size was given; expected {_EXPECTED}")
@@ -200,29 +244,13 @@ def _file_size(data: dict, source: str, size: tuple[int, int] | None) -> tuple[i
     if len(given) == 1:
         raise DataError(f"{source}: gives {given[0]} but not {'height' if given[0] == 'width' else 'width'}; "
                         "give both or neither")
-    out = []
-    for k in ("width", "height"):
-        v = data[k]
-        if not _is_int(v) or v <= 0:
-            raise DataError(f"{source}: {k} must be a positive integer number of pixels, got {v!r}")
-        out.append(int(v))
-    return out[0], out[1]
+    return int(file.width), int(file.height)
 
 
-def _number(data: dict, key: str, source: str) -> float:
-    v = data[key]
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise DataError(f"{source}: {key} must be a finite number, got {v!r}")
-    return float(v)
-
-
-def _distortion(data: dict, source: str):
-    model = data.get("model", "pinhole")
+def _distortion(file: CameraFile, source: str):
+    model, coefficients = file.model, file.coefficients or {}
     if model not in ("pinhole", *LENS_MODELS):
         raise DataError(f"{source}: unknown lens model {model!r}; expected one of {['pinhole', *LENS_MODELS]}")
-    coefficients = data.get("coefficients") or {}
-    if not isinstance(coefficients, dict):
-        raise DataError(f"{source}: coefficients must be an object of named numbers, got {coefficients!r}")
     if model == "pinhole":
         if any(v != 0 for v in coefficients.values()):
             raise DataError(f"{source}: coefficients {coefficients} given for a pinhole camera; "
@@ -231,16 +259,9 @@ def _distortion(data: dict, source: str):
     cls = LENS_MODELS[model]
     names = [f.name for f in fields(cls)]
     unknown = sorted(set(coefficients) - set(names))
-    if unknown:
+    if unknown:  # msgspec ignores unknown keys of a dataclass: a typo (k9) must not pass as 0
         raise DataError(f"{source}: model {model} has coefficients {names}, not {unknown}")
-    for k in coefficients:
-        if not (k == "d" and coefficients[k] is None):  # barrel d None: 1 - a - b - c
-            _number(coefficients, k, f"{source} coefficients")
-    try:
-        return cls(**coefficients)
-    except TypeError:  # a coefficient without default is missing (barrel a, b, c)
-        required = [f.name for f in fields(cls) if f.default is MISSING]
-        raise DataError(f"{source}: model {model} needs coefficients {required}, got {sorted(coefficients)}") from None
+    return convert(coefficients, cls, f"{source} coefficients of model {model}")
 
 
 def _rescaled(camera: Camera, size: tuple[int, int], source: str) -> Camera:

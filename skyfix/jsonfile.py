@@ -1,13 +1,21 @@
-"""Read a JSON file a user named, with a skyfix error that says which file and what is wrong."""
+"""JSON files a user names: read with a skyfix error that says which file and what is wrong,
+checked against a msgspec model (one ``msgspec.Struct`` per file format), whose JSON Schema
+is published in ``docs/schemas/``."""
 
 from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
+
+import msgspec
 
 from skyfix.errors import DataError, SkyfixError
+
+T = TypeVar("T")
+_AT = re.compile(r"^(?P<msg>.*?)(?: - at `\$(?P<path>[^`]*)`)?$", re.S)
 
 
 def read_json(path: str | os.PathLike, what: str, *, missing: type[SkyfixError] = DataError) -> Any:
@@ -23,3 +31,48 @@ def read_json(path: str | os.PathLike, what: str, *, missing: type[SkyfixError] 
         return json.loads(p.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise DataError(f"{what} {p} is not readable JSON: {exc}") from exc
+
+
+def convert(data: Any, model: type[T], source: str) -> T:
+    """``data`` (parsed JSON) checked against and converted to ``model`` (a msgspec Struct or
+    dataclass); DataError naming ``source`` and the key on a mismatch.
+
+    Example:
+        >>> class Point(msgspec.Struct):
+        ...     x_m: float
+        >>> convert({"x_m": 2}, Point, "p.json")
+        Point(x_m=2.0)
+        >>> convert({"x_m": "2"}, Point, "p.json")
+        Traceback (most recent call last):
+        ...
+        skyfix.errors.DataError: p.json: x_m: expected `float`, got `str`
+    """
+    try:
+        return msgspec.convert(data, model)
+    except msgspec.ValidationError as exc:
+        raise DataError(f"{source}: {_readable(str(exc))}") from None
+
+
+def _readable(message: str) -> str:
+    """msgspec's "Expected `int`, got `str` - at `$.a[0].b`" as "a[0].b: expected `int`, got `str`"."""
+    m = _AT.match(message)
+    msg = m["msg"][:1].lower() + m["msg"][1:] if m["msg"][:2] in ("Ex", "Ob", "In") else m["msg"]
+    path = (m["path"] or "").lstrip(".")
+    return f"{path}: {msg}" if path else msg
+
+
+def json_schema(model: type, *extra: type) -> dict:
+    """JSON Schema (2020-12) of ``model`` (and of ``extra`` types, in ``$defs``), for publishing.
+
+    Example:
+        >>> class Point(msgspec.Struct):
+        ...     '''A point, metres.'''
+        ...     x_m: float
+        >>> json_schema(Point)["$defs"]["Point"]["required"]
+        ['x_m']
+    """
+    (root, *_), defs = msgspec.json.schema_components((model, *extra), ref_template="#/$defs/{name}")
+    for item in defs.values():  # a docstring's first paragraph, not its examples
+        if "description" in item:
+            item["description"] = " ".join(item["description"].split("\n\n")[0].split())
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema", **root, "$defs": defs}
