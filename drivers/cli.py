@@ -174,17 +174,14 @@ def run_rtl_land(args: argparse.Namespace) -> int:
 
 
 def run_mission_upload(args: argparse.Namespace) -> int:
-    from skyfix.drivers.mission import MissionItem
+    from skyfix.drivers.mission import MissionFile
+    from skyfix.jsonfile import convert, read_json
 
     if not args.file.is_file():
         raise InputError(f"{args.file}: no such mission file")
-    try:
-        doc = json.loads(args.file.read_text())
-        items = [MissionItem(**it) for it in doc["items"]]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"{args.file}: not a skyfix mission JSON ({exc})") from None
+    plan = convert(read_json(args.file, "mission file"), MissionFile, f"mission file {args.file}")
     with _connect(args) as vehicle:
-        stats = vehicle.upload_mission(items, ftp=args.ftp)
+        stats = vehicle.upload_mission(plan.items, ftp=args.ftp)
     how = "over MAVLink FTP, read back and compared" if args.ftp else f"{stats.retransmissions} retransmissions"
     sys.stdout.write(f"uploaded {stats.items} items in {stats.elapsed_s:.2f} s ({how})\n")
     return 0

@@ -12,12 +12,16 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Annotated
+
+import msgspec
+from msgspec import Meta
 
 from skyfix import validate
 from skyfix.drivers.mav import mavlink
 from skyfix.drivers.request import DONE, transact
 from skyfix.errors import CommandRejected, InputError, SkyfixTimeout
+from skyfix.jsonfile import json_schema
 
 if TYPE_CHECKING:
     from skyfix.drivers.vehicle import Vehicle
@@ -32,9 +36,9 @@ class MissionItem:
     """One mission item. ``lat_deg``/``lon_deg`` WGS84 (0, 0 = here), ``alt_m`` in ``frame``
     (default MAV_FRAME_GLOBAL_RELATIVE_ALT_INT: metres above home); params per MAV_CMD."""
 
-    command: int
-    lat_deg: float = 0.0
-    lon_deg: float = 0.0
+    command: Annotated[int, Meta(ge=0, le=65535, description="MAV_CMD")]
+    lat_deg: Annotated[float, Meta(ge=-90, le=90)] = 0.0
+    lon_deg: Annotated[float, Meta(ge=-180, le=180)] = 0.0
     alt_m: float = 0.0
     param1: float = 0.0
     param2: float = 0.0
@@ -92,6 +96,25 @@ class MissionItem:
         scale = 1e7 if msg.get_type() == "MISSION_ITEM_INT" else 1.0
         return cls(msg.command, msg.x / scale, msg.y / scale, msg.z, msg.param1, msg.param2, msg.param3,
                    msg.param4, msg.frame, bool(msg.autocontinue))
+
+
+class MissionFile(msgspec.Struct, kw_only=True):
+    """A mission as ``skyfix vehicle mission download`` writes it and ``upload`` reads it.
+
+    Example:
+        >>> from skyfix.jsonfile import convert
+        >>> plan = convert({"items": [{"command": 22, "alt_m": 10.0}]}, MissionFile, "plan.json")
+        >>> plan.items[0].frame == M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, plan.system_id
+        (True, None)
+    """
+
+    system_id: int | None = None
+    items: list[MissionItem]
+
+
+def mission_json_schema() -> dict:
+    """JSON Schema of the mission file (:class:`MissionFile`), published in docs/schemas/."""
+    return json_schema(MissionFile) | {"title": "skyfix mission"}
 
 
 @dataclass(frozen=True)

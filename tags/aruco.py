@@ -13,13 +13,17 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
 
 import cv2
+import msgspec
 import numpy as np
+from msgspec import Meta
 
 from skyfix import validate
 from skyfix.camera import Camera
 from skyfix.errors import DataError, EstimationError, InputError
+from skyfix.jsonfile import convert, json_schema
 from skyfix.tags.blur import motion_blur_px
 from skyfix.tags.image import as_rgb_u8
 from skyfix.tags.locate import BLUR_FLAG_PX, ideal_pixels
@@ -126,19 +130,46 @@ class ArucoField:
                 "first_id": self.first_id, "origin_xy_m": list(self.origin_xy_m)}
 
     @classmethod
-    def from_dict(cls, d: dict) -> ArucoField:
+    def from_dict(cls, d: dict, source: str = "marker board") -> ArucoField:
+        """Board from its saved form (:class:`ArucoFieldFile`); DataError naming ``source`` and the key."""
         if not isinstance(d, dict) or d.get("format") != FORMAT:
-            raise DataError(f"not a skyfix marker board (expected format {FORMAT!r})")
+            raise DataError(f"{source}: not a skyfix marker board (expected format {FORMAT!r})")
+        f = convert(d, ArucoFieldFile, source)
         try:
-            return cls(d["dictionary"], d["rows"], d["cols"], d["marker_m"], d["spacing_m"],
-                       d.get("first_id", 0), tuple(d.get("origin_xy_m", (0.0, 0.0))))
-        except (KeyError, TypeError) as exc:
-            raise DataError(f"marker board is malformed: {exc}") from exc
+            return cls(f.dictionary, f.rows, f.cols, f.marker_m, f.spacing_m, f.first_id, f.origin_xy_m)
+        except InputError as exc:
+            raise DataError(f"{source}: {exc}") from exc
 
     def save(self, path: str | Path) -> Path:
         out = Path(path)
         out.write_text(json.dumps(self.to_dict(), indent=1))
         return out
+
+
+class ArucoFieldFile(msgspec.Struct, kw_only=True):
+    """A marker board as :meth:`ArucoField.save` writes it (x east, y north, metres; row 0 south).
+
+    Example:
+        >>> board = convert({"format": FORMAT, "dictionary": "4x4_50", "rows": 2, "cols": 3, "marker_m": 0.2,
+        ...                  "spacing_m": 0.3}, ArucoFieldFile, "board.json")
+        >>> board.first_id, board.origin_xy_m
+        (0, (0.0, 0.0))
+    """
+
+    format: Literal["skyfix.tags.ArucoField"]
+    version: Literal[1] = 1
+    dictionary: Annotated[str, Meta(extra_json_schema={"enum": sorted(DICTIONARIES)})]
+    rows: Annotated[int, Meta(ge=1)]
+    cols: Annotated[int, Meta(ge=1)]
+    marker_m: Annotated[float, Meta(gt=0, description="marker side, black border included")]
+    spacing_m: Annotated[float, Meta(gt=0, description="marker centre to centre, >= 1.2 marker_m")]
+    first_id: Annotated[int, Meta(ge=0)] = 0
+    origin_xy_m: tuple[float, float] = (0.0, 0.0)
+
+
+def aruco_field_json_schema() -> dict:
+    """JSON Schema of the marker board file (:class:`ArucoFieldFile`), published in docs/schemas/."""
+    return json_schema(ArucoFieldFile) | {"title": "skyfix marker board"}
 
 
 def make_detector(board: ArucoField) -> cv2.aruco.ArucoDetector:

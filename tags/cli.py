@@ -136,8 +136,10 @@ def _load_any(path: Path):
     from skyfix.tags.aruco import ArucoField
     from skyfix.tags.field import TagField
 
-    d = read_json(path, "field file")
-    return ArucoField.from_dict(d) if isinstance(d, dict) and d.get("format") == BOARD else TagField.from_dict(d)
+    d, source = read_json(path, "field file"), f"field file {path}"
+    if isinstance(d, dict) and d.get("format") == BOARD:
+        return ArucoField.from_dict(d, source)
+    return TagField.from_dict(d, source)
 
 
 def _camera(args: argparse.Namespace, width: int, height: int):

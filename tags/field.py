@@ -10,12 +10,15 @@ import json
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Annotated, Literal
 
+import msgspec
 import numpy as np
+from msgspec import Meta
 
 from skyfix import validate
 from skyfix.errors import DataError, InputError
-from skyfix.jsonfile import read_json
+from skyfix.jsonfile import convert, json_schema, read_json
 from skyfix.tags.codec import TagGeometry, TileCodec
 from skyfix.tags.placement import PlacementReport, optimise_placement
 from skyfix.tags.raster import fill_rects
@@ -183,17 +186,17 @@ class TagField:
                 "placement": None if self.placement is None else asdict(self.placement)}
 
     @classmethod
-    def from_dict(cls, d: dict) -> TagField:
+    def from_dict(cls, d: dict, source: str = "tag field") -> TagField:
+        """Field from its saved form (:class:`TagFieldFile`); DataError naming ``source`` and the key."""
         if not isinstance(d, dict) or d.get("format") != FORMAT:
-            raise DataError(f"not a skyfix tag field (expected format {FORMAT!r})")
+            raise DataError(f"{source}: not a skyfix tag field (expected format {FORMAT!r})")
+        f = convert(d, TagFieldFile, source)
         try:
-            codec = TileCodec(d["colors"], d["tiles"], np.asarray(d["palette_rgb"], float))
-            geometry = TagGeometry(d["tiles"], d["tile_m"], d["gap_m"], d["offset_m"])
-            placement = PlacementReport(**d["placement"]) if d.get("placement") else None
-            return cls(codec, geometry, d["spacing_m"], np.asarray(d["values"], dtype=np.int64),
-                       tuple(d["origin_xy_m"]), placement)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise DataError(f"tag field is malformed: {exc}") from exc
+            codec = TileCodec(f.colors, f.tiles, np.asarray(f.palette_rgb, float))
+            geometry = TagGeometry(f.tiles, f.tile_m, f.gap_m, f.offset_m)
+            return cls(codec, geometry, f.spacing_m, np.asarray(f.values, dtype=np.int64), f.origin_xy_m, f.placement)
+        except ValueError as exc:  # InputError, or ragged values rows
+            raise DataError(f"{source}: {exc}") from exc
 
     def save(self, path: str | Path) -> Path:
         out = Path(path)
@@ -202,7 +205,39 @@ class TagField:
 
     @classmethod
     def load(cls, path: str | Path) -> TagField:
-        return cls.from_dict(read_json(path, "tag field file"))
+        return cls.from_dict(read_json(path, "tag field file"), f"tag field file {path}")
+
+
+_Rgb = Annotated[list[Annotated[float, Meta(ge=0, le=1)]], Meta(min_length=3, max_length=3)]
+
+
+class TagFieldFile(msgspec.Struct, kw_only=True):
+    """A tile-tag field as :meth:`TagField.save` writes it (x east, y north, metres; row 0 south).
+
+    Example:
+        >>> convert({"format": FORMAT, "colors": 6}, TagFieldFile, "f.json")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        skyfix.errors.DataError: f.json: object missing required field `tiles`
+    """
+
+    format: Literal["skyfix.tags.TagField"]
+    version: Literal[1] = 1
+    colors: Annotated[int, Meta(ge=2, description="number of tile colours")]
+    tiles: Annotated[int, Meta(description="tiles per tag")]
+    palette_rgb: Annotated[list[_Rgb], Meta(description="sRGB in [0, 1] per colour")]
+    tile_m: Annotated[float, Meta(gt=0)]
+    gap_m: Annotated[float, Meta(ge=0)]
+    offset_m: Annotated[float, Meta(ge=0, description="displacement of the lower-right tile")]
+    spacing_m: Annotated[float, Meta(gt=0, description="tag centre to centre")]
+    origin_xy_m: tuple[float, float] = (0.0, 0.0)
+    values: Annotated[list[list[Annotated[int, Meta(ge=0)]]], Meta(description="tag values, rows x cols, row 0 south")]
+    placement: PlacementReport | None = None
+
+
+def tag_field_json_schema() -> dict:
+    """JSON Schema of the tag field file (:class:`TagFieldFile`), published in docs/schemas/."""
+    return json_schema(TagFieldFile) | {"title": "skyfix tag field"}
 
 
 def _hex(rgb: np.ndarray) -> str:

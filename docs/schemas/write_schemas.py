@@ -21,6 +21,9 @@ HERE = Path(__file__).resolve().parent
 #: schema file -> "module:function" returning the schema dict.
 SCHEMAS = {
     "camera.schema.json": "skyfix.camera_io:camera_json_schema",
+    "tag_field.schema.json": "skyfix.tags.field:tag_field_json_schema",
+    "marker_board.schema.json": "skyfix.tags.aruco:aruco_field_json_schema",
+    "mission.schema.json": "skyfix.drivers.mission:mission_json_schema",
 }
 
 
