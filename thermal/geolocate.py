@@ -18,11 +18,11 @@ from collections.abc import Sequence
 import numpy as np
 
 from skyfix import validate
-from skyfix.camera import Camera, CameraPose
+from skyfix.camera import Camera, CameraPose, ground_intersection
 from skyfix.errors import InputError
 from skyfix.geo import LocalFrame, ecef_to_enu_rotation
 from skyfix.thermal.detect import Hotspot
-from skyfix.thermal.ground import DemGround, FlatGround, as_ground, frame_near, intersect
+from skyfix.thermal.ground import DemGround, FlatGround, as_ground, dem_hits, frame_near
 from skyfix.thermal.pose import PoseUncertainty
 from skyfix.types import GeoFix
 
@@ -55,43 +55,51 @@ def locate_in_frame(camera: Camera, pose: CameraPose, uv: np.ndarray, ground: Fl
     The vertical variance is the ground's own (``ground.sigma_m``); terrain slope is not
     propagated into the horizontal covariance.
     """
-    pts, _ = intersect(camera, pose, uv, ground, frame)
-    cam_enu, r_frame_from_cam = pose.in_frame(frame)
+    uv = validate.points("uv", uv, 2)
     n = uv.shape[0]
-    # Rays at the centroid and one pixel right / down of it, for the pixel Jacobian.
-    rays = (camera.pixel_to_ray(np.concatenate((uv, uv + _DU, uv + _DV))) @ r_frame_from_cam.T).tolist()
-    heights = (cam_enu[2] - pts[:, 2]).tolist()
+    cam_enu, r_frame_from_cam = pose.in_frame(frame)
+    # Rays at the centroid and one pixel right / down of it (pixel Jacobian), frame axes.
+    rays = camera.pixel_to_ray(np.concatenate((uv, uv + _DU, uv + _DV))) @ r_frame_from_cam.T
+    if isinstance(ground, DemGround):
+        pts = dem_hits(ground, frame, cam_enu, rays[:n])
+    else:
+        pts = ground_intersection(camera, pose, uv, ground.alt_m, frame)
+    d = rays[:n]
+    s = d[:, :2] / d[:, 2:]  # horizontal shift of the ground point per metre of height (n, 2)
+    k = (cam_enu[2] - pts[:, 2]) / -d[:, 2]
+    # The ground point g = C_h + height * d_h / (-d_z) moves by k * (m_h - s * m_z) when
+    # the ray d moves by m. Ray moves (n, 5, 3): small rotations about E, N, U (e x d),
+    # and one pixel right / down.
+    moves = np.zeros((n, 5, 3))
+    moves[:, 0, 1], moves[:, 0, 2] = -d[:, 2], d[:, 1]
+    moves[:, 1, 0], moves[:, 1, 2] = d[:, 2], -d[:, 0]
+    moves[:, 2, 0], moves[:, 2, 1] = -d[:, 1], d[:, 0]
+    moves[:, 3], moves[:, 4] = rays[n:2 * n] - d, rays[2 * n:] - d
+    g = k[:, None, None] * (moves[:, :, :2] - s[:, None, :] * moves[:, :, 2:])  # (n, 5, 2)
     tilt = math.radians(uncertainty.tilt_sigma_deg) ** 2
-    yaw = math.radians(uncertainty.heading_deg) ** 2
     px = uncertainty.pixel_sigma_px ** 2
-    pos = uncertainty.position_sigma_m ** 2
+    var = np.array([tilt, tilt, math.radians(uncertainty.heading_deg) ** 2, px, px])
     ground_var = ground.sigma_m ** 2
     vert = uncertainty.vertical_m ** 2 + ground_var
-    cov = np.zeros((n, 3, 3))
-    # A frame holds a handful of hotspots: plain float arithmetic per hotspot is several
-    # times faster than numpy on (n, 2, 5) arrays of that size.
-    for i in range(n):
-        dx, dy, dz = rays[i]
-        sx, sy = dx / dz, dy / dz  # horizontal shift of the ground point per metre of height
-        k = heights[i] / -dz
-        # The ground point g = C_h + height * d_h / (-d_z) moves by k * (m_h - s * m_z)
-        # when the ray d moves by m. Ray moves: small rotations about E, N, U (e x d), and
-        # one pixel right / down.
-        moves = ((0.0, -dz, dy, tilt), (dz, 0.0, -dx, tilt), (-dy, dx, 0.0, yaw),
-                 (*(a - b for a, b in zip(rays[n + i], rays[i], strict=True)), px),
-                 (*(a - b for a, b in zip(rays[2 * n + i], rays[i], strict=True)), px))
-        cee = cen = cnn = 0.0
-        for mx, my, mz, var in moves:
-            ge, gn = k * (mx - sx * mz), k * (my - sy * mz)
-            cee += var * ge * ge
-            cen += var * ge * gn
-            cnn += var * gn * gn
-        # Camera east/north move the point one for one; camera and ground height by the slope.
-        cov[i, :2, :2] = ((cee + pos + vert * sx * sx, cen + vert * sx * sy),
-                          (cen + vert * sx * sy, cnn + pos + vert * sy * sy))
-        cov[i, :2, 2] = cov[i, 2, :2] = (ground_var * sx, ground_var * sy)
-        cov[i, 2, 2] = ground_var
+    cov = np.empty((n, 3, 3))
+    # Camera east/north move the point one for one; camera and ground height by the slope.
+    cov[:, :2, :2] = (np.einsum("j,nja,njb->nab", var, g, g) + uncertainty.position_sigma_m ** 2 * np.eye(2)
+                      + vert * s[:, :, None] * s[:, None, :])
+    cov[:, :2, 2] = cov[:, 2, :2] = ground_var * s
+    cov[:, 2, 2] = ground_var
     return pts, cov
+
+
+def enu_axes_at(lat_deg: np.ndarray, lon_deg: np.ndarray) -> np.ndarray:
+    """Rotations ``(N, 3, 3)`` ECEF -> ENU axes at each (lat, lon) (rows E, N, U): the
+    vectorised form of :func:`skyfix.geo.ecef_to_enu_rotation`."""
+    lat, lon = np.radians(lat_deg), np.radians(lon_deg)
+    sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
+    r = np.zeros(np.shape(lat) + (3, 3))
+    r[..., 0, 0], r[..., 0, 1] = -so, co
+    r[..., 1, 0], r[..., 1, 1], r[..., 1, 2] = -sl * co, -sl * so, cl
+    r[..., 2, 0], r[..., 2, 1], r[..., 2, 2] = cl * co, cl * so, sl
+    return r
 
 
 def geolocate_many(hotspots_or_uv, camera: Camera, pose: CameraPose,
@@ -108,12 +116,11 @@ def geolocate_many(hotspots_or_uv, camera: Camera, pose: CameraPose,
         frame = frame_near(pose.lat, pose.lon, ground.alt_m)
     pts, cov = locate_in_frame(camera, pose, uv, ground, frame, uncertainty)
     lat, lon, alt = frame.to_geodetic(pts[:, 0], pts[:, 1], pts[:, 2])
-    r_frame_from_ecef = ecef_to_enu_rotation(frame.lat0_deg, frame.lon0_deg)
-    fixes = []
-    for i in range(uv.shape[0]):
-        r = r_frame_from_ecef @ ecef_to_enu_rotation(lat[i], lon[i]).T  # fix ENU axes -> frame axes
-        fixes.append(GeoFix(lat[i], lon[i], alt[i], r.T @ cov[i] @ r, time_s, source_id))
-    return fixes
+    # Frame axes -> each fix's own ENU axes, all fixes at once.
+    r = enu_axes_at(lat, lon) @ ecef_to_enu_rotation(frame.lat0_deg, frame.lon0_deg).T
+    cov_fix = r @ cov @ np.transpose(r, (0, 2, 1))
+    return [GeoFix(la, lo, al, c, time_s, source_id)
+            for la, lo, al, c in zip(lat.tolist(), lon.tolist(), alt.tolist(), cov_fix, strict=True)]
 
 
 def geolocate(hotspot_or_uv, camera: Camera, pose: CameraPose,

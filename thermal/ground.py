@@ -239,14 +239,42 @@ def intersect(camera: Camera, pose: CameraPose, uv: np.ndarray, ground: FlatGrou
     if isinstance(ground, FlatGround):
         pts = ground_intersection(camera, pose, uv, ground.alt_m, frame)
         return pts, np.full(pts.shape[0], ground.alt_m)
-    uv = validate.points("uv", uv, 2)
-    local = ground.local()
-    cam, r_local_from_cam = pose.in_frame(local.frame)
-    d = camera.pixel_to_ray(uv) @ r_local_from_cam.T
-    t = local.cast(cam, d)
-    p = cam + t[:, None] * d
-    lat, lon, h = local.frame.to_geodetic(p[:, 0], p[:, 1], p[:, 2])
-    return np.stack(frame.to_enu(lat, lon, h), axis=1), np.asarray(h, float)
+    pts = ground_points(camera, pose, uv, ground, frame)
+    return pts, np.asarray(frame.to_geodetic(pts[:, 0], pts[:, 1], pts[:, 2])[2], float)
+
+
+def ground_points(camera: Camera, pose: CameraPose, uv: np.ndarray, ground: FlatGround | DemGround,
+                  frame: LocalFrame) -> np.ndarray:
+    """The points of :func:`intersect` without their heights (``(N, 3)`` ENU in ``frame``)."""
+    if isinstance(ground, FlatGround):
+        return ground_intersection(camera, pose, uv, ground.alt_m, frame)
+    cam, r_frame_from_cam = pose.in_frame(frame)
+    return dem_hits(ground, frame, cam, camera.pixel_to_ray(validate.points("uv", uv, 2)) @ r_frame_from_cam.T)
+
+
+def dem_hits(dem: DemGround, frame: LocalFrame, cam_m: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """First hits ``(N, 3)`` on ``dem`` of unit ``rays`` ``(N, 3)`` from ``cam_m`` ``(3,)``,
+    all ENU in ``frame``. The rays are cast in the DEM's own frame; frame to frame is a
+    rigid motion (:func:`frame_motion`), which keeps the distance along each ray."""
+    local = dem.local()
+    r, t = frame_motion(frame, local.frame)
+    dist_m = local.cast(r @ cam_m + t, rays @ r.T)
+    return cam_m + dist_m[:, None] * rays
+
+
+@functools.lru_cache(maxsize=64)
+def frame_motion(src: LocalFrame, dst: LocalFrame) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t)`` with ``p_dst = R @ p_src + t`` for ENU points (m) of ``src`` in ``dst``.
+
+    Exact: both frames are rotations and translations of ECEF (pyproj's topocentric), so
+    one frame's points are a rigid motion of the other's: R turns ``src``'s axes into
+    ``dst``'s, t is ``src``'s origin in ``dst``. Read-only arrays.
+    """
+    t = np.array([float(x) for x in dst.to_enu(src.lat0_deg, src.lon0_deg, src.alt0_m)])
+    r = dst.enu_rotation_at(src.lat0_deg, src.lon0_deg)
+    for a in (r, t):
+        a.setflags(write=False)
+    return r, t
 
 
 def _fill(heights_m: np.ndarray, holes: np.ndarray) -> np.ndarray:

@@ -21,7 +21,7 @@ from skyfix.camera import Camera
 from skyfix.errors import EstimationError, InputError, SkyfixError
 from skyfix.geo import LocalFrame
 from skyfix.thermal.detect import Hotspot
-from skyfix.thermal.ground import DemGround, FlatGround, as_ground, intersect
+from skyfix.thermal.ground import DemGround, FlatGround, as_ground, ground_points
 from skyfix.thermal.poselog import PoseLog
 from skyfix.thermal.tracker import ground_area_m2
 
@@ -107,7 +107,7 @@ def _single_frame_points(camera: Camera, pose_log: PoseLog, detections, ground, 
         try:
             pose = pose_log.pose_at(t)
             uv = np.array([[h.u_px, h.v_px] for h in spots])
-            pts, _ = intersect(camera, pose, uv, ground, frame)
+            pts = ground_points(camera, pose, uv, ground, frame)
         except SkyfixError as exc:
             log.warning("frame at %.3f s dropped from the sightings: %s", t, exc)
             continue
