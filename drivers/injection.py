@@ -28,6 +28,7 @@ from skyfix.drivers import units
 from skyfix.drivers.mav import mavlink
 from skyfix.drivers.request import DONE, transact
 from skyfix.errors import ConfigurationError, InputError, SkyfixError, SkyfixTimeout
+from skyfix.geo import Height, VerticalDatum
 from skyfix.rotation import r_ned_from_frd
 from skyfix.types import GeoFix
 
@@ -239,8 +240,8 @@ def set_origin(vehicle: Vehicle, lat_deg: float, lon_deg: float, alt_amsl_m: flo
 class PositionInjector:
     """Sends GPS_INPUT from ``source()`` (a :class:`GeoFix` or None) at a steady rate.
 
-    GeoFix heights are ellipsoidal; GPS_INPUT wants AMSL: alt_amsl = h - N with N the EGM96
-    undulation at the fix (:mod:`skyfix.drivers.units`), or ``geoid_height_m`` when given
+    GeoFix heights are ellipsoidal; GPS_INPUT wants AMSL: the height converted to
+    ``units.AMSL`` (EGM96) at the fix (:class:`skyfix.geo.Height`), or h - ``geoid_height_m`` when given
     (an autopilot whose AMSL uses another geoid model). The fix's ``time_s``
     (UNIX) becomes the message time stamp; its covariance becomes the accuracies.
     A failing source is logged and skipped; the loop keeps its schedule.
@@ -268,6 +269,12 @@ class PositionInjector:
         if self._thread.is_alive() and self._thread is not threading.current_thread():
             self._thread.join(timeout=2.0)
 
+    def _amsl_m(self, fix: GeoFix) -> float:
+        """The fix's ellipsoidal height as the autopilot's AMSL altitude, metres."""
+        if self.geoid_height_m is not None:
+            return fix.alt_m - self.geoid_height_m
+        return Height(fix.alt_m, VerticalDatum.WGS84).to(units.AMSL, fix.lat_deg, fix.lon_deg).value_m
+
     def _run(self) -> None:
         next_t = time.monotonic()
         while not self._stop.is_set():
@@ -277,10 +284,8 @@ class PositionInjector:
                     self.skipped += 1
                 else:
                     h_acc = max(fix.sigma_horizontal_m, 0.05)
-                    n_m = self.geoid_height_m if self.geoid_height_m is not None else \
-                        units.geoid_height_m(fix.lat_deg, fix.lon_deg)
                     self.vehicle.send(gps_input_message(
-                        fix.lat_deg, fix.lon_deg, fix.alt_m - n_m, h_acc_m=h_acc,
+                        fix.lat_deg, fix.lon_deg, self._amsl_m(fix), h_acc_m=h_acc,
                         v_acc_m=max(fix.sigma_up_m, 0.05), time_s=fix.time_s or None,
                         gps_id=self.vehicle.gps_input_id))
                     self.sent += 1

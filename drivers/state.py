@@ -12,9 +12,39 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from skyfix.errors import NotAvailableError
+from skyfix.geo import Height, VerticalDatum
+
+
+class _Heights:
+    """``height(datum)`` for a record holding ``alt_amsl_m`` (EGM96) and ``alt_ellipsoid_m``."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    alt_ellipsoid_m: float
+
+    def height(self, datum: VerticalDatum | str = VerticalDatum.WGS84) -> Height:
+        """This record's height above ``datum`` (default the WGS84 ellipsoid, skyfix's frames):
+        the autopilot's AMSL value for EGM96, the ellipsoidal height for WGS84 (the autopilot's
+        own when it sent one), others converted at the record's position. NotAvailableError
+        when the record has no height (no fix).
+
+        Example:
+            >>> Home(47.0, 8.0, 500.0, 0.0, alt_ellipsoid_m=548.39).height("egm96")
+            Height(value_m=500.0, datum=<VerticalDatum.EGM96: 'egm96'>)
+        """
+        target = Height(0.0, datum).datum
+        if not math.isfinite(self.alt_ellipsoid_m):  # units.py fills it whenever there is a fix
+            raise NotAvailableError(f"{type(self).__name__} has no height above {target.value} (no fix)")
+        if target is VerticalDatum.EGM96:
+            return Height(self.alt_amsl_m, target)
+        source = Height(self.alt_ellipsoid_m, VerticalDatum.WGS84)
+        return source.to(target, self.lat_deg, self.lon_deg)
+
 
 @dataclass(frozen=True)
-class Position:
+class Position(_Heights):
     """Fused position (GLOBAL_POSITION_INT); ``alt_ellipsoid_m`` = AMSL + EGM96 geoid."""
 
     lat_deg: float
@@ -56,7 +86,7 @@ class Attitude:
 
 
 @dataclass(frozen=True)
-class GpsStatus:
+class GpsStatus(_Heights):
     """Raw GNSS receiver report (GPS_RAW_INT): GPS_FIX_TYPE, satellites, accuracies.
 
     ``h_acc_m``/``v_acc_m``: the receiver's 1-sigma accuracies in metres (NaN when the
@@ -107,7 +137,7 @@ class Battery:
 
 
 @dataclass(frozen=True)
-class Home:
+class Home(_Heights):
     """Home position (HOME_POSITION)."""
 
     lat_deg: float

@@ -4,7 +4,7 @@ GPS_RAW_INT (common.xml): ``eph``/``epv`` are HDOP/VDOP x 100, unitless (65535: 
 *not* metres; the metre accuracies are the MAVLink 2 extension fields ``h_acc``/``v_acc``
 in millimetres (0: unknown). ``alt`` is above mean sea level (mm); ``alt_ellipsoid`` is
 above the WGS84 ellipsoid (mm), 0 when the autopilot does not provide it. When it is 0
-the ellipsoidal height is AMSL plus the EGM96 geoid undulation (:mod:`skyfix.geoid`),
+the ellipsoidal height is AMSL converted through the EGM96 geoid (:class:`skyfix.geo.Height`),
 and the record says so (``alt_ellipsoid_source = "egm96"``). GLOBAL_POSITION_INT and
 HOME_POSITION carry AMSL altitudes only; their ellipsoidal heights always come from the
 geoid model.
@@ -14,35 +14,22 @@ from __future__ import annotations
 
 import math
 import struct
-from functools import lru_cache
 
 from skyfix.drivers.mav import mavlink
 from skyfix.drivers.state import Battery, EkfStatus, GpsStatus, Home, Position, Velocity
+from skyfix.geo import Height, VerticalDatum
 
 UINT16_UNKNOWN = 65535
 
 
-@lru_cache(maxsize=4096)
-def _geoid_cell_m(lat_cell: int, lon_cell: int) -> float:
-    from skyfix.geoid import geoid_undulation_m
-
-    return float(geoid_undulation_m(lat_cell / 1000.0, lon_cell / 1000.0))
-
-
-def geoid_height_m(lat_deg: float, lon_deg: float) -> float:
-    """EGM96 undulation N (m) near (lat, lon), cached on a 0.001 deg (~100 m) grid: the
-    geoid changes by millimetres over 100 m, and telemetry arrives at 10 Hz."""
-    return _geoid_cell_m(int(round(lat_deg * 1000.0)), int(round(lon_deg * 1000.0)))
+AMSL = VerticalDatum.EGM96
+"""The surface of MAVLink's "MSL" altitudes (GPS_RAW_INT.alt, GLOBAL_POSITION_INT.alt,
+HOME_POSITION.altitude, GPS_INPUT.alt): EGM96, as ArduPilot, PX4 and most receivers use."""
 
 
 def ellipsoidal_from_amsl_m(lat_deg: float, lon_deg: float, alt_amsl_m: float) -> float:
-    """Height above the WGS84 ellipsoid (m) of an AMSL altitude, through EGM96."""
-    return alt_amsl_m + geoid_height_m(lat_deg, lon_deg)
-
-
-def amsl_from_ellipsoidal_m(lat_deg: float, lon_deg: float, alt_ellipsoid_m: float) -> float:
-    """AMSL altitude (m) of a height above the WGS84 ellipsoid, through EGM96."""
-    return alt_ellipsoid_m - geoid_height_m(lat_deg, lon_deg)
+    """Height above the WGS84 ellipsoid (m) of a MAVLink AMSL altitude at (lat, lon)."""
+    return Height(alt_amsl_m, AMSL).to(VerticalDatum.WGS84, lat_deg, lon_deg).value_m
 
 
 def _dop(raw: int) -> float:
@@ -62,7 +49,7 @@ def gps_status(msg, now_s: float) -> GpsStatus:
     if alt_ell_mm:
         alt_ell, source = alt_ell_mm / 1000.0, "autopilot"
     elif has_fix:
-        alt_ell, source = ellipsoidal_from_amsl_m(lat, lon, alt_amsl), "egm96"
+        alt_ell, source = ellipsoidal_from_amsl_m(lat, lon, alt_amsl), AMSL.value
     else:
         alt_ell, source = math.nan, "none"
     return GpsStatus(

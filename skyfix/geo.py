@@ -1,7 +1,8 @@
 """Geodesy on the WGS84 ellipsoid: local ENU frames and geodesic problems.
 
 Conventions: latitude/longitude in degrees, heights in metres above the WGS84
-ellipsoid (``alt_m``). The local frame is East-North-Up metres about an explicit
+ellipsoid (``alt_m``); a height whose datum varies (telemetry's AMSL vs GNSS's ellipsoidal)
+is a :class:`Height`, which names its :class:`VerticalDatum` and converts between them. The local frame is East-North-Up metres about an explicit
 origin. Everything is exact on the ellipsoid (pyproj's cart + topocentric pipeline,
 pyproj.Geod for geodesics); no flat-earth shortcut is taken anywhere. All functions
 are vectorised: scalars or arrays of any broadcastable shape go in, arrays of the
@@ -10,6 +11,7 @@ same shape come out (0-d inputs give 0-d arrays).
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -17,6 +19,7 @@ import pyproj
 
 from skyfix import validate
 from skyfix.errors import InputError
+from skyfix.geoid import undulation_near_m
 
 WGS84 = pyproj.Geod(ellps="WGS84")
 
@@ -193,3 +196,52 @@ def inverse(lat1_deg, lon1_deg, lat2_deg, lon2_deg) -> tuple[np.ndarray, np.ndar
     lat1, lon1, lat2, lon2 = np.broadcast_arrays(lat1, lon1, lat2, lon2)
     az, _, dist = WGS84.inv(lon1, lat1, lon2, lat2)
     return np.asarray(az) % 360.0, np.asarray(dist)
+
+
+class VerticalDatum(str, enum.Enum):
+    """The surface a height is measured from.
+
+    Example:
+        >>> VerticalDatum("egm96") is VerticalDatum.EGM96, round(VerticalDatum.EGM96.undulation_m(0.0, 0.0), 2)
+        (True, 17.16)
+    """
+
+    WGS84 = "wgs84"  #: the WGS84 ellipsoid: GNSS heights, skyfix's frames and fusion (``alt_m``)
+    EGM96 = "egm96"  #: the EGM96 geoid: "AMSL" of MAVLink (ArduPilot, PX4) and most receivers
+    EGM2008 = "egm2008"  #: the EGM2008 geoid: some receivers and DEMs
+
+    def undulation_m(self, lat_deg: float, lon_deg: float) -> float:
+        """Height of this surface above the WGS84 ellipsoid at (lat_deg, lon_deg), metres
+        (0 for the ellipsoid; a geoid's N from PROJ's grid, ~100 m cells, < 1 cm off)."""
+        return 0.0 if self is VerticalDatum.WGS84 else undulation_near_m(lat_deg, lon_deg, self.value)
+
+
+@dataclass(frozen=True)
+class Height:
+    """``value_m`` metres above the surface ``datum`` names (a :class:`VerticalDatum` or its value).
+
+    Example:
+        >>> amsl = Height(500.0, "egm96")  # MAVLink's alt near Zurich
+        >>> h = amsl.to(VerticalDatum.WGS84, 47.0, 8.0)  # the geoid is ~48.4 m above the ellipsoid there
+        >>> round(h.value_m, 2), h.datum.value, h.to("egm96", 47.0, 8.0) == amsl
+        (548.39, 'wgs84', True)
+    """
+
+    value_m: float
+    datum: VerticalDatum
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "value_m", validate.finite_scalar("Height.value_m", self.value_m))
+        try:
+            object.__setattr__(self, "datum", VerticalDatum(self.datum))
+        except ValueError:
+            raise InputError(f"Height.datum must be one of {[d.value for d in VerticalDatum]}, "
+                             f"got {self.datum!r}") from None
+
+    def to(self, datum: VerticalDatum | str, lat_deg: float, lon_deg: float) -> Height:
+        """The same point's height above ``datum``, at (lat_deg, lon_deg) WGS84 degrees."""
+        target = Height(0.0, datum).datum
+        if target is self.datum:
+            return self
+        ellipsoidal_m = self.value_m + self.datum.undulation_m(lat_deg, lon_deg)
+        return Height(ellipsoidal_m - target.undulation_m(lat_deg, lon_deg), target)

@@ -17,6 +17,8 @@ from skyfix.datasets.sim import Simulator, SimulatorConfig
 from skyfix.drivers import units
 from skyfix.drivers.mav import mavlink, mavutil
 from skyfix.drivers.vehicle import Vehicle
+from skyfix.errors import NotAvailableError
+from skyfix.geo import Height, VerticalDatum
 from skyfix.geoid import geoid_undulation_m
 
 SITL_TLOG = Path(__file__).parent / "data" / "sitl_copter_takeoff.tlog"
@@ -45,6 +47,24 @@ def test_gps_raw_int_fields_in_their_units():
     assert all(math.isnan(x) for x in (g2.hdop, g2.vdop, g2.h_acc_m, g2.v_acc_m))
     nofix = units.gps_status(_raw(fix_type=1, lat=0, lon=0, alt=0), 0.0)
     assert nofix.alt_ellipsoid_source == "none" and math.isnan(nofix.alt_ellipsoid_m)
+
+
+def test_records_give_heights_that_name_their_datum():
+    """GPS_RAW_INT's alt is EGM96 AMSL and alt_ellipsoid WGS84: a caller asks for a datum and
+    gets a Height that says which, never a float whose datum lives in its name."""
+    n_m = float(geoid_undulation_m(46.52, 6.63))  # ~49.8 m: a misread datum is off by that much
+    g = units.gps_status(_raw(), now_s=0.0)
+    assert g.height("egm96") == Height(372.0, VerticalDatum.EGM96)
+    assert g.height().datum is VerticalDatum.WGS84 and g.height().value_m == pytest.approx(372.0 + n_m, abs=0.01)
+    # The autopilot's own ellipsoidal height is kept as sent; its AMSL stays the AMSL it sent.
+    g2 = units.gps_status(_raw(alt_ellipsoid=421_833), 0.0)
+    assert g2.height(VerticalDatum.WGS84) == Height(421.833, "wgs84") and g2.height("egm96").value_m == 372.0
+    pos, _ = units.position_velocity(mavlink.MAVLink_global_position_int_message(
+        1000, 465200000, 66300000, 380_000, 8_000, 0, 0, 0, 0), 0.0)
+    assert pos.height().value_m == pytest.approx(380.0 + n_m, abs=0.01)
+    assert pos.height().to("egm96", pos.lat_deg, pos.lon_deg).value_m == pytest.approx(380.0, abs=1e-9)
+    with pytest.raises(NotAvailableError, match="no fix"):
+        units.gps_status(_raw(fix_type=1, lat=0, lon=0, alt=0), 0.0).height()
 
 
 def test_simulator_reports_like_an_autopilot_and_skyfix_reads_it():

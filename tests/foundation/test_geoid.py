@@ -7,7 +7,7 @@ from skyfix.errors import InputError, NotAvailableError
 from skyfix.geoid import (
     amsl_to_ellipsoidal_m,
     ellipsoidal_to_amsl_m,
-    find_egm96_grid,
+    find_geoid_grid,
     geoid_undulation_m,
 )
 
@@ -47,4 +47,4 @@ def test_bad_input_and_missing_grid(monkeypatch, tmp_path):
         geoid_undulation_m(91.0, 0.0)
     monkeypatch.setenv("SKYFIX_GEOID_GRID", str(tmp_path / "nope.gtx"))
     with pytest.raises(NotAvailableError, match="nope.gtx"):
-        find_egm96_grid()
+        find_geoid_grid()
