@@ -214,7 +214,7 @@ _BLOCK_PX = 16
 _RING = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], np.uint8)  # the 8 neighbours of a pixel
 
 
-def _candidate_regions(mask: np.ndarray, min_area_px: int) -> list[tuple[int, int, int, int]]:
+def _candidate_regions(mask: np.ndarray, min_area_px: int) -> list[list[int]]:
     """Pixel windows (r0, r1, c0, c1) around groups of touching 16x16 blocks that hold at
     least ``min_area_px`` hot pixels; scanning only these keeps sparse frames fast.
     ``mask`` is 0/1 in any dtype."""
@@ -229,17 +229,16 @@ def _candidate_regions(mask: np.ndarray, min_area_px: int) -> list[tuple[int, in
     words = b * padded.itemsize // 8
     occupied = padded.view(np.uint64).reshape(nbr, b, nbc * words).max(axis=1)
     occupied = (occupied.reshape(nbr, nbc, words) != 0).any(axis=2)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(occupied.view(np.uint8), connectivity=8,
-                                                          ltype=cv2.CV_32S)
-    regions = []
-    for k in range(1, n):
-        c0, r0, cw, rh = (int(x) for x in stats[k, :4])
-        win = (r0 * b, min((r0 + rh) * b, h), c0 * b, min((c0 + cw) * b, w))
-        # A lone block can hold only stray pixels (dead pixels): count before labelling.
-        if stats[k, cv2.CC_STAT_AREA] == 1 and cv2.countNonZero(mask[win[0]:win[1], win[2]:win[3]]) < min_area_px:
-            continue
-        regions.append(win)
-    return regions
+    _, _, stats, _ = cv2.connectedComponentsWithStats(occupied.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
+    c0, r0, cw, rh, n_blocks = stats[1:].T
+    # A lone block can hold only stray pixels (dead pixels): count its pixels, all lone
+    # blocks of the frame at once (a mountain frame holds dozens of them).
+    lone = np.flatnonzero(n_blocks == 1)
+    blocks = padded.reshape(nbr, b, nbc, b)[r0[lone], :, c0[lone], :]
+    keep = np.ones(c0.size, bool)
+    keep[lone] = np.count_nonzero(blocks.reshape(lone.size, -1), axis=1) >= min_area_px
+    c0, r0, cw, rh = c0[keep], r0[keep], cw[keep], rh[keep]
+    return np.stack((r0 * b, np.minimum((r0 + rh) * b, h), c0 * b, np.minimum((c0 + cw) * b, w)), axis=1).tolist()
 
 
 def _measure(work: np.ndarray, labels: np.ndarray, stat: np.ndarray, k: int, thr: float,
@@ -248,7 +247,7 @@ def _measure(work: np.ndarray, labels: np.ndarray, stat: np.ndarray, k: int, thr
 
     ``labels`` covers the window starting at row ``r_off``, column ``c_off`` of ``work``.
     """
-    u0, v0, w, h = (int(x) for x in stat[:4])
+    u0, v0, w, h = stat[:4].tolist()
     u0, v0 = u0 + c_off, v0 + r_off
     hgt, wid = work.shape
     a0, b0 = max(u0 - 1, 0), max(v0 - 1, 0)
