@@ -236,7 +236,7 @@ def _candidate_regions(mask: np.ndarray, min_area_px: int) -> list[list[int]]:
     lone = np.flatnonzero(n_blocks == 1)
     blocks = padded.reshape(nbr, b, nbc, b)[r0[lone], :, c0[lone], :]
     keep = np.ones(c0.size, bool)
-    keep[lone] = np.count_nonzero(blocks.reshape(lone.size, -1), axis=1) >= min_area_px
+    keep[lone] = np.count_nonzero(blocks.reshape(lone.size, b * b), axis=1) >= min_area_px
     c0, r0, cw, rh = c0[keep], r0[keep], cw[keep], rh[keep]
     return np.stack((r0 * b, np.minimum((r0 + rh) * b, h), c0 * b, np.minimum((c0 + cw) * b, w)), axis=1).tolist()
 
