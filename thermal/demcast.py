@@ -59,6 +59,8 @@ class LocalDem:
         pad = np.full((nb * _BLOCK, nb * _BLOCK), self.max_up_m, np.float32)
         pad[:grown.shape[0], :grown.shape[1]] = grown
         self.block_max_m = pad.reshape(nb, _BLOCK, nb, _BLOCK).max(axis=(1, 3))
+        # The same in a ring of +inf: no ray is ever in free air off the grid.
+        self._block_top_m = np.pad(self.block_max_m, 1, constant_values=np.inf)
 
     def _resample(self, ee, nn, heights_m, transform, crs, h_mid) -> np.ndarray:
         x0, dx, _, y0, _, dy = transform
@@ -125,10 +127,9 @@ class LocalDem:
         span = float(np.max((o[2] - self.min_up_m) / -d[:, 2] - t))
         ts = t[:, None] + 0.5 * block_m * np.arange(max(int(span / (0.5 * block_m)) + 2, 2))[None, :]
         p = o + ts[..., None] * d[:, None, :]
-        i = np.floor((self.half_m - p[..., 1]) / block_m).astype(int)
-        j = np.floor((p[..., 0] + self.half_m) / block_m).astype(int)
-        inside = (i >= 0) & (j >= 0) & (i < nb) & (j < nb)
-        top = np.where(inside, self.block_max_m[np.clip(i, 0, nb - 1), np.clip(j, 0, nb - 1)], np.inf)
+        i = np.clip(np.floor((self.half_m - p[..., 1]) / block_m), -1, nb).astype(int) + 1
+        j = np.clip(np.floor((p[..., 0] + self.half_m) / block_m), -1, nb).astype(int) + 1
+        top = self._block_top_m[i, j]
         clear = p[..., 2] > top
         free = clear[:, :-1] & clear[:, 1:]  # step k (from sample k to k + 1) is in free air
         first_blocked = np.where(free.all(axis=1), free.shape[1], np.argmin(free, axis=1))
@@ -151,14 +152,18 @@ class LocalDem:
 
 
 def bilinear(grid: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
-    """Bilinear samples of float32 ``grid`` at (col, row) ``(M,)``, NaN outside (cv2.remap
-    wants maps under 32767 rows: the points are laid out 1024 to a row)."""
+    """Bilinear samples of float32 ``grid`` at float32 (col, row) ``(M,)``, NaN outside
+    (cv2.remap wants maps under 32767 pixels a side: up to that, one row; beyond, the
+    points are laid out 1024 to a row)."""
     m = col.size
     if m == 0:
         return np.zeros(0)
-    rows = -(-m // 1024)
-    maps = np.full((2, rows * 1024), -10.0, np.float32)
-    maps[0, :m], maps[1, :m] = np.ravel(col), np.ravel(row)
-    out = cv2.remap(grid, maps[0].reshape(rows, 1024), maps[1].reshape(rows, 1024), cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    if m < 32767:
+        maps = np.ravel(col).reshape(1, m), np.ravel(row).reshape(1, m)
+    else:
+        rows = -(-m // 1024)
+        pad = np.full((2, rows * 1024), -10.0, np.float32)
+        pad[0, :m], pad[1, :m] = np.ravel(col), np.ravel(row)
+        maps = pad[0].reshape(rows, 1024), pad[1].reshape(rows, 1024)
+    out = cv2.remap(grid, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
     return out.ravel()[:m].astype(np.float64)
