@@ -114,8 +114,21 @@ class Node:
         self._call("relative", obs=obs)
 
     def add_fix(self, drone_id: str, fix: GeoFix) -> None:
-        """An absolute position of ``drone_id`` (a peer's fused estimate, a tag fix)."""
+        """An absolute position of ``drone_id`` whose errors are independent from fix to fix (a tag fix)."""
         self._call("fix", drone_id=drone_id, fix=fix)
+
+    def add_peer(self, drone_id: str, time_s: float, vel_enu_mps, fix: GeoFix | None = None) -> None:
+        """A peer's fused estimate at ``time_s``: its velocity (m/s, ENU) and, when given, its position.
+
+        The position rides on the peer's GNSS, whose error wanders for about a minute: fused as a
+        correlated fix (:meth:`FusionEngine.add_fix`). The velocity keeps the peer, an observer of this
+        drone, known between its fixes; it is the peer's autopilot velocity, bias-corrected by the peer's
+        fusion, taken at the telemetry's 1-sigma (the message carries no velocity covariance).
+        """
+        if fix is not None:
+            self._call("fix", drone_id=drone_id, fix=fix, correlated=True)
+        self._call("velocity", drone_id=drone_id, time_s=time_s, vel_enu_mps=list(vel_enu_mps),
+                   sigma_mps=TELEMETRY_VELOCITY_SIGMA_MPS)
 
     def record_truth(self, drone_id: str, time_s: float, lat_deg: float, lon_deg: float, alt_m: float) -> None:
         """Ground truth into the log (simulations only; never given to the engine)."""

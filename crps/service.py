@@ -38,7 +38,7 @@ from skyfix.fusion.engine import FusionEngine
 log = logging.getLogger("skyfix.crps.service")
 
 INBOX_SIZE = 4096           # peer datagrams waiting for the main loop (3 peers x 40 msg/s: ~30 s)
-PEER_FIX_PERIOD_S = 0.5     # a peer's fused estimate goes into this drone's engine at most at 2 Hz
+PEER_FIX_PERIOD_S = 0.5     # a peer's fused position goes into this drone's engine at most at 2 Hz (its velocity always)
 LINK_LOST_RECONNECT_S = 0.5  # link marked lost (no heartbeat for 2 s) this long before the link is reopened
 BACKOFF_S = (0.5, 5.0)      # first and longest wait between MAVLink connection attempts
 GNSS_OK_FIX_TYPE = 3
@@ -199,9 +199,11 @@ class Service:
             if isinstance(body, M.FusedEstimate):
                 self.outputs.location_fix(env.sender, body.time_s, body.lat_deg, body.lon_deg, body.alt_m,
                                           body.cov_enu_m2)
+                fix = None
                 if body.time_s - self._peer_fix_s.get(env.sender, -math.inf) >= PEER_FIX_PERIOD_S:
                     self._peer_fix_s[env.sender] = body.time_s
-                    self.node.add_fix(env.sender, M.estimate_fix(body, env.sender))
+                    fix = M.estimate_fix(body, env.sender)
+                self.node.add_peer(env.sender, body.time_s, body.vel_enu_mps, fix)
             elif isinstance(body, M.RelativeObs) and body.target_id == self.cfg.drone_id:
                 self.node.add_relative(M.relative_observation(body, env.sender))
         except (SkyfixError, ValueError) as exc:  # signed but not physical (NaN, bad covariance...)

@@ -131,6 +131,14 @@ class StateChains:
             self.anchor(drone, k, p0, b, b_cov, p_sigma_m=self.config.max_speed_mps)
 
 
+    def white_part(self, drone: DroneState, cov_m2: np.ndarray) -> np.ndarray:
+        """A wandering fix's covariance (m2, frame axes) less the Gauss-Markov part of its error, each
+        eigenvalue at least the receiver noise floor ``gnss_white_min_sigma_m`` squared."""
+        r = drone.r_frame_from_local
+        values, vectors = np.linalg.eigh(cov_m2 - r @ np.diag(self.gm_sigma_m**2) @ r.T)
+        return (vectors * np.maximum(values, self.config.gnss_white_min_sigma_m**2)) @ vectors.T
+
+
     def intervals(self, drone: DroneState) -> IntervalVelocity:
         if drone.intervals is None:
             drone.intervals = IntervalVelocity(self.window.epoch_s, self.window.dt_s, self.config.velocity_timeout_s)

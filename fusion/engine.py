@@ -214,8 +214,15 @@ class FusionEngine:
         shift, shift_var = self._chains.shift(drone, t, k)
         self._window.altitude(drone.index, k, up + shift[2], math.sqrt(sigma**2 + shift_var))
 
-    def add_fix(self, drone_id: str, fix: GeoFix) -> None:
+    def add_fix(self, drone_id: str, fix: GeoFix, *, correlated: bool = False) -> None:
         """An absolute fix of the drone (e.g. from fiducial tags); source ``fix:<source_id>``.
+
+        ``correlated``: the fix's error wanders like a GNSS receiver's, e.g. a peer's fused estimate,
+        which rides on its own receiver's error. It is then a fix of the drone's position plus its
+        Gauss-Markov error state (``gnss_gm_*``, as for this engine's own receivers), its stated
+        covariance less that wandering part taken as white; so a peer's fixes at 2 Hz count as one
+        slowly wandering fix, not as independent evidence that averages its receiver's bias away.
+        (A peer stating less than the wandering sigma is taken at that sigma: conservative.)
 
         Example:
             >>> engine = FusionEngine((47.0, 8.0, 400.0))
@@ -228,7 +235,7 @@ class FusionEngine:
             raise InputError(f"fix must be a skyfix.types.GeoFix, got {type(fix).__name__}")
         t = self._time("fix.time_s", fix.time_s)
         validate.positive_definite("fix.cov_enu_m2", fix.cov_enu_m2)
-        self._record("fix", dict(drone_id=drone_id, fix=fix))
+        self._record("fix", dict(drone_id=drone_id, fix=fix, **({"correlated": True} if correlated else {})))
         drone = self._reporter(drone_id)
         self._chains.advance(t, drone)
         monitor = self._monitor(drone, f"fix:{fix.source_id or 'fix'}", self.config.fix_timeout_s, t)
@@ -238,7 +245,11 @@ class FusionEngine:
         enu = np.array([float(c) for c in self.frame.to_enu(fix.lat_deg, fix.lon_deg, fix.alt_m)])
         self._chains.refresh_axes(drone, enu)
         r = drone.r_frame_from_local
-        self._absolute(drone, monitor, t, enu, r @ fix.cov_enu_m2 @ r.T, None, robust=False)
+        cov = r @ fix.cov_enu_m2 @ r.T
+        if correlated:
+            self._absolute(drone, monitor, t, enu, self._chains.white_part(drone, cov), None, wandering=True)
+        else:
+            self._absolute(drone, monitor, t, enu, cov, None, robust=False)
 
     def add_relative(self, obs: RelativeObservation) -> None:
         """A helper's observation of a target (source ``relative:<observer_id>`` of the target).
@@ -440,9 +451,11 @@ class FusionEngine:
         return monitor
 
     def _absolute(self, drone: DroneState, monitor: SourceMonitor, t: float, enu: np.ndarray, cov: np.ndarray,
-                  quality: str | None, robust: bool = True) -> None:
+                  quality: str | None, robust: bool = True, wandering: bool = False) -> None:
+        """Gate and fuse an absolute position (frame ENU, m; ``cov`` its white part when ``wandering``: a fix
+        of the position plus the chain's Gauss-Markov error, robust)."""
         k = self._chains.step_checked(t, "measurement")
-        predicted = self._chains.predict(drone, t)
+        predicted = self._chains.predict(drone, t, gnss=wandering)
         consistent = True
         if predicted is not None:
             consistent = nis(enu - predicted[0], predicted[1] + cov) <= self._gate[3]
@@ -452,7 +465,10 @@ class FusionEngine:
             self._chains.anchor(drone, k, enu)
         self._chains.ensure(drone, k)
         shift, shift_var = self._chains.shift(drone, t, k)
-        self._window.position(drone.index, k, enu + shift, cov + EYE3 * shift_var, robust)
+        if wandering:
+            self._window.gnss(drone.index, k, enu + shift, cov + EYE3 * shift_var)
+        else:
+            self._window.position(drone.index, k, enu + shift, cov + EYE3 * shift_var, robust)
 
     def _tick(self) -> None:
         for drone in self._drones.values():
