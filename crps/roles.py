@@ -61,6 +61,9 @@ class RequesterConfig:
     fault_response: FaultResponse = FaultResponse.RETURN_HOME
     gnss_ok_for_s: float = 3.0       # GNSS healthy this long before normal operation again
     fused_sigma_h_max_m: float = 3.0  # a helper-based fix this tight (1-sigma) is good enough to fly on
+    # ... and, once flown on, until it is looser than this: a fix whose sigma wanders about the entry bound
+    # (between two helpers' frames) would otherwise switch hold / fault response at every estimate
+    fused_sigma_h_keep_m: float = 4.0
     fix_max_age_s: float = 2.0       # an older fused estimate does not count
     hold_timeout_s: float = 90.0     # no usable fix for this long while holding: land
     land_near_home_m: float = 6.0    # returning home and this close (fused, horizontal) when the fix goes: land
@@ -78,11 +81,13 @@ class Decision:
     helpers: tuple[str, ...]
 
 
-def _helper_based(est: Estimate | None, now_s: float, cfg: RequesterConfig) -> bool:
-    """A fused estimate that rests on helpers' observations and is tight and fresh enough to fly on."""
+def _helper_based(est: Estimate | None, now_s: float, cfg: RequesterConfig, flying_on_it: bool = False) -> bool:
+    """A fused estimate that rests on helpers' observations and is tight and fresh enough to fly on
+    (``flying_on_it``: to keep flying on, the looser bound ``fused_sigma_h_keep_m``)."""
+    sigma_max_m = cfg.fused_sigma_h_keep_m if flying_on_it else cfg.fused_sigma_h_max_m
     return (est is not None and now_s - est.time_s <= cfg.fix_max_age_s
             and any(s.startswith("relative:") for s in est.sources)
-            and est.sigma_horizontal_m <= cfg.fused_sigma_h_max_m)
+            and est.sigma_horizontal_m <= sigma_max_m)
 
 
 @dataclass
@@ -132,7 +137,7 @@ class RequesterRole:
 
     def _recover(self, now_s: float, fused: Estimate | None) -> None:
         """Hold until helpers position us, then the fault response; back to hold when that fix goes."""
-        good = _helper_based(fused, now_s, self.cfg)
+        good = _helper_based(fused, now_s, self.cfg, flying_on_it=self.mode in (Mode.RETURN_HOME, Mode.CONTINUE))
         if self.mode is Mode.HOLD:
             if good:
                 self._set(Mode(self.cfg.fault_response.value), "positioned by helpers", now_s)

@@ -170,3 +170,21 @@ def test_a_drone_returning_home_that_loses_its_helper_fix_lands_only_when_over_h
     # the helpers lose it (the estimate rests on velocity alone): over home it lands, elsewhere it holds
     decision, _ = role.step(3.0, lost, _estimate(east_m, 0.0, 3.0, ("velocity",)), [])
     assert decision.mode is expected
+
+
+def test_a_fix_flown_on_is_kept_until_clearly_too_loose_not_dropped_at_the_entry_bound():
+    """Hysteresis on the requester's 'positioned' bound: enter at sigma <= 3 m, keep flying on it up to 4 m."""
+    from skyfix.fusion.health import HealthState, SourceHealth
+
+    role = RequesterRole("a", at(0.0, 0.0, 0.0))
+    cfg = role.cfg
+    ok, lost = SourceHealth(HealthState.OK, "", 0.0), SourceHealth(HealthState.LOST, "no fix", 1.0)
+    role.step(0.0, ok, _estimate(20.0, 0.0, 0.0, ("gnss",)), [])
+    helped = ("relative:h1", "velocity")
+    between = 0.5 * (cfg.fused_sigma_h_max_m + cfg.fused_sigma_h_keep_m)
+    assert role.step(1.0, lost, _estimate(20.0, 0.0, 1.0, helped, sigma_m=between), [])[0].mode is Mode.HOLD
+    assert role.step(2.0, lost, _estimate(20.0, 0.0, 2.0, helped, sigma_m=2.0), [])[0].mode is Mode.RETURN_HOME
+    # its sigma wanders above the entry bound between two helpers' frames: it keeps going home
+    assert role.step(2.5, lost, _estimate(20.0, 0.0, 2.5, helped, sigma_m=between), [])[0].mode is Mode.RETURN_HOME
+    loose = cfg.fused_sigma_h_keep_m + 0.5
+    assert role.step(3.0, lost, _estimate(20.0, 0.0, 3.0, helped, sigma_m=loose), [])[0].mode is Mode.HOLD
