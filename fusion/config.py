@@ -58,6 +58,10 @@ class FusionConfig:
     gnss_gm_v_sigma_m: float = 2.5      # wandering error, vertical
     gnss_gm_tau_s: float = 60.0         # its correlation time
     gnss_white_min_sigma_m: float = 0.3  # white part at least this (receiver noise)
+    # How much older than its stamp a fix may be (s). 0: stamped with its own time. MAVLink GPS_RAW_INT's
+    # time_usec is the send time (ArduPilot: the fix's time plus the time since it): up to one receiver period,
+    # 0.2 s at ArduPilot's default GPS_RATE_MS of 200; skyfix serve sets that for its autopilot's telemetry.
+    gnss_fix_age_max_s: float = 0.0
     # drift: GNSS displacement over a window against the GNSS-independent velocity
     drift_window_s: float = 10.0
     drift_gate_probability: float = 0.99999  # per test, two fixes in a row (5 Hz, overlapping windows)
@@ -95,11 +99,13 @@ class FusionConfig:
                 continue
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value == value:
                 raise InputError(f"FusionConfig.{f.name} must be a number, got {value!r}")
-            if value <= 0 and f.name not in ("log_fsync_s",):
+            if value <= 0 and f.name not in ("log_fsync_s", "gnss_fix_age_max_s"):
                 raise InputError(f"FusionConfig.{f.name} must be > 0, got {value!r}")
         for name in ("gate_probability", "drift_gate_probability"):
             if not getattr(self, name) < 1.0:
                 raise InputError(f"FusionConfig.{name} must be in (0, 1), got {getattr(self, name)}")
+        if self.gnss_fix_age_max_s < 0:
+            raise InputError(f"FusionConfig.gnss_fix_age_max_s must be >= 0, got {self.gnss_fix_age_max_s}")
         if not self.readmit_fraction <= 1.0:
             raise InputError(f"FusionConfig.readmit_fraction must be in (0, 1], got {self.readmit_fraction}")
         if len(self.roster) > self.max_drones:

@@ -83,10 +83,28 @@ class GnssFusion:
                                         cfg.bias_walk_mps_per_sqrt_s, cfg.velocity_timeout_s)
         return drone.drift
 
+    def age_cov(self, drone: DroneState, t_s: float) -> np.ndarray:
+        """Covariance (m2, frame axes) of where a fix stamped ``t_s`` really was: taken up to
+        ``gnss_fix_age_max_s`` before its stamp, uniformly, while the drone moved at its velocity v,
+        so E[(v age)(v age)'] = v v' T^2 / 3 (its mean part too: a fix's age is not known)."""
+        vel = self.chains.velocity_now(drone, t_s) if self.config.gnss_fix_age_max_s > 0 else None
+        if vel is None:
+            return np.zeros((3, 3))
+        v = vel[0]
+        return np.outer(v, v) * self.config.gnss_fix_age_max_s**2 / 3.0
+
     def fuse(self, drone: DroneState, monitor: SourceMonitor, t_s: float, enu_m: np.ndarray, cov_white_m2: np.ndarray,
               quality: str | None) -> None:
-        """Gate, drift-test and fuse a GNSS fix (``cov_white_m2``: its white part, frame axes)."""
+        """Gate, drift-test and fuse a GNSS fix (``cov_white_m2``: its white part, frame axes).
+
+        In a stream stamped at send time (``gnss_fix_age_max_s`` > 0: GPS_RAW_INT goes out at the telemetry
+        rate, not the receiver's) a fix identical to the previous one is the same solution sent again under a
+        newer stamp: it is not fused twice.
+        """
+        if monitor.resent(t_s, tuple(enu_m.tolist())) and self.config.gnss_fix_age_max_s > 0:
+            return
         k = self.chains.step_checked(t_s, "GNSS fix")
+        cov_white_m2 = cov_white_m2 + self.age_cov(drone, t_s)
         drift = self.drift_test(drone)
         residual = drift.residual(t_s, enu_m)
         white_var = float(np.trace(cov_white_m2[:2, :2])) / 2.0

@@ -75,6 +75,7 @@ class SourceMonitor:
         self._recent_s: list[float] = []   # last message times, for the rate
         self._stamps: deque[float] = deque(maxlen=64)  # recent time stamps, for duplicates
         self._usual_rate_hz = 0.0
+        self._last_value: tuple | None = None  # the previous message's content, for re-sent ones
 
     def repeat(self, t_s: float) -> bool:
         """True if a message with this exact time stamp was already seen (a duplicate delivered twice,
@@ -83,6 +84,16 @@ class SourceMonitor:
             return True
         self._stamps.append(t_s)
         return False
+
+    def resent(self, t_s: float, value: tuple) -> bool:
+        """True if ``value`` (e.g. a fix's coordinates) equals the previous message's: the same measurement
+        sent again under a newer time stamp (an autopilot streams its receiver's last fix at its own rate),
+        no new evidence. It still counts as heard at ``t_s``: a receiver that repeats itself is not silent."""
+        same = value == self._last_value
+        self._last_value = value
+        if same:
+            self.last_heard_s = max(self.last_heard_s, t_s)
+        return same
 
     def rate_issue(self, t_s: float) -> str | None:
         """Record a message time; describe the problem if the rate fell below half the usual one.
