@@ -140,9 +140,17 @@ def _f(x: float | None, fmt: str = ".2f") -> str:
     return "  n/a" if x is None else format(x, fmt)
 
 
+def false_alarms(run: dict, before_s: float | None) -> int:
+    """Holds on a healthy receiver: 'gnss rejected' / 'gnss lost' events of any drone before ``before_s``
+    (the loss; None: the whole run), each a false GNSS-loss recovery."""
+    end = math.inf if before_s is None else before_s
+    return sum(t < end and "hold (gnss" in what for t, what in run.get("timeline", []))
+
+
 def print_run(r: dict) -> None:
     rec, base = r["recovery"], r["baseline"]
     loss = rec["figures"].get("loss_time_s")
+    alarms = false_alarms(rec, loss if loss is not None else -math.inf) + false_alarms(base, None)
     print(f"  seed {r['seed']:>2}: GNSS lost at t={_f(loss, '.0f')} s, "
           f"landing {_f(rec['landing_error_m'])} m (healthy RTL {_f(base['landing_error_m'])} m), "
           f"loss->first fused fix {_f(rec['loss_to_first_fused_fix_s'], '.1f')} s, "
@@ -150,7 +158,8 @@ def print_run(r: dict) -> None:
           f"closest approach {_f(rec['min_separation_m'], '.1f')} m, "
           f"target detected in {_f(None if rec['detection_share'] is None else 100 * rec['detection_share'], '.0f')} % "
           f"of helper frames searched with it in view, fused-fix NEES {_f(rec['figures'].get('recovery_mean_nees_3dof'))} "
-          f"(3 = honest), {_f(rec['figures'].get('helper_frames_dropped'), '.0f')} frame slots skipped; {rec['outcome']} "
+          f"(3 = honest), {_f(rec['figures'].get('helper_frames_dropped'), '.0f')} frame slots skipped, "
+          f"{alarms} false GNSS alarm(s) on healthy receivers; {rec['outcome']} "
           f"(wall {rec['wall_s']:.0f} + {base['wall_s']:.0f} s)", flush=True)
 
 
