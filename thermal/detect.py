@@ -200,6 +200,7 @@ def detect_hotspots(frame: np.ndarray, *, threshold: float | None = None, palett
     for r0, r1, c0, c1 in regions:
         sub = mask[r0:r1, c0:c1].astype(np.uint8)
         n, labels, stats, _ = cv2.connectedComponentsWithStats(sub, connectivity=8, ltype=cv2.CV_32S)
+        labels = cv2.copyMakeBorder(labels, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)  # a component's padded box fits
         for k in range(1, n):
             if stats[k, cv2.CC_STAT_AREA] < min_area_px:
                 continue
@@ -245,7 +246,8 @@ def _measure(work: np.ndarray, labels: np.ndarray, stat: np.ndarray, k: int, thr
              min_area_px: int, r_off: int, c_off: int) -> tuple | None:
     """Centroid of component ``k`` after a 3x3 median within its (padded) bounding box.
 
-    ``labels`` covers the window starting at row ``r_off``, column ``c_off`` of ``work``.
+    ``labels`` covers the window starting at row ``r_off``, column ``c_off`` of ``work``,
+    with a one-pixel border of zeros.
     """
     u0, v0, w, h = stat[:4].tolist()
     u0, v0 = u0 + c_off, v0 + r_off
@@ -256,10 +258,7 @@ def _measure(work: np.ndarray, labels: np.ndarray, stat: np.ndarray, k: int, thr
     if patch.dtype.kind == "f":
         patch = patch.astype(np.float32)  # a copy: NaNs are patched in place below
         cv2.patchNaNs(patch, float(thr))
-    mine = np.zeros(patch.shape, bool)
-    lr0, lc0 = b0 - r_off, a0 - c_off
-    sub = labels[max(lr0, 0):b1 - r_off, max(lc0, 0):a1 - c_off] == k
-    mine[max(-lr0, 0):max(-lr0, 0) + sub.shape[0], max(-lc0, 0):max(-lc0, 0) + sub.shape[1]] = sub
+    mine = labels[b0 - r_off + 1:b1 - r_off + 1, a0 - c_off + 1:a1 - c_off + 1] == k
     smooth = cv2.medianBlur(np.ascontiguousarray(patch), 3)
     excess = np.where(mine, smooth.astype(np.float32) - np.float32(thr), np.float32(0.0))
     np.maximum(excess, 0.0, out=excess)
@@ -271,9 +270,8 @@ def _measure(work: np.ndarray, labels: np.ndarray, stat: np.ndarray, k: int, thr
     v = b0 + m["m01"] / m["m00"]
     # Peak: a pixel's excess may be at most twice its hottest neighbour's, so a stuck
     # pixel on the edge of a fire cannot be its peak while a real peak stays intact.
-    raw = patch.astype(np.float64)
-    neighbour = cv2.dilate(raw, _RING)
-    peak = float(np.minimum(raw, 2.0 * neighbour - thr)[mine].max())
+    neighbour = cv2.dilate(patch, _RING)[mine].astype(np.float64)
+    peak = float(np.minimum(patch[mine].astype(np.float64), 2.0 * neighbour - thr).max())
     return u, v, area, peak, (u0, v0, w, h)
 
 
