@@ -34,12 +34,19 @@ log = logging.getLogger(__name__)
 #: Velocity 1-sigma of GLOBAL_POSITION_INT's velocity, m/s (an EKF's output, not raw Doppler).
 TELEMETRY_VELOCITY_SIGMA_MPS = 0.2
 #: While the autopilot flies on the position skyfix injects, an EKF that takes no other velocity source
-#: (ArduPilot with EK3_SRC2_VELXY 0) follows the injected positions about ECHO_CORRELATION_S behind, so
-#: its velocity echoes the injected fix's own error rate (ECHO_VELOCITY_SIGMA_MPS; seen on ArduPilot SITL:
-#: 1-2.5 m/s off the truth while the fix ran ahead). Taken as independent at 0.2 m/s it outvoted the
-#: helpers' observations and the drone ran away.
+#: (ArduPilot with EK3_SRC2_VELXY 0) keeps its IMU's fast motion but takes the slow part of its velocity
+#: from the injected positions: that part echoes the injected fix's own error rate, a wandering error of
+#: ECHO_VELOCITY_SIGMA_MPS correlated over ECHO_CORRELATION_S (seen on ArduPilot SITL: 1-2.5 m/s off the
+#: truth for seconds while the fix ran ahead). Taken as white 0.2 m/s it outvoted the helpers' observations
+#: and the drone ran away; it is fused as the velocity bias's walk of a Gauss-Markov process of that size
+#: (sigma sqrt(2 / tau) per sqrt s), which the helpers' observations then measure.
 ECHO_VELOCITY_SIGMA_MPS = 1.0
-ECHO_CORRELATION_S = 1.0
+ECHO_CORRELATION_S = 10.0
+
+
+def echo_bias_walk(sigma_mps: float) -> float:
+    """Bias random walk (m/s per sqrt s) matching an echo error of ``sigma_mps`` over ECHO_CORRELATION_S."""
+    return sigma_mps * math.sqrt(2.0 / ECHO_CORRELATION_S)
 
 
 class LogSink(Protocol):
@@ -85,19 +92,17 @@ class Node:
 
         ``time_of(message)`` maps a telemetry record to the node's clock. ``use_gnss`` False
         while skyfix injects this drone's position: the receiver report would only echo it.
-        ``velocity_sigma_mps``: the velocity's 1-sigma error when it is not the EKF's usual one (None),
-        e.g. the echo of the injected fix (:data:`ECHO_VELOCITY_SIGMA_MPS`); an error correlated over
-        :data:`ECHO_CORRELATION_S` is spread over the engine's state steps, which it takes as independent.
+        ``velocity_sigma_mps``: while the autopilot flies on the injected fix, the 1-sigma of its velocity's
+        echo of that fix (:data:`ECHO_VELOCITY_SIGMA_MPS`; None: the EKF's usual white error only), fused as
+        the velocity bias's walk (:func:`echo_bias_walk`).
         Heights: the fix's ellipsoidal height (``GpsStatus.alt_ellipsoid_m``); sigmas: the
         receiver's h_acc/v_acc in metres, else HDOP (unitless) for the engine's UERE model.
         """
         vel = state.velocity
         if vel is not None:
-            sigma = TELEMETRY_VELOCITY_SIGMA_MPS
-            if velocity_sigma_mps is not None:
-                sigma = velocity_sigma_mps * math.sqrt(ECHO_CORRELATION_S / self.engine.config.state_dt_s)
-            self._call("velocity", drone_id=drone_id, time_s=time_of(vel),
-                       vel_enu_mps=[vel.east_mps, vel.north_mps, -vel.down_mps], sigma_mps=sigma)
+            walk = {} if velocity_sigma_mps is None else {"bias_walk_mps_per_sqrt_s": echo_bias_walk(velocity_sigma_mps)}
+            self._call("velocity", drone_id=drone_id, time_s=time_of(vel), sigma_mps=TELEMETRY_VELOCITY_SIGMA_MPS,
+                       vel_enu_mps=[vel.east_mps, vel.north_mps, -vel.down_mps], **walk)
         gps = state.gps
         if gps is None or not use_gnss or gps.time_s == self._gps_seen.get(drone_id):
             return

@@ -149,7 +149,7 @@ class StateChains:
         """Create the drone's states up to step k (forwards or backwards), each tied to its neighbour."""
         window, cfg = self.window, self.config
         walk = cfg.max_speed_mps * cfg.state_dt_s
-        bias_walk = cfg.bias_walk_mps_per_sqrt_s * math.sqrt(cfg.state_dt_s)
+        bias_walk = (drone.bias_walk_mps_per_sqrt_s or cfg.bias_walk_mps_per_sqrt_s) * math.sqrt(cfg.state_dt_s)
         phi = math.exp(-cfg.state_dt_s / cfg.gnss_gm_tau_s)
         i = drone.index
         while drone.last_k < k:

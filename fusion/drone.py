@@ -37,6 +37,7 @@ class DroneState:
     drift_rejected: bool = False             # GNSS refused by the drift test; re-admitted against the velocity
     drift_strikes: int = 0                   # consecutive fixes failing the drift test
     reporting: bool = False                  # has reported its own sensors (may observe others on an open roster)
+    bias_walk_mps_per_sqrt_s: float | None = None  # its velocity bias's walk when not the configured one
 
     @property
     def anchored(self) -> bool:

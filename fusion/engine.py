@@ -144,10 +144,14 @@ class FusionEngine:
         self._chains.refresh_axes(drone, enu)
         self._gnss.fuse(drone, monitor, t, enu, self._gnss.white_cov(drone, h_sigma, v_sigma), quality)
 
-    def add_velocity(self, drone_id: str, time_s: float, vel_enu_mps, sigma_mps) -> None:
+    def add_velocity(self, drone_id: str, time_s: float, vel_enu_mps, sigma_mps, *,
+                     bias_walk_mps_per_sqrt_s: float | None = None) -> None:
         """The autopilot's velocity (m/s, ENU axes at the drone) and its white-noise 1-sigma.
 
-        Its slowly varying bias is estimated (random walk ``bias_walk_mps_per_sqrt_s``).
+        Its slowly varying bias is estimated (random walk ``bias_walk_mps_per_sqrt_s`` of the
+        config). A walk given here holds for this drone's states from now on, until another is
+        given (the config's again: ``FusionConfig.bias_walk_mps_per_sqrt_s``): e.g. the faster
+        wandering error of an autopilot's velocity while it flies on a position fed to it.
         """
         drone_id = _drone_id(drone_id)
         t = self._time("time_s", time_s)
@@ -157,8 +161,12 @@ class FusionEngine:
         sigma = validate.positive_array("sigma_mps", sigma_mps) * np.ones(3)
         if sigma.shape != (3,):
             raise InputError(f"sigma_mps must be > 0 (a scalar or 3 values), got {sigma_mps!r}")
-        self._record("velocity", dict(drone_id=drone_id, time_s=t, vel_enu_mps=vel, sigma_mps=sigma))
+        walk = None if bias_walk_mps_per_sqrt_s is None else \
+            validate.positive_scalar("bias_walk_mps_per_sqrt_s", bias_walk_mps_per_sqrt_s)
+        self._record("velocity", dict(drone_id=drone_id, time_s=t, vel_enu_mps=vel, sigma_mps=sigma,
+                                      **({} if walk is None else {"bias_walk_mps_per_sqrt_s": walk})))
         drone = self._reporter(drone_id)
+        drone.bias_walk_mps_per_sqrt_s = walk
         self._chains.advance(t, drone)
         self._monitor(drone, "velocity", self.config.velocity_timeout_s, t).judge(t, True)
         if drone.anchored and drone.axes_at_enu_m is None:
