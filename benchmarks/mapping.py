@@ -182,9 +182,11 @@ def main() -> int:
     valid = report.get("dsm_valid_share") or 0.0
     dense, sparse = report.get("dense_points", 0), report["points"]
     interpolated = report.get("dsm_interpolated_share", 0.0)
+    matchable = report.get("dsm_matchable_share", float("nan"))
     print(f"DSM: {100 * valid:.1f} % of the surveyed cells measured by dense matching (counted for the goal), "
           f"{100 * interpolated:.1f} % more interpolated in enclosed holes of at most 4 m2 (dsm_interpolated.tif, "
-          "not counted), cell "
+          f"not counted); {100 * matchable:.1f} % of the surveyed cells are seen by both photos of a pair that "
+          "can be matched (same model, usable baseline), the rest only across models; cell "
           f"{report['dsm_resolution_m']:.2f} m; dense points {dense} from {report.get('dense_pairs', 0)} pairs "
           f"(sparse {sparse}); orthophoto COG {cog}, at the GSD {full_res}")
     print(report["flying_height"].get("line", "no flying height check"))

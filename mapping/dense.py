@@ -1,8 +1,9 @@
 """Dense surface: OpenCV semi-global matching on rectified pairs of overlapping photos.
 
 Each registered photo is paired with up to ``neighbours`` (6) others of the same model that
-see at least one of its 3x3 footprint lattice points, with a useful baseline (0.08-1.2 of
-the flying height: along the line and across to the next). A pair is rectified with one
+see at least one of its 3x3 footprint lattice points, with a useful baseline (0.08-1.5 of
+the flying height: along the line and across to the next; on Seneca 1.2-1.5 adds nine
+cross-line pairs, the only pairs over some ground only two photos see). A pair is rectified with one
 common rotation whose x axis is the baseline (both views turned to look alike, so epipolar
 lines are image rows and the left camera is the first), undistorted through its lens
 model, matched by ``cv2.StereoSGBM`` (left-right consistency, uniqueness and speckle
@@ -32,7 +33,8 @@ from skyfix.mapping.grid import EnuToUtm, Grid
 from skyfix.mapping.ortho import View
 from skyfix.progress import progress
 
-__all__ = ["DenseCloud", "dense_dsm", "opencv_lens", "pair_offsets_m", "stereo_pairs"]
+__all__ = ["DenseCloud", "dense_dsm", "footprint_masks", "opencv_lens", "pair_offsets_m", "stereo_area",
+           "stereo_pairs"]
 
 log = logging.getLogger(__name__)
 
@@ -64,13 +66,15 @@ def opencv_lens(camera, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray] | N
 class DenseCloud:
     """Fused dense points: ``xyz_utm_m`` (N, 3) easting, northing, height; ``rgb`` (N, 3) uint8;
     ``pairs`` matched and used; ``scale`` of the photos matched; ``dropped`` pairs (names and
-    height offset) whose heights disagreed with the others'."""
+    height offset) whose heights disagreed with the others'; ``candidates``: the pairs of
+    view indices that were tried (:func:`stereo_pairs`)."""
 
     xyz_utm_m: np.ndarray
     rgb: np.ndarray
     pairs: int
     scale: float
     dropped: tuple[str, ...] = ()
+    candidates: tuple[tuple[int, int], ...] = ()
 
 
 def _centre(view: View) -> np.ndarray:
@@ -198,27 +202,40 @@ def _match_pair(left: View, right: View, images: dict, sparse_enu: np.ndarray, s
     return rect @ r_rect + _centre(left), colours[rows, cols]
 
 
-def stereo_area(views: list[View], grid: Grid, to_utm: EnuToUtm, ground_up_m: float) -> np.ndarray:
-    """(H, W) bool: grid cells inside the ground footprints of at least two photos (the area
-    a stereo surface can exist in), each footprint its image border cast to ``ground_up_m``."""
-    count = np.zeros((grid.height, grid.width), np.uint8)
+def footprint_masks(views: list[View], grid: Grid, to_utm: EnuToUtm, ground_up_m: float) -> list[np.ndarray]:
+    """Per view, (H, W) bool: the grid cells inside its ground footprint, its image border
+    cast to ``ground_up_m`` (ENU up, metres); all False for a view that does not look down."""
+    masks = []
+    t = np.linspace(0.0, 1.0, 9)
     for view in views:
         cam = view.camera
-        t = np.linspace(0.0, 1.0, 9)
         border = np.vstack([np.stack((t * cam.width, np.zeros(9)), 1), np.stack((np.full(9, cam.width), t * cam.height), 1),
                             np.stack((t[::-1] * cam.width, np.full(9, cam.height)), 1),
                             np.stack((np.zeros(9), t[::-1] * cam.height), 1)])
         rays = np.hstack((np.asarray(cam.cam_from_img(border)), np.ones((len(border), 1)))) @ view.cam_from_enu[:, :3]
         down = rays[:, 2] < -1e-6
-        if down.sum() < 3:
-            continue
-        centre = _centre(view)
-        ground = centre + rays[down] * ((ground_up_m - centre[2]) / rays[down, 2:3])
-        col, row = grid.to_pixel(*to_utm(ground)[:, :2].T)
-        mask = np.zeros_like(count)
-        cv2.fillPoly(mask, [np.round(np.stack((col, row), 1)).astype(np.int32)], 1)
-        count += mask
-    return count >= 2
+        mask = np.zeros((grid.height, grid.width), np.uint8)
+        if down.sum() >= 3:
+            centre = _centre(view)
+            ground = centre + rays[down] * ((ground_up_m - centre[2]) / rays[down, 2:3])
+            col, row = grid.to_pixel(*to_utm(ground)[:, :2].T)
+            cv2.fillPoly(mask, [np.round(np.stack((col, row), 1)).astype(np.int32)], 1)
+        masks.append(mask > 0)
+    return masks
+
+
+def stereo_area(views: list[View], grid: Grid, to_utm: EnuToUtm, ground_up_m: float,
+                pairs: list[tuple[int, int]] | None = None) -> np.ndarray:
+    """(H, W) bool: grid cells inside the ground footprints of at least two photos (the area
+    a stereo surface can exist in), each footprint its image border cast to ``ground_up_m``;
+    with ``pairs`` (view indices), only the cells both photos of one of those pairs see."""
+    masks = footprint_masks(views, grid, to_utm, ground_up_m)
+    if pairs is not None:
+        area = np.zeros((grid.height, grid.width), bool)
+        for i, j in pairs:
+            area |= masks[i] & masks[j]
+        return area
+    return np.sum(masks, axis=0, dtype=np.int32) >= 2 if masks else np.zeros((grid.height, grid.width), bool)
 
 
 def pair_offsets_m(pair_cells: dict[int, tuple[np.ndarray, np.ndarray]], agree_m: float = 0.5,
@@ -283,7 +300,7 @@ def _drop_offset_pairs(matched: dict[int, tuple], views: list[View], pairs: list
 
 
 def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.ndarray, to_utm: EnuToUtm,
-              grid: Grid, *, scale: float = 0.5, neighbours: int = 6, max_ratio: float = 1.2, block_px: int = 5,
+              grid: Grid, *, scale: float = 0.5, neighbours: int = 6, max_ratio: float = 1.5, block_px: int = 5,
               min_pairs: int = 1, min_shared: int = 1, spike_m: float = 2.0, max_pair_offset_m: float = 1.0,
               max_points: int = 5_000_000, seed: int = 0) -> tuple[Dsm, DenseCloud]:
     """Dense DSM on ``grid`` (every matched pixel) and the dense point cloud (at most
@@ -356,4 +373,4 @@ def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.nda
     xyz, rgb = np.concatenate(xyz_keep), np.concatenate(rgb_keep)
     observed = np.isfinite(surface)
     dsm = Dsm(grid, surface.astype(np.float32), filled.astype(np.float32), observed)
-    return dsm, DenseCloud(xyz, rgb.astype(np.uint8), len(matched), scale, tuple(dropped))
+    return dsm, DenseCloud(xyz, rgb.astype(np.uint8), len(matched), scale, tuple(dropped), tuple(pairs))

@@ -56,6 +56,7 @@ class Report:
     gps_lag: dict = field(default_factory=dict)
     dsm_valid_share: float = math.nan
     dsm_interpolated_share: float = 0.0
+    dsm_matchable_share: float = math.nan  # of the stereo area: seen by both photos of a pair that can be matched
     dense_points: int = 0
     dense_pairs: int = 0
     stage_seconds: dict[str, float] = field(default_factory=dict)

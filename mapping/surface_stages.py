@@ -104,8 +104,15 @@ def _dense(config, project, state, sparse_enu: np.ndarray, epsg: int) -> tuple:
     dsm, cloud = dense_dsm(views, {v.name: v.path for v in views}, sparse_enu, to_utm, grid,
                            scale=config.dense_scale, max_points=config.max_dense_points, seed=config.seed)
     np.savez(project.work / "dense_points.npz", xyz=cloud.xyz_utm_m, rgb=cloud.rgb)
-    area = stereo_area(views, grid, to_utm, float(np.median(sparse_enu[:, 2])))
-    return dsm, {"stereo_area": area, "valid_area": "cells inside the footprints of two or more photos", "dense_points": len(cloud.xyz_utm_m), "dense_pairs": cloud.pairs, "dense_scale": cloud.scale,
+    ground_up_m = float(np.median(sparse_enu[:, 2]))
+    area = stereo_area(views, grid, to_utm, ground_up_m)
+    # What the measure can reach: cells both photos of a tried pair see (ground seen only by
+    # photos of different models, or with too short/long a baseline, has no pair).
+    matchable = stereo_area(views, grid, to_utm, ground_up_m, pairs=list(cloud.candidates)) & area
+    return dsm, {"stereo_area": area, "valid_area": "cells inside the footprints of two or more photos",
+                 "matchable_share": valid_share(matchable, area),
+                 "valid_share_of_matchable": valid_share(dsm.observed, matchable),
+                 "dense_points": len(cloud.xyz_utm_m), "dense_pairs": cloud.pairs, "dense_scale": cloud.scale,
                  "dense_pairs_dropped": list(cloud.dropped),
                  "enu_to_utm_max_residual_m": to_utm.max_residual_m}
 
@@ -125,6 +132,7 @@ def dsm_load(config, project, state, report, marker) -> None:
     report.flying_height = marker.get("flying_height", {})
     report.dsm_valid_share = marker.get("valid_share", math.nan)
     report.dsm_interpolated_share = marker.get("interpolated_share", 0.0)
+    report.dsm_matchable_share = marker.get("matchable_share", math.nan)
     if marker.get("interpolated_share"):
         report.outputs["dsm_interpolated"] = str(project.root / "dsm_interpolated.tif")
     report.dense_points = marker.get("dense_points", 0)

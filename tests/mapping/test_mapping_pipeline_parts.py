@@ -178,3 +178,32 @@ def test_stereo_pairs_stay_inside_one_model():
     assert (0, 1) in pairs and (3, 4) in pairs
     assert not any(views[i].model != views[j].model and 5 not in (i, j) for i, j in pairs)
     assert any(5 in p for p in pairs)
+
+
+def test_stereo_area_of_the_tried_pairs():
+    # Three nadir photos 25 m apart along x at 65 m over flat ground at 0 (footprints
+    # 2 x 600/925 x 65 = 84.3 m along x, 63.2 m along y; photo k spans 25 k -+ 42.16 m).
+    # Seen by two or more: photo 1's span, [-17.16, 67.16]; by both photos of the one tried
+    # pair (0, 1): [-17.16, 42.16], 59.3 / 84.3 = 0.703 of it.
+    import pycolmap
+
+    from skyfix.mapping.dense import stereo_area
+    from skyfix.mapping.ortho import View
+
+    camera = pycolmap.Camera(model="SIMPLE_PINHOLE", width=1200, height=900, params=[925.0, 600.0, 450.0])
+    rot = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+    views = [View(f"p{k}", "", np.hstack((rot, (-rot @ np.array([25.0 * k, 0.0, 65.0]))[:, None])), camera, 0)
+             for k in range(3)]
+    grid = Grid(32632, -60.0, 40.0, 0.25, 640, 320)  # x -60..100 m, y -40..40 m
+
+    def to_utm(enu):
+        return np.asarray(enu)  # the ENU plane as the grid's easting/northing
+
+    area = stereo_area(views, grid, to_utm, 0.0)
+    tried = stereo_area(views, grid, to_utm, 0.0, pairs=[(0, 1)])
+    rows, cols = np.nonzero(area)
+    x_m = -60.0 + (cols + 0.5) * 0.25
+    assert abs(x_m.min() + 17.16) < 0.3 and abs(x_m.max() - 67.16) < 0.3
+    assert abs(rows.max() - rows.min() + 1 - 63.2 / 0.25) <= 3
+    assert not (tried & ~area).any()
+    assert abs(tried.sum() / area.sum() - 59.3 / 84.3) < 0.01
