@@ -50,10 +50,12 @@ def fusion_config(roster: tuple[str, ...] | None, lag_s: float) -> FusionConfig:
     longer among an estimate's sources, only when nothing came for the engine's usual time-out AFTER the
     lag. Peers' camera observations reach the node a frame's pipeline late (seconds on a loaded companion)
     and are still fused while inside the lag; the plain 2 s time-outs called such a helper silent between
-    two of its frames and kept it on 5 s of probation, unfused."""
+    two of its frames and kept it on 5 s of probation, unfused. GPS_RAW_INT's time_usec is its send time
+    (ArduPilot: fix time + time since): a fix up to one 5 Hz receiver period old (``gnss_fix_age_max_s``);
+    the same fix re-sent is dropped."""
     base = FusionConfig()
     return FusionConfig(roster=tuple(roster or ()), relative_timeout_s=float(lag_s) + base.relative_timeout_s,
-                        contributing_window_s=float(lag_s) + base.contributing_window_s)
+                        contributing_window_s=float(lag_s) + base.contributing_window_s, gnss_fix_age_max_s=0.2)
 
 
 @dataclass(frozen=True)
