@@ -45,7 +45,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                     "'mission download' writes.")
     msub = m.add_subparsers(dest="mission_command", metavar="ACTION", title="actions")
     up = _action(msub, "upload", "upload a mission JSON file", run_mission_upload)
-    up.add_argument("file", type=Path, help="mission JSON (as written by 'mission download')")
+    up.add_argument("file", type=Path, help="mission JSON (as written by 'mission download'; schema: docs/schemas/mission.schema.json)")
     up.add_argument("--ftp", action="store_true",
                     help="ArduPilot: send the mission as one file over MAVLink FTP (@MISSION/mission.dat), "
                          "read back and compared; ~4x faster than item by item for long missions")

@@ -298,3 +298,59 @@ class PositionInjector:
                 next_t = time.monotonic()
                 delay = 0.0
             self._stop.wait(max(0.0, delay))
+
+
+class InjectionCommands:
+    """A Vehicle's external-position commands (mixed into :class:`~skyfix.drivers.vehicle.Vehicle`,
+    which holds ``injector``, ``gps_input_id`` and the settings already checked)."""
+
+    def check_injection(self, kind: str) -> None:
+        """Raise ConfigurationError naming the setting that makes the autopilot ignore
+        ``kind`` (``"gps"`` for GPS_INPUT, ``"vision"`` for VISION_POSITION_ESTIMATE)."""
+        check_settings(self, kind)
+        self._injection_checked.add(kind)
+
+    def inject_gps(self, lat_deg: float, lon_deg: float, alt_amsl_m: float, *, h_acc_m: float,
+                   v_acc_m: float | None = None, vel_ned_mps: tuple[float, float, float] | None = None,
+                   satellites: int = 12, fix_type: int = 3, time_s: float | None = None) -> None:
+        """Send one GPS_INPUT (checks the autopilot's GPS settings on first use)."""
+        msg = gps_input_message(lat_deg, lon_deg, alt_amsl_m, h_acc_m=h_acc_m,
+                                          v_acc_m=v_acc_m, vel_ned_mps=vel_ned_mps,
+                                          satellites=satellites, fix_type=fix_type, time_s=time_s)
+        if "gps" not in self._injection_checked:
+            self.check_injection("gps")
+        msg.gps_id = self.gps_input_id
+        self.send(msg)
+
+    def use_injected_gps(self, on: bool) -> None:
+        """ArduPilot: fly on the injected GPS (GPS_INPUT) instead of the receiver, or back;
+        see :func:`use_injected_gps` and ``ARDUPILOT_INJECTED_GPS2_PARAMS``."""
+        use_injected_gps(self, on)
+
+    def inject_vision(self, north_m: float, east_m: float, down_m: float, *, sigma_m: float,
+                      roll_deg: float = 0.0, pitch_deg: float = 0.0, yaw_deg: float = 0.0,
+                      time_s: float | None = None, odometry: bool = False) -> None:
+        """Send one VISION_POSITION_ESTIMATE (or ODOMETRY) in local NED about the EKF origin."""
+        msg = vision_message(north_m, east_m, down_m, sigma_m=sigma_m, roll_deg=roll_deg,
+                                       pitch_deg=pitch_deg, yaw_deg=yaw_deg, time_s=time_s,
+                                       odometry=odometry)
+        if "vision" not in self._injection_checked:
+            self.check_injection("vision")
+        self.send(msg)
+
+    def start_gps_injection(self, source: Callable[[], GeoFix | None], *,
+                            rate_hz: float = 5.0,
+                            geoid_height_m: float | None = None) -> PositionInjector:
+        """Inject ``source()`` fixes (ellipsoidal heights) as GPS_INPUT at a steady ``rate_hz``
+        on a thread; AMSL through EGM96 unless ``geoid_height_m`` is given."""
+        self.check_injection("gps")
+        if self.injector is not None:
+            self.injector.stop()
+        self.injector = PositionInjector(self, source, rate_hz=rate_hz,
+                                                   geoid_height_m=geoid_height_m)
+        return self.injector.start()
+
+    def set_origin(self, lat_deg: float, lon_deg: float, alt_amsl_m: float, *,
+                   timeout_s: float = 1.0, retries: int = 3) -> None:
+        """Set the EKF origin (SET_GPS_GLOBAL_ORIGIN) and wait for GPS_GLOBAL_ORIGIN to confirm."""
+        set_origin(self, lat_deg, lon_deg, alt_amsl_m, timeout_s=timeout_s, retries=retries)

@@ -7,6 +7,12 @@ messages carry the autopilot's own STATUSTEXT explanation.
 
 Altitude conventions: ``alt_m`` arguments of :meth:`takeoff` and :meth:`goto` are metres
 above home; ``alt_amsl_m`` values are above mean sea level.
+
+The class is assembled from one module per job: the reader side
+(:mod:`~skyfix.drivers.telemetry`), the setpoint stream (:mod:`~skyfix.drivers.setpoints`),
+the safety monitor (:mod:`~skyfix.drivers.safety_monitor`) and the external-position
+commands (:class:`~skyfix.drivers.injection.InjectionCommands`); connecting, commands,
+modes and flight are here.
 """
 
 from __future__ import annotations
@@ -23,14 +29,18 @@ from dataclasses import replace
 from typing import Any
 
 from skyfix import validate
-from skyfix.drivers import injection, mission, units
+from skyfix.drivers import injection, mission
 from skyfix.drivers import params as param_io
+from skyfix.drivers.injection import InjectionCommands
 from skyfix.drivers.link import MavlinkLink
 from skyfix.drivers.mav import command_name, mavlink, result_name
-from skyfix.drivers.modes import PX4_MODES, custom_mode_of, flavour_of, mode_name, role_mode
+from skyfix.drivers.modes import custom_mode_of, flavour_of, role_mode
 from skyfix.drivers.request import AGAIN, DONE, WAIT, transact
 from skyfix.drivers.safety import SafetyGate
-from skyfix.drivers.state import Attitude, Position, VehicleEvent, VehicleState, Velocity
+from skyfix.drivers.safety_monitor import SafetyMonitor
+from skyfix.drivers.setpoints import POSITION_ONLY_MASK, VELOCITY_ONLY_MASK, SetpointStream
+from skyfix.drivers.state import VehicleEvent, VehicleState
+from skyfix.drivers.telemetry import TelemetryHandlers
 from skyfix.errors import CommandRejected, InputError, LinkError, SafetyViolation, SkyfixTimeout
 
 log = logging.getLogger(__name__)
@@ -42,9 +52,6 @@ DEFAULT_STREAM_RATES_HZ: dict[str, float] = {
     "BATTERY_STATUS": 1.0, "EXTENDED_SYS_STATE": 2.0, "MISSION_CURRENT": 2.0, "HOME_POSITION": 0.5,
     "EKF_STATUS_REPORT": 2.0,  # ArduPilot only (PX4 answers UNSUPPORTED)
 }
-_LANDED = {0: "UNDEFINED", 1: "ON_GROUND", 2: "IN_AIR", 3: "TAKEOFF", 4: "LANDING"}
-_POSITION_ONLY_MASK = 0x0FF8  # SET_POSITION_TARGET type_mask: use x/y/z only
-_VELOCITY_ONLY_MASK = 0x0FC7  # use vx/vy/vz only
 
 
 class _Subscription:
@@ -53,7 +60,7 @@ class _Subscription:
         self.queue: queue.Queue = queue.Queue()
 
 
-class Vehicle:
+class Vehicle(TelemetryHandlers, SetpointStream, SafetyMonitor, InjectionCommands):
     """One autopilot on a link. Create with :meth:`connect` (or :meth:`connect_all`)."""
 
     def __init__(self, link: MavlinkLink, system_id: int, component_id: int, autopilot: int) -> None:
@@ -208,116 +215,6 @@ class Vehicle:
             self._state = replace(self._state, **fields)
             self._lock.notify_all()
 
-    # ------------------------------------------------------------------ reader side
-    def _on_message(self, msg, t_mono: float) -> None:
-        mtype = msg.get_type()
-        now = time.time()
-        handler = getattr(self, "_rx_" + mtype.lower(), None)
-        if handler is not None:
-            handler(msg, now, t_mono)
-        for sub in list(self._subs):
-            try:
-                if sub.predicate(msg):
-                    sub.queue.put((msg, t_mono))
-            except Exception:
-                log.exception("subscription predicate failed")
-
-    def _rx_heartbeat(self, msg, now: float, t_mono: float) -> None:
-        if msg.get_srcComponent() != self.component_id:
-            return
-        self._hb_mono = t_mono
-        if self.link is not None and not self.link.closed and t_mono - self._position_mono > 2.0 \
-                and t_mono - self._streams_mono > 2.0:
-            self.request_streams()  # heartbeats but no positions: rates forgotten (reboot)
-        old = self._state
-        mode = mode_name(self.autopilot, msg.custom_mode)
-        armed = bool(msg.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
-        # events first, then the state change that wakes waiters
-        if not old.link_ok:
-            log.warning("vehicle %d: heartbeat back", self.system_id)
-            self._emit("link_restored", f"heartbeat of vehicle {self.system_id} is back")
-        if old.mode and old.mode != mode:
-            self._emit("mode", mode, old=old.mode, new=mode)
-        if old.armed != armed:
-            self._emit("armed" if armed else "disarmed")
-        self._update(mode=mode, armed=armed, heartbeat_time_s=now, link_ok=True)
-        if not old.link_ok and self.link is not None:
-            self.request_streams()  # an autopilot that rebooted forgot our rates
-        if old.armed and not armed:
-            self._stop_setpoints()
-
-    def _check_heartbeat(self, now_mono: float, timeout_s: float) -> None:
-        if self._state.link_ok and now_mono - self._hb_mono > timeout_s:
-            log.warning("vehicle %d: no heartbeat for %.1f s", self.system_id, now_mono - self._hb_mono)
-            self._emit("link_lost", f"no HEARTBEAT from vehicle {self.system_id} for "
-                       f"{now_mono - self._hb_mono:.1f} s")
-            self._update(link_ok=False)
-
-    def _rx_global_position_int(self, msg, now: float, t_mono: float) -> None:
-        self._position_mono = t_mono
-        pos, vel = units.position_velocity(msg, now)
-        self._update(position=pos, velocity=vel)
-        if self.safety is not None:
-            self._check_safety(pos, vel, t_mono)
-
-    def _rx_attitude(self, msg, now: float, t_mono: float) -> None:
-        self._update(attitude=Attitude(math.degrees(msg.roll), math.degrees(msg.pitch),
-                                       math.degrees(msg.yaw) % 360.0, now))
-
-    def _rx_gps_raw_int(self, msg, now: float, t_mono: float) -> None:
-        self._update(gps=units.gps_status(msg, now))
-
-    def _rx_ekf_status_report(self, msg, now: float, t_mono: float) -> None:
-        self._update(ekf=units.ekf_status(msg, now))
-
-    def _rx_sys_status(self, msg, now: float, t_mono: float) -> None:
-        self._update(battery=units.battery(msg, now))
-
-    def _rx_home_position(self, msg, now: float, t_mono: float) -> None:
-        self._update(home=units.home(msg, now))
-
-    def _rx_extended_sys_state(self, msg, now: float, t_mono: float) -> None:
-        self._update(landed_state=_LANDED.get(msg.landed_state, "UNDEFINED"))
-
-    def _rx_mission_current(self, msg, now: float, t_mono: float) -> None:
-        old = self._state.mission_seq
-        self._update(mission_seq=msg.seq, mission_count=getattr(msg, "total", 0))
-        if old != msg.seq:
-            self._emit("mission_current", str(msg.seq), seq=msg.seq)
-
-    def _rx_mission_item_reached(self, msg, now: float, t_mono: float) -> None:
-        self._emit("mission_item_reached", str(msg.seq), seq=msg.seq)
-
-    def _rx_camera_feedback(self, msg, now: float, t_mono: float) -> None:
-        self._emit("camera_trigger", str(msg.img_idx), index=msg.img_idx, lat_deg=msg.lat / 1e7,
-                   lon_deg=msg.lng / 1e7, alt_amsl_m=msg.alt_msl)
-
-    def _rx_camera_trigger(self, msg, now: float, t_mono: float) -> None:
-        self._emit("camera_trigger", str(msg.seq), index=msg.seq)
-
-    def _rx_gps_global_origin(self, msg, now: float, t_mono: float) -> None:
-        self.ekf_origin = (msg.latitude / 1e7, msg.longitude / 1e7, msg.altitude / 1000.0)
-        self._emit("origin", "", lat_deg=self.ekf_origin[0], lon_deg=self.ekf_origin[1],
-                   alt_amsl_m=self.ekf_origin[2])
-
-    def _rx_param_value(self, msg, now: float, t_mono: float) -> None:
-        name = param_io.param_name(msg)
-        self.param_types[name] = int(msg.param_type)
-        self.params[name] = param_io.decode(self, msg)
-
-    def _rx_statustext(self, msg, now: float, t_mono: float) -> None:
-        text = msg.text if isinstance(msg.text, str) else msg.text.decode(errors="replace")
-        text = text.rstrip("\x00")
-        if getattr(msg, "id", 0):  # chunked: assemble until a chunk shorter than 50 bytes
-            parts = self._chunks.setdefault(msg.id, [])
-            parts.append(text)
-            if len(text) == 50:
-                return
-            text = "".join(self._chunks.pop(msg.id))
-        self.statustexts.append((t_mono, msg.severity, text))
-        log.info("vehicle %d says: %s", self.system_id, text)
-        self._emit("statustext", text, severity=msg.severity)
-
     def _reasons(self, since_mono: float, limit: int = 3) -> str:
         """The autopilot's recent warnings (severity NOTICE or worse) since ``since_mono``, for
         error messages; its INFO chatter ("EKF3 IMU0 origin set") explains nothing."""
@@ -467,7 +364,7 @@ class Vehicle:
             self.safety.check_position_setpoint(lat, lon, alt)
         msg = M.MAVLink_set_position_target_global_int_message(
             0, self.system_id, self.component_id, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-            _POSITION_ONLY_MASK, int(round(lat * 1e7)), int(round(lon * 1e7)), alt, 0, 0, 0, 0, 0, 0, 0, 0)
+            POSITION_ONLY_MASK, int(round(lat * 1e7)), int(round(lon * 1e7)), alt, 0, 0, 0, 0, 0, 0, 0, 0)
         self._start_setpoints(msg)
         self._ensure_guided()
         if self._setpoint is not msg:  # the gate stopped the stream while we switched: ours is newer
@@ -499,7 +396,7 @@ class Vehicle:
                                       "(use goto() to a point inside, hold() or rtl())")
         msg = M.MAVLink_set_position_target_global_int_message(
             0, self.system_id, self.component_id, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-            _VELOCITY_ONLY_MASK, 0, 0, 0, vn, ve, vd, 0, 0, 0, 0, 0)
+            VELOCITY_ONLY_MASK, 0, 0, 0, vn, ve, vd, 0, 0, 0, 0, 0)
         self._start_setpoints(msg)
         self._ensure_guided()
         if self._setpoint is not msg:  # the gate acted while we switched modes: it wins over a velocity
@@ -521,118 +418,6 @@ class Vehicle:
         self.set_mode(role_mode(self.autopilot, "rtl"))
         if wait:
             self.wait_until(lambda s: not s.armed, timeout_s, what="return home and disarm")
-
-    # ------------------------------------------------------------------ setpoint stream
-    def _hold_setpoint(self):
-        pos = self._state.position
-        if pos is None:
-            raise InputError("cannot build a hold setpoint before the first position report")
-        return M.MAVLink_set_position_target_global_int_message(
-            0, self.system_id, self.component_id, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-            _POSITION_ONLY_MASK, int(round(pos.lat_deg * 1e7)), int(round(pos.lon_deg * 1e7)),
-            pos.alt_rel_m, 0, 0, 0, 0, 0, 0, 0, 0)
-
-    def _start_setpoints(self, msg) -> None:
-        """Send ``msg`` now and keep re-sending it at ``setpoint_rate_hz`` (PX4 offboard needs a
-        live stream, ArduPilot drops velocity targets after 3 s, and either may lose a packet)."""
-        self._setpoint = msg
-        self.send(msg)
-        old = self._setpoint_thread
-        if old is not None and old.is_alive() and self._setpoint_stop.is_set() \
-                and old is not threading.current_thread():
-            old.join(timeout=1.0)  # told to stop and not gone yet: it would leave our stream dead
-        if self._setpoint_thread is None or not self._setpoint_thread.is_alive():
-            self._setpoint_stop.clear()
-            self._setpoint_thread = threading.Thread(target=self._setpoint_loop, daemon=True,
-                                                     name=f"skyfix-setpoints-{self.system_id}")
-            self._setpoint_thread.start()
-
-    def _stop_setpoints(self) -> None:
-        self._setpoint = None
-        self._setpoint_stop.set()
-
-    def _setpoint_loop(self) -> None:
-        period = 1.0 / self.setpoint_rate_hz
-        while not self._setpoint_stop.wait(period):
-            msg = self._setpoint
-            if msg is None or self.link.closed:
-                return
-            try:
-                self.send(msg)
-            except LinkError:
-                return
-
-    # ------------------------------------------------------------------ safety
-    def set_safety(self, gate: SafetyGate | None) -> None:
-        """Install (or remove) the safety gate checked on setpoints and telemetry."""
-        self.safety = gate
-        self._safety_latched = False
-
-    def _check_safety(self, pos: Position, vel: Velocity, t_mono: float) -> None:
-        st = self._state
-        if not st.armed:
-            self._safety_latched = False
-            return
-        why = self.safety.violation(pos.lat_deg, pos.lon_deg, pos.alt_rel_m, vel.speed_mps)
-        if not why:
-            self._safety_latched = False
-            return
-        if self._safety_latched:
-            return
-        self._safety_latched = True
-        self._stop_setpoints()
-        mode = role_mode(self.autopilot, self.safety.action)
-        params = self._mode_params(mode)
-        # the action goes out now from the reader thread when no command is in flight;
-        # otherwise the safety thread sends it right after the current one (one channel)
-        generation = self._command_seq
-        sent = self._command_lock.acquire(blocking=False)
-        if sent:
-            self._send_command_long(M.MAV_CMD_DO_SET_MODE, params, 0)
-        latency_s = time.monotonic() - t_mono
-        self.safety_log.append((latency_s, why))
-        log.warning("vehicle %d safety violation: %s -> %s (%.1f ms after telemetry%s)", self.system_id,
-                    why, mode, latency_s * 1e3, "" if sent else ", queued behind a command in flight")
-        self._emit("safety_violation", why, action=mode, latency_s=latency_s)
-        threading.Thread(target=self._safety_action, args=(mode, params, generation, sent), daemon=True,
-                         name=f"skyfix-safety-{self.system_id}").start()
-
-    def _safety_action(self, mode: str, params: list[float], generation: int, holding: bool) -> None:
-        """Confirm the gate's mode change (ACK, then heartbeat) without ever overriding a command
-        the user gave after the violation, and without acting on a time-out."""
-        if not holding:
-            self._command_lock.acquire()
-        try:
-            if self._command_seq != generation:
-                log.warning("vehicle %d: safety action %s dropped: a newer command was given",
-                            self.system_id, mode)
-                return
-            self._command_seq += 1
-            generation = self._command_seq
-            self._command_locked(M.MAV_CMD_DO_SET_MODE, params, 0.5, 4, first_sent=holding)
-        except CommandRejected as exc:
-            if self._command_seq == generation:  # refused outright: land (envelope already breached)
-                log.error("vehicle %d: safety action %s refused (%s); landing", self.system_id, mode, exc)
-                self._emit("safety_action_failed", str(exc), action=mode)
-                with contextlib.suppress(Exception):
-                    self._command_locked(M.MAV_CMD_NAV_LAND, [], 0.5, 4)
-            return
-        except Exception as exc:  # no ACK / link lost: report, do not act on a time-out
-            log.error("vehicle %d: safety action %s not confirmed: %s", self.system_id, mode, exc)
-            self._emit("safety_action_failed", str(exc), action=mode)
-            return
-        finally:
-            self._command_lock.release()
-        with contextlib.suppress(SkyfixTimeout, LinkError):
-            self.wait_until(lambda s: s.mode == mode or self._command_seq != generation, 3.0,
-                            what=f"safety action {mode}")
-
-    def _mode_params(self, mode: str) -> list[float]:
-        """DO_SET_MODE params for a mode name (PX4: main and sub mode)."""
-        if self.autopilot == "px4":
-            main, sub = PX4_MODES[mode]
-            return [M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub]
-        return [M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom_mode_of(self.autopilot, mode)]
 
     # ------------------------------------------------------------------ parameters
     def get_param(self, name: str, *, timeout_s: float = 1.0, retries: int = 3) -> int | float:
@@ -674,55 +459,3 @@ class Vehicle:
         """Trigger the camera every ``distance_m`` metres travelled (0 stops)."""
         d = validate.nonnegative_scalar("distance_m", distance_m)
         self.command(M.MAV_CMD_DO_SET_CAM_TRIGG_DIST, d, 0, 1)
-
-    # ------------------------------------------------------------------ external position
-    def check_injection(self, kind: str) -> None:
-        """Raise ConfigurationError naming the setting that makes the autopilot ignore
-        ``kind`` (``"gps"`` for GPS_INPUT, ``"vision"`` for VISION_POSITION_ESTIMATE)."""
-        injection.check_settings(self, kind)
-        self._injection_checked.add(kind)
-
-    def inject_gps(self, lat_deg: float, lon_deg: float, alt_amsl_m: float, *, h_acc_m: float,
-                   v_acc_m: float | None = None, vel_ned_mps: tuple[float, float, float] | None = None,
-                   satellites: int = 12, fix_type: int = 3, time_s: float | None = None) -> None:
-        """Send one GPS_INPUT (checks the autopilot's GPS settings on first use)."""
-        msg = injection.gps_input_message(lat_deg, lon_deg, alt_amsl_m, h_acc_m=h_acc_m,
-                                          v_acc_m=v_acc_m, vel_ned_mps=vel_ned_mps,
-                                          satellites=satellites, fix_type=fix_type, time_s=time_s)
-        if "gps" not in self._injection_checked:
-            self.check_injection("gps")
-        msg.gps_id = self.gps_input_id
-        self.send(msg)
-
-    def use_injected_gps(self, on: bool) -> None:
-        """ArduPilot: fly on the injected GPS (GPS_INPUT) instead of the receiver, or back;
-        see :func:`injection.use_injected_gps` and ``ARDUPILOT_INJECTED_GPS2_PARAMS``."""
-        injection.use_injected_gps(self, on)
-
-    def inject_vision(self, north_m: float, east_m: float, down_m: float, *, sigma_m: float,
-                      roll_deg: float = 0.0, pitch_deg: float = 0.0, yaw_deg: float = 0.0,
-                      time_s: float | None = None, odometry: bool = False) -> None:
-        """Send one VISION_POSITION_ESTIMATE (or ODOMETRY) in local NED about the EKF origin."""
-        msg = injection.vision_message(north_m, east_m, down_m, sigma_m=sigma_m, roll_deg=roll_deg,
-                                       pitch_deg=pitch_deg, yaw_deg=yaw_deg, time_s=time_s,
-                                       odometry=odometry)
-        if "vision" not in self._injection_checked:
-            self.check_injection("vision")
-        self.send(msg)
-
-    def start_gps_injection(self, source: Callable[[], injection.GeoFix | None], *,
-                            rate_hz: float = 5.0,
-                            geoid_height_m: float | None = None) -> injection.PositionInjector:
-        """Inject ``source()`` fixes (ellipsoidal heights) as GPS_INPUT at a steady ``rate_hz``
-        on a thread; AMSL through EGM96 unless ``geoid_height_m`` is given."""
-        self.check_injection("gps")
-        if self.injector is not None:
-            self.injector.stop()
-        self.injector = injection.PositionInjector(self, source, rate_hz=rate_hz,
-                                                   geoid_height_m=geoid_height_m)
-        return self.injector.start()
-
-    def set_origin(self, lat_deg: float, lon_deg: float, alt_amsl_m: float, *,
-                   timeout_s: float = 1.0, retries: int = 3) -> None:
-        """Set the EKF origin (SET_GPS_GLOBAL_ORIGIN) and wait for GPS_GLOBAL_ORIGIN to confirm."""
-        injection.set_origin(self, lat_deg, lon_deg, alt_amsl_m, timeout_s=timeout_s, retries=retries)

@@ -1,0 +1,98 @@
+"""A Vehicle's safety monitor: its :class:`~skyfix.drivers.safety.SafetyGate` checked on every
+position report, and the gate's action (a mode change) sent and confirmed.
+
+Mixed into :class:`skyfix.drivers.vehicle.Vehicle` (which owns the command lock and sequence,
+``safety`` and ``safety_log``); ``_check_safety`` runs on the reader thread, so the action goes
+out within one telemetry message of the breach.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+
+from skyfix.drivers.mav import mavlink
+from skyfix.drivers.modes import PX4_MODES, custom_mode_of, role_mode
+from skyfix.drivers.safety import SafetyGate
+from skyfix.drivers.state import Position, Velocity
+from skyfix.errors import CommandRejected, LinkError, SkyfixTimeout
+
+log = logging.getLogger("skyfix.drivers.vehicle")  # the Vehicle's logger: one name for its whole story
+M = mavlink
+
+
+class SafetyMonitor:
+    """Gate installation, the per-report check and the confirmed action."""
+
+    def set_safety(self, gate: SafetyGate | None) -> None:
+        """Install (or remove) the safety gate checked on setpoints and telemetry."""
+        self.safety = gate
+        self._safety_latched = False
+
+    def _check_safety(self, pos: Position, vel: Velocity, t_mono: float) -> None:
+        st = self._state
+        if not st.armed:
+            self._safety_latched = False
+            return
+        why = self.safety.violation(pos.lat_deg, pos.lon_deg, pos.alt_rel_m, vel.speed_mps)
+        if not why:
+            self._safety_latched = False
+            return
+        if self._safety_latched:
+            return
+        self._safety_latched = True
+        self._stop_setpoints()
+        mode = role_mode(self.autopilot, self.safety.action)
+        params = self._mode_params(mode)
+        # the action goes out now from the reader thread when no command is in flight;
+        # otherwise the safety thread sends it right after the current one (one channel)
+        generation = self._command_seq
+        sent = self._command_lock.acquire(blocking=False)
+        if sent:
+            self._send_command_long(M.MAV_CMD_DO_SET_MODE, params, 0)
+        latency_s = time.monotonic() - t_mono
+        self.safety_log.append((latency_s, why))
+        log.warning("vehicle %d safety violation: %s -> %s (%.1f ms after telemetry%s)", self.system_id,
+                    why, mode, latency_s * 1e3, "" if sent else ", queued behind a command in flight")
+        self._emit("safety_violation", why, action=mode, latency_s=latency_s)
+        threading.Thread(target=self._safety_action, args=(mode, params, generation, sent), daemon=True,
+                         name=f"skyfix-safety-{self.system_id}").start()
+
+    def _safety_action(self, mode: str, params: list[float], generation: int, holding: bool) -> None:
+        """Confirm the gate's mode change (ACK, then heartbeat) without ever overriding a command
+        the user gave after the violation, and without acting on a time-out."""
+        if not holding:
+            self._command_lock.acquire()
+        try:
+            if self._command_seq != generation:
+                log.warning("vehicle %d: safety action %s dropped: a newer command was given",
+                            self.system_id, mode)
+                return
+            self._command_seq += 1
+            generation = self._command_seq
+            self._command_locked(M.MAV_CMD_DO_SET_MODE, params, 0.5, 4, first_sent=holding)
+        except CommandRejected as exc:
+            if self._command_seq == generation:  # refused outright: land (envelope already breached)
+                log.error("vehicle %d: safety action %s refused (%s); landing", self.system_id, mode, exc)
+                self._emit("safety_action_failed", str(exc), action=mode)
+                with contextlib.suppress(Exception):
+                    self._command_locked(M.MAV_CMD_NAV_LAND, [], 0.5, 4)
+            return
+        except Exception as exc:  # no ACK / link lost: report, do not act on a time-out
+            log.error("vehicle %d: safety action %s not confirmed: %s", self.system_id, mode, exc)
+            self._emit("safety_action_failed", str(exc), action=mode)
+            return
+        finally:
+            self._command_lock.release()
+        with contextlib.suppress(SkyfixTimeout, LinkError):
+            self.wait_until(lambda s: s.mode == mode or self._command_seq != generation, 3.0,
+                            what=f"safety action {mode}")
+
+    def _mode_params(self, mode: str) -> list[float]:
+        """DO_SET_MODE params for a mode name (PX4: main and sub mode)."""
+        if self.autopilot == "px4":
+            main, sub = PX4_MODES[mode]
+            return [M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub]
+        return [M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom_mode_of(self.autopilot, mode)]
