@@ -5,6 +5,9 @@ Telemetry intervals and mission-protocol timings run on simulated time, as SITL'
 so a simulator running at ``speed`` x real time also streams ``speed`` x faster. Every
 COMMAND_LONG/COMMAND_INT gets exactly one COMMAND_ACK (FAILED when handling it raised).
 Each sender has its own parser, so a truncated datagram cannot swallow another's.
+Telemetry messages are built in :mod:`~skyfix.datasets.sim.server_telemetry`, the parameter
+and mission protocols answered in :mod:`~skyfix.datasets.sim.server_params` and
+:mod:`~skyfix.datasets.sim.server_missions`; I/O, streams and commands are here.
 """
 
 from __future__ import annotations
@@ -18,16 +21,16 @@ from collections.abc import Callable
 
 import numpy as np
 
+from skyfix.datasets.sim.server_missions import MissionProtocol
+from skyfix.datasets.sim.server_params import ParamProtocol
+from skyfix.datasets.sim.server_telemetry import TelemetryMessages
 from skyfix.datasets.sim.vehicle import (
     FORCE_MAGIC,
-    INT_PARAMS,
-    MissionItem,
     Refusal,
     SimVehicle,
 )
 from skyfix.drivers.mav import mavlink
-from skyfix.drivers.modes import custom_mode_of, mode_name
-from skyfix.drivers.units import param_from_wire, param_to_wire
+from skyfix.drivers.modes import mode_name
 
 log = logging.getLogger(__name__)
 
@@ -50,19 +53,10 @@ DATA_STREAMS: dict[int, tuple[str, ...]] = {
     M.MAV_DATA_STREAM_EXTRA2: ("VFR_HUD",),
 }
 _MSG_NAME_BY_ID = {cls.id: cls.msgname for cls in M.mavlink_map.values()}
-#: Mission upload timings, simulated seconds, as the firmware's: (re-request a missing item
-#: after, abandon the upload after no item for). ArduPilot MissionItemProtocol: 1 s / 8 s;
-#: PX4 MavlinkMissionManager: 0.25 s / 5 s.
-MISSION_TIMINGS_S = {"ardupilot": (1.0, 8.0), "px4": (0.25, 5.0)}
 _MAX_PEERS = 64
 
 
-def _dop_x100(dop: float) -> int:
-    """A DOP as GPS_RAW_INT carries it: x 100, 65535 when unknown."""
-    return min(int(round(dop * 100)), 65534) if math.isfinite(dop) else 65535
-
-
-class VehicleServer:
+class VehicleServer(TelemetryMessages, ParamProtocol, MissionProtocol):
     """MAVLink endpoint of one :class:`SimVehicle` over one UDP socket.
 
     ``gcs_address``: where telemetry goes before anybody talks (SITL's ``--out``);
@@ -223,148 +217,6 @@ class VehicleServer:
         msg_id = (hash(text) & 0x7FFF) + 1 if len(chunks) > 1 else 0
         for i, chunk in enumerate(chunks):
             self.send(M.MAVLink_statustext_message(severity, chunk, msg_id, i))
-
-    # ------------------------------------------------------------- messages
-    def _base_mode(self) -> int:
-        base = M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | M.MAV_MODE_FLAG_STABILIZE_ENABLED
-        if self.vehicle.behaviour in ("guided", "mission", "rtl", "land", "hold", "takeoff"):
-            base |= M.MAV_MODE_FLAG_GUIDED_ENABLED
-        if self.vehicle.armed:
-            base |= M.MAV_MODE_FLAG_SAFETY_ARMED
-        return base
-
-    def _msg_heartbeat(self):
-        v = self.vehicle
-        autopilot = M.MAV_AUTOPILOT_PX4 if v.flavour == "px4" else M.MAV_AUTOPILOT_ARDUPILOTMEGA
-        status = M.MAV_STATE_ACTIVE if v.armed else M.MAV_STATE_STANDBY
-        return M.MAVLink_heartbeat_message(M.MAV_TYPE_QUADROTOR, autopilot, self._base_mode(),
-                                           custom_mode_of(v.flavour, v.mode), status, 3)
-
-    def _boot_ms(self) -> int:
-        return int(self.vehicle.t_s * 1000) & 0xFFFFFFFF
-
-    def _msg_global_position_int(self):
-        v = self.vehicle
-        est = v.est_pos_enu_m
-        lat, lon, alt = v.geodetic_amsl(est)
-        rel = v.altitude_rel_m()
-        vel = v.vel_enu_mps
-        self.log.append((time.monotonic(), "position", (lat, lon, rel)))
-        return M.MAVLink_global_position_int_message(
-            self._boot_ms(), int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
-            int(round(rel * 1000)), int(round(vel[1] * 100)), int(round(vel[0] * 100)),
-            int(round(-vel[2] * 100)), int(round(v.yaw_deg * 100)) % 36000)
-
-    def _msg_local_position_ned(self):
-        v = self.vehicle
-        ned = v.enu_to_local_ned(v.est_pos_enu_m)
-        vel = v.vel_enu_mps
-        return M.MAVLink_local_position_ned_message(self._boot_ms(), *ned, vel[1], vel[0], -vel[2])
-
-    def _msg_attitude(self):
-        v = self.vehicle
-        yaw = math.radians(((v.yaw_deg + 180.0) % 360.0) - 180.0)
-        return M.MAVLink_attitude_message(self._boot_ms(), math.radians(v.roll_deg),
-                                          math.radians(v.pitch_deg), yaw, 0.0, 0.0, 0.0)
-
-    def _msg_gps_raw_int(self):
-        v = self.vehicle
-        r = v.gps_report()
-        if r is None or r.fix_type < M.GPS_FIX_TYPE_2D_FIX or not np.all(np.isfinite(r.pos_enu_m)):
-            return M.MAVLink_gps_raw_int_message(int(v.t_s * 1e6), 1 if r else 0, 0, 0, 0, 65535,
-                                                 65535, 65535, 65535, 0, 0, 0, 0, 0, 0, 0)
-        lat, lon, alt_ell = v.geodetic(r.pos_enu_m)
-        speed = float(np.hypot(*r.vel_enu_mps[:2]))
-        cog = (math.degrees(math.atan2(r.vel_enu_mps[0], r.vel_enu_mps[1])) + 360.0) % 360.0
-        # as autopilots encode it: alt AMSL, eph/epv = DOP x 100 (unitless), h_acc/v_acc in mm,
-        # alt_ellipsoid above WGS84 (mm)
-        return M.MAVLink_gps_raw_int_message(
-            int(v.t_s * 1e6), r.fix_type, int(round(lat * 1e7)), int(round(lon * 1e7)),
-            int(round((alt_ell - v.geoid_m) * 1000)), _dop_x100(r.hdop), _dop_x100(r.vdop), int(speed * 100), int(cog * 100), r.satellites,
-            int(round(alt_ell * 1000)), int(round(r.eph_m * 1000)), int(round(r.epv_m * 1000)), 100, 0, 0)
-
-    def _msg_ekf_status_report(self):
-        """ArduPilot's EKF verdict as Copter 4.7 SITL reports it: 831 (attitude, velocities,
-        relative and absolute position, predicted positions) when healthy; 37 (attitude,
-        vertical velocity, absolute height) once it has lost its horizontal position source,
-        with no position innovations left to test (ratio 0)."""
-        v = self.vehicle
-        if v.flavour != "ardupilot":
-            return None
-        ok = v.position_ok
-        ratio = 0.05 if ok else 0.0
-        return M.MAVLink_ekf_status_report_message(831 if ok else 37, ratio, ratio, 0.01, 0.05, 0.0, 0.0)
-
-    def _msg_sys_status(self):
-        v = self.vehicle
-        sensors = (M.MAV_SYS_STATUS_SENSOR_3D_GYRO | M.MAV_SYS_STATUS_SENSOR_3D_ACCEL
-                   | M.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE | M.MAV_SYS_STATUS_SENSOR_GPS)
-        health = sensors if v.position_ok else sensors & ~M.MAV_SYS_STATUS_SENSOR_GPS
-        return M.MAVLink_sys_status_message(
-            sensors, sensors, health, 200, int(v.battery_voltage_v() * 1000),
-            int(v.battery_current_a * 100), int(v.battery_remaining_pct()), 0, 0, 0, 0, 0, 0, 0, 0, 0)
-
-    def _msg_battery_status(self):
-        v = self.vehicle
-        cells = [int(v.battery_voltage_v() * 1000)] + [65535] * 9
-        return M.MAVLink_battery_status_message(
-            0, M.MAV_BATTERY_FUNCTION_ALL, M.MAV_BATTERY_TYPE_LIPO, 2500, cells,
-            int(v.battery_current_a * 100), int(v.battery_used_mah), -1,
-            int(v.battery_remaining_pct()), 0, 0, [0, 0, 0, 0], 0, 0)
-
-    def _msg_vfr_hud(self):
-        v = self.vehicle
-        speed = float(np.hypot(*v.vel_enu_mps[:2]))
-        lat, lon, alt = v.geodetic_amsl(v.est_pos_enu_m)
-        return M.MAVLink_vfr_hud_message(speed, speed, int(v.yaw_deg) % 360,
-                                         50 if v.armed and not v.landed else 0, alt, v.vel_enu_mps[2])
-
-    def _msg_extended_sys_state(self):
-        v = self.vehicle
-        if v.landed:
-            state = M.MAV_LANDED_STATE_ON_GROUND
-        elif v.vel_enu_mps[2] < -0.3 and v.behaviour == "land":
-            state = M.MAV_LANDED_STATE_LANDING
-        else:
-            state = M.MAV_LANDED_STATE_IN_AIR
-        return M.MAVLink_extended_sys_state_message(M.MAV_VTOL_STATE_MC, state)
-
-    def _msg_mission_current(self):
-        v = self.vehicle
-        total = len(v.mission)
-        state = M.MISSION_STATE_NO_MISSION if not total else (
-            M.MISSION_STATE_ACTIVE if v.behaviour == "mission" and v.mission_seq < total
-            else M.MISSION_STATE_COMPLETE if v.mission_seq >= total else M.MISSION_STATE_NOT_STARTED)
-        return M.MAVLink_mission_current_message(min(v.mission_seq, 65535), total, state,
-                                                 1 if v.behaviour == "mission" else 0)
-
-    def _msg_home_position(self):
-        v = self.vehicle
-        if not v.home_set:
-            return None
-        lat, lon, alt = v.geodetic_amsl(v.home_enu_m)
-        ned = v.enu_to_local_ned(v.home_enu_m)
-        return M.MAVLink_home_position_message(int(round(lat * 1e7)), int(round(lon * 1e7)),
-                                               int(round(alt * 1000)), *ned, [1.0, 0.0, 0.0, 0.0],
-                                               0.0, 0.0, 0.0, int(v.t_s * 1e6))
-
-    def _msg_autopilot_version(self):
-        caps = (M.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT | M.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
-                | M.MAV_PROTOCOL_CAPABILITY_MISSION_INT | M.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
-                | M.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
-                | M.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED | M.MAV_PROTOCOL_CAPABILITY_MAVLINK2)
-        # version word: major.minor.patch.type, type 255 = official release; skyfix-sim 0.1.0
-        return M.MAVLink_autopilot_version_message(caps, (0 << 24) | (1 << 16) | (0 << 8) | 255, 0, 0, 0,
-                                                   [0] * 8, [0] * 8, [0] * 8, 0, 0,
-                                                   self.system_id, [0] * 18)
-
-    def _msg_gps_global_origin(self):
-        o = self.vehicle.ekf_origin
-        if o is None:
-            return None
-        return M.MAVLink_gps_global_origin_message(int(round(o[0] * 1e7)), int(round(o[1] * 1e7)),
-                                                   int(round((o[2] - self.vehicle.geoid_m) * 1000)),
-                                                   int(self.vehicle.t_s * 1e6))
 
     # ------------------------------------------------------------- commands
     def _ack(self, msg, command: int, result: int, addr) -> None:
@@ -536,46 +388,6 @@ class VehicleServer:
                 self.intervals_s[name] = 1.0 / msg.req_message_rate if on else 0.0
                 self._next_due_s[name] = self.vehicle.t_s
 
-    # ------------------------------------------------------------- parameters
-    def _param_type(self, name: str) -> int:
-        return M.MAV_PARAM_TYPE_INT32 if name in INT_PARAMS else M.MAV_PARAM_TYPE_REAL32
-
-    def _param_value(self, name: str):
-        names = list(self.vehicle.params)
-        ptype = self._param_type(name)
-        wire = param_to_wire(self.vehicle.params[name], ptype, self.vehicle.flavour == "px4")
-        return M.MAVLink_param_value_message(name.encode(), wire, ptype, len(names), names.index(name))
-
-    def _on_param_list(self, msg, addr) -> None:
-        for name in list(self.vehicle.params):
-            self.send(self._param_value(name), addr)
-
-    def _on_param_read(self, msg, addr) -> None:
-        names = list(self.vehicle.params)
-        name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")
-        name = name.rstrip("\x00")
-        if msg.param_index >= 0:
-            if msg.param_index >= len(names):
-                return
-            name = names[msg.param_index]
-        if name in self.vehicle.params:
-            self.send(self._param_value(name), addr)
-
-    def _on_param_set(self, msg, addr) -> None:
-        name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")
-        name = name.rstrip("\x00")
-        if name not in self.vehicle.params:
-            self.statustext(f"Param set failed: {name} not found", M.MAV_SEVERITY_WARNING)
-            return
-        # decoded with the parameter's own type (a client sending the wrong type gets what
-        # the firmware would make of the bytes)
-        value = param_from_wire(msg.param_value, self._param_type(name), self.vehicle.flavour == "px4")
-        if not math.isfinite(value):
-            self.statustext(f"Param set failed: {name} not finite", M.MAV_SEVERITY_WARNING)
-            return
-        self.vehicle.params[name] = value
-        self.send(self._param_value(name))
-
     # ------------------------------------------------------------- setpoints
     def _on_target_global(self, msg, addr) -> None:
         v = self.vehicle
@@ -638,107 +450,3 @@ class VehicleServer:
     def _on_set_origin(self, msg, addr) -> None:
         self.vehicle.set_origin(msg.latitude / 1e7, msg.longitude / 1e7, msg.altitude / 1000.0)
         self.send(self._msg_gps_global_origin())
-
-    # ------------------------------------------------------------- mission protocol
-    def _mission_ack(self, addr, result: int, msg=None) -> None:
-        sys_id, comp = (msg.get_srcSystem(), msg.get_srcComponent()) if msg else (255, 0)
-        self.send(M.MAVLink_mission_ack_message(sys_id, comp, result, 0), addr)
-
-    def _request_item(self) -> None:
-        up = self._upload
-        up["last_tx"] = self.vehicle.t_s
-        self.send(M.MAVLink_mission_request_int_message(up["sys"], up["comp"], up["next"], 0), up["addr"])
-
-    def _on_mission_count(self, msg, addr) -> None:
-        if getattr(msg, "mission_type", M.MAV_MISSION_TYPE_MISSION) != M.MAV_MISSION_TYPE_MISSION:
-            self._mission_ack(addr, M.MAV_MISSION_UNSUPPORTED, msg)
-            return
-        if msg.count == 0:
-            self.vehicle.set_mission([])
-            self._upload = None
-            self._mission_ack(addr, M.MAV_MISSION_ACCEPTED, msg)
-            return
-        self._upload = {"count": msg.count, "items": [None] * msg.count, "next": 0, "addr": addr,
-                        "sys": msg.get_srcSystem(), "comp": msg.get_srcComponent(),
-                        "last_rx": self.vehicle.t_s}
-        self._request_item()
-
-    def _on_mission_item(self, msg, addr) -> None:
-        up = self._upload
-        if up is None:
-            # the GCS missed our final ACK and resends its last item: acknowledge again
-            if msg.seq == self._last_upload_count - 1:
-                self._mission_ack(addr, M.MAV_MISSION_ACCEPTED, msg)
-            return
-        if msg.seq != up["next"]:
-            if self.vehicle.flavour == "ardupilot":  # MissionItemProtocol: says so, keeps the upload,
-                self._mission_ack(addr, M.MAV_MISSION_INVALID_SEQUENCE, msg)  # re-asks after 1 s
-            else:
-                self._request_item()  # duplicate or out of order: ask again for what we need
-            return
-        if msg.get_type() == "MISSION_ITEM":
-            x, y = int(round(msg.x * 1e7)), int(round(msg.y * 1e7))
-        else:
-            x, y = msg.x, msg.y
-        up["items"][msg.seq] = MissionItem(msg.seq, msg.frame, msg.command, msg.param1, msg.param2,
-                                           msg.param3, msg.param4, x, y, msg.z, msg.autocontinue)
-        up["next"] += 1
-        up["last_rx"] = self.vehicle.t_s
-        if up["next"] == up["count"]:
-            self.vehicle.set_mission(up["items"])
-            self._last_upload_count = up["count"]
-            self._upload = None
-            self._mission_ack(addr, M.MAV_MISSION_ACCEPTED, msg)
-            self.statustext(f"Mission: {up['count']} items received")
-        else:
-            self._request_item()
-
-    @property
-    def upload_active(self) -> bool:
-        return self._upload is not None
-
-    def service_upload(self) -> None:
-        """Re-request the missing mission item after silence, abandon the upload after a longer
-        one (the firmware's timings, on the autopilot's simulated clock); called every step."""
-        up = self._upload
-        retry_s, give_up_s = MISSION_TIMINGS_S[self.vehicle.flavour]
-        t = self.vehicle.t_s
-        if up is None or t - up["last_tx"] < retry_s:
-            return
-        if t - up["last_rx"] > give_up_s:
-            self._upload = None
-            self._mission_ack(up["addr"], M.MAV_MISSION_OPERATION_CANCELLED)
-            self.statustext("Mission upload timed out", M.MAV_SEVERITY_WARNING)
-            return
-        self._request_item()
-
-    def _on_mission_list(self, msg, addr) -> None:
-        if getattr(msg, "mission_type", M.MAV_MISSION_TYPE_MISSION) != M.MAV_MISSION_TYPE_MISSION:
-            self.send(M.MAVLink_mission_count_message(msg.get_srcSystem(), msg.get_srcComponent(), 0,
-                                                      msg.mission_type), addr)
-            return
-        self.send(M.MAVLink_mission_count_message(msg.get_srcSystem(), msg.get_srcComponent(),
-                                                  len(self.vehicle.mission), 0), addr)
-
-    def _on_mission_request(self, msg, addr) -> None:
-        v = self.vehicle
-        if not 0 <= msg.seq < len(v.mission):
-            self._mission_ack(addr, M.MAV_MISSION_INVALID_SEQUENCE, msg)
-            return
-        it = v.mission[msg.seq]
-        x, y, z, frame = it.x, it.y, it.z, it.frame
-        if v.flavour == "ardupilot" and msg.seq == 0:  # item 0 is the current home
-            lat, lon, alt = v.geodetic_amsl(v.home_enu_m)
-            x, y, z, frame = int(round(lat * 1e7)), int(round(lon * 1e7)), alt, M.MAV_FRAME_GLOBAL_INT
-        self.send(M.MAVLink_mission_item_int_message(
-            msg.get_srcSystem(), msg.get_srcComponent(), it.seq, frame, it.command,
-            1 if it.seq == v.mission_seq else 0, it.autocontinue, it.param1, it.param2, it.param3,
-            it.param4, x, y, z, 0), addr)
-
-    def _on_mission_clear(self, msg, addr) -> None:
-        self.vehicle.set_mission([])
-        self._mission_ack(addr, M.MAV_MISSION_ACCEPTED, msg)
-
-    def _on_mission_set_current(self, msg, addr) -> None:
-        self.vehicle.set_mission_current(msg.seq)
-        self.send(self._msg_mission_current())

@@ -7,6 +7,8 @@ value for the whole small simulated world), so a client that mixes the two is of
 The autopilot flies on its *estimate* (``est_pos_enu_m``), never on the truth, so GPS
 faults and injected positions move the real aircraft the way they would move a real one.
 No MAVLink here: :mod:`skyfix.datasets.sim.server` maps messages onto this API.
+The position estimate and its sources live in :mod:`~skyfix.datasets.sim.estimator`, the
+per-behaviour guidance in :mod:`~skyfix.datasets.sim.guidance`; modes, commands, physics here.
 """
 
 from __future__ import annotations
@@ -17,7 +19,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from skyfix.datasets.sim.estimator import _NEEDS_POSITION, PositionEstimator, _ExternalFix
 from skyfix.datasets.sim.gps import GpsReading, GpsReceiver
+from skyfix.datasets.sim.guidance import Guidance
 from skyfix.datasets.sim.wind import WindField
 from skyfix.drivers.mav import mavlink as M
 from skyfix.drivers.modes import ARDUCOPTER_MODES, PX4_MODES
@@ -35,7 +39,6 @@ _BEHAVIOUR = {
             "AUTO.LAND": "land", "AUTO.LOITER": "hold", "POSCTL": "hold", "AUTO.READY": "hold",
             "AUTO.TAKEOFF": "takeoff"},
 }
-_NEEDS_POSITION = {"guided", "mission", "rtl", "hold", "takeoff"}
 
 ARDUPILOT_PARAMS: dict[str, float] = {
     "SYSID_THISMAV": 1, "GPS1_TYPE": 1, "GPS2_TYPE": 0, "GPS_AUTO_SWITCH": 1, "GPS_PRIMARY": 0,
@@ -96,24 +99,6 @@ class MissionItem:
 
 
 @dataclass
-class _ExternalFix:
-    """A position from GPS_INPUT or vision, as an estimator residual (fix - truth), ENU m."""
-
-    residual_enu_m: np.ndarray
-    time_s: float
-    fix_type: int = 3
-    satellites: int = 0
-    eph_m: float = 1.0
-    epv_m: float = 1.5
-    lat_deg: float = 0.0
-    lon_deg: float = 0.0
-    alt_m: float = 0.0
-    consumed: bool = False
-    hdop: float = math.nan
-    vdop: float = math.nan
-
-
-@dataclass
 class SimVehicleConfig:
     """Static configuration of one simulated vehicle."""
 
@@ -132,7 +117,7 @@ class SimVehicleConfig:
     geoid_m: float = 0.0  # geoid undulation N, m: AMSL = ellipsoidal height - N
 
 
-class SimVehicle:
+class SimVehicle(PositionEstimator, Guidance):
     """Physics + estimator + mode logic of one vehicle. Not thread-safe: one owner thread."""
 
     def __init__(self, config: SimVehicleConfig, world: LocalFrame, wind: WindField) -> None:
@@ -282,189 +267,6 @@ class SimVehicle:
         soc = self.battery_remaining_pct() / 100.0
         return 4 * (3.5 + 0.7 * soc) - 0.012 * self.battery_current_a
 
-    # --------------------------------------------------------- position sources
-    def _gps_instances(self) -> list[str]:
-        """Receiver types in priority order: ``"real"`` or ``"mav"`` (GPS_INPUT)."""
-        if self.flavour == "px4":
-            return ["real", "mav"] if int(self.param("EKF2_GPS_CTRL")) & 1 else []
-        out = []
-        for name in ("GPS1_TYPE" if "GPS1_TYPE" in self.params else "GPS_TYPE", "GPS2_TYPE"):
-            kind = int(self.param(name))
-            if kind == 14:
-                out.append("mav")
-            elif kind != 0:
-                out.append("real")
-        return out
-
-    def _fix_instances(self) -> list[str]:
-        """The receivers the estimator may use, in priority order. ArduPilot with
-        GPS_AUTO_SWITCH 0 uses only the GPS_PRIMARY instance (0: GPS1, 1: GPS2), so a
-        companion can pin its GPS_INPUT while the real receiver is back but distrusted."""
-        instances = self._gps_instances()
-        if self.flavour == "ardupilot" and int(self.param("GPS_AUTO_SWITCH")) == 0 and instances:
-            primary = int(self.param("GPS_PRIMARY"))
-            return instances[primary:primary + 1]
-        return instances
-
-    def uses_vision(self) -> bool:
-        if self.flavour == "px4":
-            return bool(int(self.param("EKF2_EV_CTRL")) & 1)
-        return self.param("VISO_TYPE") > 0 and int(self.param("EK3_SRC1_POSXY")) == 6
-
-    def gps_report(self) -> GpsReading | None:
-        """What GPS_RAW_INT shows: the first configured receiver, real or MAV."""
-        instances = self._gps_instances()
-        if not instances:
-            return None
-        if instances[0] == "mav":
-            return self._mav_reading()
-        return self.last_gps
-
-    def _mav_reading(self) -> GpsReading | None:
-        fix = self.mav_gps
-        if fix is None or self.t_s - fix.time_s > 1.0:
-            return GpsReading(np.full(3, np.nan), np.full(3, np.nan), 1, 0, math.inf, math.inf)
-        return GpsReading(self.pos_enu_m + fix.residual_enu_m, self.vel_enu_mps.copy(), fix.fix_type,
-                          fix.satellites, fix.eph_m, fix.epv_m, fix.hdop, fix.vdop)
-
-    def _select_fix(self) -> tuple[np.ndarray, float] | None:
-        """(residual, eph) of a fresh usable position measurement, or None."""
-        if self.uses_vision():
-            v = self.vision
-            if v is not None and not v.consumed and self.t_s - v.time_s < 0.5:
-                v.consumed = True
-                return v.residual_enu_m, v.eph_m
-            if self.flavour == "ardupilot":
-                return None
-        # the first healthy instance in priority order is the only one used (ArduPilot's
-        # primary GPS), never a blend of both: between its 5 Hz fixes nothing else is fused
-        for inst in self._fix_instances():
-            if inst == "real":
-                r = self.last_gps
-                if r is not None and r.fix_type >= M.GPS_FIX_TYPE_3D_FIX and r.satellites >= 6:
-                    if not self._gps_fresh:
-                        return np.full(3, np.nan), 0.0  # good source, no new sample this step
-                    self._gps_fresh = False
-                    return r.pos_enu_m - self.pos_enu_m, r.eph_m
-            else:
-                m = self.mav_gps
-                if m is not None and m.fix_type >= M.GPS_FIX_TYPE_3D_FIX and self.t_s - m.time_s < 1.0:
-                    if m.consumed:
-                        return np.full(3, np.nan), 0.0  # good source, no new sample this step
-                    m.consumed = True
-                    return m.residual_enu_m, m.eph_m
-        return None
-
-    def position_source_ok_now(self) -> bool:
-        """True when a position source currently delivers (used by arming and mode checks)."""
-        if self.uses_vision() and self.vision is not None and self.t_s - self.vision.time_s < 0.5:
-            return True
-        for inst in self._fix_instances():
-            if inst == "real":
-                r = self.gps.read(self.t_s, self.pos_enu_m, self.vel_enu_mps)
-                if r.fix_type >= M.GPS_FIX_TYPE_3D_FIX and r.satellites >= 6:
-                    return True
-            elif self.mav_gps is not None and self.mav_gps.fix_type >= M.GPS_FIX_TYPE_3D_FIX \
-                    and self.t_s - self.mav_gps.time_s < 1.0:
-                return True
-        return False
-
-    def _update_estimator(self, dt_s: float) -> None:
-        if self.flavour == "px4":
-            self.gps.disabled = bool(self.param("SIM_GPS_BLOCK"))
-        elif "SIM_GPS1_ENABLE" in self.params:
-            self.gps.disabled = not self.param("SIM_GPS1_ENABLE")
-        else:
-            self.gps.disabled = bool(self.param("SIM_GPS_DISABLE"))
-        lat0 = math.radians(self.world.lat0_deg)
-        glitch = "SIM_GPS1_GLTCH_" if "SIM_GPS1_GLTCH_X" in self.params else "SIM_GPS_GLITCH_"
-        self.gps.glitch_enu_m = np.array([
-            self.param(glitch + "Y") * math.pi / 180 * 6378137.0 * math.cos(lat0),
-            self.param(glitch + "X") * math.pi / 180 * 6378137.0,
-            self.param(glitch + "Z")])
-        self.gps.step(dt_s)
-        self._gps_fresh = False
-        if self.t_s >= self._gps_next_s:  # receivers report at 5 Hz
-            self._gps_next_s = self.t_s + 0.2
-            self.last_gps = self.gps.read(self.t_s, self.pos_enu_m, self.vel_enu_mps)
-            self._gps_fresh = True
-        sel = self._select_fix()
-        if sel is not None:
-            residual, eph = sel
-            self._last_position_fix_s = self.t_s
-            if np.all(np.isfinite(residual)):
-                tau_s = 0.3 + 0.1 * min(eph, 20.0)  # less accurate fixes are trusted more slowly
-                gain = min(1.0, 0.2 / tau_s) if eph > 0 else 1.0
-                self.est_err_enu_m[:2] += gain * (residual[:2] - self.est_err_enu_m[:2])
-            if not self.position_ok:
-                self.position_ok = True
-                self.statustext("EKF3 IMU0 is using GPS" if self.flavour == "ardupilot"
-                                else "Global position regained", 6)
-                if self.ekf_origin is None:
-                    self._set_origin_from_estimate()
-            return
-        # dead reckoning: the horizontal estimate drifts (IMU integration, no aiding)
-        if not np.any(self._drift_dir):
-            ang = self._rng.uniform(0, 2 * math.pi)
-            self._drift_dir = np.array([math.cos(ang), math.sin(ang), 0.0])
-        self.est_err_enu_m += 0.6 * self._drift_dir * dt_s
-        if self.position_ok and self.t_s - self._last_position_fix_s > 3.0:
-            self.position_ok = False
-            self._drift_dir = np.zeros(3)
-            self.statustext("EKF3 lost position aiding" if self.flavour == "ardupilot"
-                            else "Global position lost", 4)
-            if self.armed and not self.landed and self.behaviour in _NEEDS_POSITION:
-                if self.flavour == "ardupilot":
-                    self.statustext("EKF Failsafe: changed to LAND Mode", 2)
-                    self._enter_mode("LAND")
-                else:
-                    self.statustext("Failsafe activated: no global position, landing", 2)
-                    self._enter_mode("AUTO.LAND")
-
-    def _set_origin_from_estimate(self) -> None:
-        self.ekf_origin = self.geodetic(self.est_pos_enu_m)
-        self.events.append(("origin",))
-
-    # -------------------------------------------------------------- inputs
-    def gps_input(self, lat_deg: float, lon_deg: float, alt_amsl_m: float, fix_type: int,
-                  satellites: int, eph_m: float, epv_m: float, hdop: float = math.nan,
-                  vdop: float = math.nan) -> bool:
-        """A GPS_INPUT sample; returns False when the autopilot's settings ignore it."""
-        if "mav" not in self._gps_instances():
-            return False
-        pos = self.enu_amsl(lat_deg, lon_deg, alt_amsl_m)
-        self.mav_gps = _ExternalFix(pos - self.pos_enu_m, self.t_s, fix_type, satellites,
-                                    max(eph_m, 0.01), max(epv_m, 0.01), lat_deg, lon_deg, alt_amsl_m,
-                                    hdop=hdop, vdop=vdop)
-        return True
-
-    def vision_position(self, north_m: float, east_m: float, down_m: float, sigma_m: float) -> bool:
-        """A vision position in local NED about the EKF origin; False when ignored."""
-        if not self.uses_vision() or self.ekf_origin is None:
-            return False
-        origin = LocalFrame(*self.ekf_origin)
-        lat, lon, alt = origin.to_geodetic(east_m, north_m, -down_m)
-        pos = self.enu(float(lat), float(lon), float(alt))
-        self.vision = _ExternalFix(pos - self.pos_enu_m, self.t_s, 3, 0, max(sigma_m, 0.01),
-                                   max(sigma_m, 0.01))
-        return True
-
-    def set_origin(self, lat_deg: float, lon_deg: float, alt_amsl_m: float) -> None:
-        self.ekf_origin = (lat_deg, lon_deg, alt_amsl_m + self.geoid_m)  # kept ellipsoidal
-        self.events.append(("origin",))
-
-    def local_ned_to_enu(self, north_m: float, east_m: float, down_m: float) -> np.ndarray:
-        """Local NED about the EKF origin -> world ENU (exact, through geodetic)."""
-        origin = LocalFrame(*(self.ekf_origin or self.geodetic(self.home_enu_m)))
-        lat, lon, alt = origin.to_geodetic(east_m, north_m, -down_m)
-        return self.enu(float(lat), float(lon), float(alt))
-
-    def enu_to_local_ned(self, enu_m: np.ndarray) -> np.ndarray:
-        origin = LocalFrame(*(self.ekf_origin or self.geodetic(self.home_enu_m)))
-        lat, lon, alt = self.geodetic(enu_m)
-        e, n, u = origin.to_enu(lat, lon, alt)
-        return np.array([float(n), float(e), -float(u)])
-
     # ------------------------------------------------------------- commands
     def arm(self, force: bool = False) -> None:
         if self.armed:
@@ -583,138 +385,6 @@ class SimVehicle:
         v_cmd = self._guidance() if self.armed else np.zeros(3)
         self._physics(dt_s, v_cmd)
         self._housekeeping(dt_s)
-
-    def _pos_control(self, target: np.ndarray, speed_mps: float | None = None) -> np.ndarray:
-        """Velocity command towards ``target`` (estimated frame), speed-limited with braking."""
-        err = target - self.est_pos_enu_m
-        speed = min(speed_mps or self.cruise_speed_mps(), self.config.max_speed_xy_mps)
-        d_xy = float(np.hypot(err[0], err[1]))
-        v = np.zeros(3)
-        if d_xy > 1e-6:
-            mag = min(speed, math.sqrt(2 * 0.5 * self.config.max_accel_mps2 * d_xy), 1.2 * d_xy)
-            v[:2] = err[:2] / d_xy * mag
-        up, down = self.climb_speeds_mps()
-        v[2] = float(np.clip(1.2 * err[2], -down, up))
-        return v
-
-    def _guidance(self) -> np.ndarray:
-        b = self.behaviour
-        est = self.est_pos_enu_m
-        if self.landed and b not in ("takeoff", "mission", "guided") and self._takeoff_alt_up_m is None:
-            return np.zeros(3)
-        if b == "land" or (b == "rtl" and self._rtl_phase == "land"):
-            v = self._pos_control(np.array([*self._land_xy, est[2]]))
-            v[2] = -self._descent_speed_mps()
-            return v
-        if b == "rtl":
-            rtl_up = self.home_enu_m[2] + (self.param("RTL_RETURN_ALT") if self.flavour == "px4"
-                                           else self.param("RTL_ALT") / 100.0)
-            cruise_up = max(rtl_up, est[2])
-            if self._rtl_phase == "climb":
-                if est[2] >= rtl_up - 0.5:
-                    self._rtl_phase = "return"
-                    self._rtl_up_m = cruise_up
-                return self._pos_control(np.array([*est[:2], rtl_up]))
-            target = np.array([*self.home_enu_m[:2], self._rtl_up_m or cruise_up])
-            if np.hypot(*(target[:2] - est[:2])) < 1.0:
-                self._rtl_phase = "land"
-                self._land_xy = self.home_enu_m[:2].copy()
-            return self._pos_control(target)
-        if b == "takeoff" or (self._takeoff_alt_up_m is not None and b == "guided"):
-            goal = self._takeoff_alt_up_m if self._takeoff_alt_up_m is not None else est[2]
-            xy = self._hold_enu_m[:2] if self._hold_enu_m is not None else est[:2]
-            if est[2] >= goal - 0.3:
-                self._takeoff_alt_up_m = None
-                if b == "takeoff":
-                    self._enter_mode("AUTO.LOITER")
-                else:
-                    self.target_pos_enu_m = np.array([*est[:2], goal])
-            return self._pos_control(np.array([*xy, goal]))
-        if b == "guided":
-            if self.target_vel_enu_mps is not None:
-                timeout = self.param("COM_OF_LOSS_T") if self.flavour == "px4" else 3.0
-                if self.t_s - self._target_vel_time_s <= timeout:
-                    return self.target_vel_enu_mps.copy()
-                self.target_vel_enu_mps = None
-                self.target_pos_enu_m = est.copy()
-            if self.flavour == "px4" and self.t_s - self._offboard_setpoint_s > self.param("COM_OF_LOSS_T"):
-                self.statustext("Failsafe activated: offboard signal lost, holding", 4)
-                self._enter_mode("AUTO.LOITER")
-                return np.zeros(3)
-            if self.target_pos_enu_m is None:
-                self.target_pos_enu_m = est.copy()
-            return self._pos_control(self.target_pos_enu_m)
-        if b == "hold":
-            return self._pos_control(self._hold_enu_m if self._hold_enu_m is not None else est)
-        if b == "mission":
-            return self._mission_guidance()
-        return np.array([0.0, 0.0, 0.0])  # manual modes hover in place (sticks centred)
-
-    def _mission_guidance(self) -> np.ndarray:
-        est = self.est_pos_enu_m
-        while self.mission_seq < len(self.mission):
-            item = self.mission[self.mission_seq]
-            if item.command == M.MAV_CMD_DO_CHANGE_SPEED:
-                self.speed_override_mps = item.param2 if item.param2 > 0 else None
-            elif item.command == M.MAV_CMD_DO_SET_CAM_TRIGG_DIST:
-                self.cam_trigger_dist_m = max(0.0, item.param1)
-                self._cam_dist_acc_m = 0.0
-            else:
-                break
-            self._advance_mission()
-        if self.mission_seq >= len(self.mission):
-            if self.flavour == "px4":
-                self._enter_mode("AUTO.LOITER")
-            return self._pos_control(self._hold_enu_m if self._hold_enu_m is not None else est)
-        item = self.mission[self.mission_seq]
-        if not self._mission_item_started:
-            self._mission_item_started = True
-            self._hold_enu_m = est.copy()
-            self._loiter_until_s = math.inf
-            if item.command in (M.MAV_CMD_NAV_RETURN_TO_LAUNCH, M.MAV_CMD_NAV_LAND):
-                self._land_xy = est[:2].copy()
-                if item.command == M.MAV_CMD_NAV_LAND and (item.x or item.y):
-                    self._land_xy = self.global_target_enu(item.frame, item.x / 1e7, item.y / 1e7, 0.0)[:2]
-                self._rtl_phase = "climb"
-        if item.command == M.MAV_CMD_NAV_TAKEOFF:
-            goal = self.home_enu_m[2] + item.z if item.frame != M.MAV_FRAME_GLOBAL_INT else \
-                item.z + self.geoid_m - self.world.alt0_m
-            if self.landed and not self.armed:
-                return np.zeros(3)
-            if est[2] >= goal - 0.3:
-                self._advance_mission()
-            return self._pos_control(np.array([*self._hold_enu_m[:2], goal]))
-        if item.command in (M.MAV_CMD_NAV_WAYPOINT, M.MAV_CMD_NAV_LOITER_TIME):
-            target = self.global_target_enu(item.frame, item.x / 1e7, item.y / 1e7, item.z) \
-                if (item.x or item.y) else np.array([*est[:2], self.home_enu_m[2] + item.z])
-            radius = item.param2 if item.command == M.MAV_CMD_NAV_WAYPOINT and item.param2 > 0 \
-                else self.acceptance_radius_m()
-            hold_s = item.param1
-            if math.isinf(self._loiter_until_s):
-                if np.hypot(*(target[:2] - est[:2])) < radius and abs(target[2] - est[2]) < 1.0:
-                    self._loiter_until_s = self.t_s + max(0.0, hold_s)
-            elif self.t_s >= self._loiter_until_s:
-                self._advance_mission()
-            return self._pos_control(target)
-        if item.command == M.MAV_CMD_NAV_LAND:
-            v = self._pos_control(np.array([*self._land_xy, est[2]]))
-            v[2] = -self._descent_speed_mps()
-            return v
-        if item.command == M.MAV_CMD_NAV_RETURN_TO_LAUNCH:
-            self._enter_mode("AUTO.RTL" if self.flavour == "px4" else "RTL")
-            return np.zeros(3)
-        self.statustext(f"Mission: skipping unsupported command {item.command}", 4)
-        self._advance_mission()
-        return np.zeros(3)
-
-    def _advance_mission(self) -> None:
-        self.events.append(("reached", self.mission_seq))
-        self.mission_seq += 1
-        self._mission_item_started = False
-        if self.mission_seq < len(self.mission):
-            self.events.append(("current", self.mission_seq))
-        else:  # mission complete: hold where the last item left the vehicle
-            self._hold_enu_m = self.est_pos_enu_m.copy()
 
     def _physics(self, dt_s: float, v_cmd: np.ndarray) -> None:
         cfg = self.config
