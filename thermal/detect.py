@@ -215,7 +215,7 @@ _BLOCK_PX = 16
 _RING = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], np.uint8)  # the 8 neighbours of a pixel
 
 
-def _candidate_regions(mask: np.ndarray, min_area_px: int) -> list[list[int]]:
+def _candidate_regions(mask: np.ndarray, min_area_px: int) -> list[tuple[int, int, int, int]]:
     """Pixel windows (r0, r1, c0, c1) around groups of touching 16x16 blocks that hold at
     least ``min_area_px`` hot pixels; scanning only these keeps sparse frames fast.
     ``mask`` is 0/1 in any dtype."""
@@ -231,15 +231,15 @@ def _candidate_regions(mask: np.ndarray, min_area_px: int) -> list[list[int]]:
     occupied = padded.view(np.uint64).reshape(nbr, b, nbc * words).max(axis=1)
     occupied = (occupied.reshape(nbr, nbc, words) != 0).any(axis=2)
     _, _, stats, _ = cv2.connectedComponentsWithStats(occupied.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
-    c0, r0, cw, rh, n_blocks = stats[1:].T
+    stats = stats[1:]
     # A lone block can hold only stray pixels (dead pixels): count its pixels, all lone
     # blocks of the frame at once (a mountain frame holds dozens of them).
-    lone = np.flatnonzero(n_blocks == 1)
-    blocks = padded.reshape(nbr, b, nbc, b)[r0[lone], :, c0[lone], :]
-    keep = np.ones(c0.size, bool)
-    keep[lone] = np.count_nonzero(blocks.reshape(lone.size, b * b), axis=1) >= min_area_px
-    c0, r0, cw, rh = c0[keep], r0[keep], cw[keep], rh[keep]
-    return np.stack((r0 * b, np.minimum((r0 + rh) * b, h), c0 * b, np.minimum((c0 + cw) * b, w)), axis=1).tolist()
+    lone = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] == 1)
+    if lone.size:
+        blocks = padded.reshape(nbr, b, nbc, b)[stats[lone, 1], :, stats[lone, 0], :]
+        stray = np.count_nonzero(blocks.reshape(lone.size, b * b), axis=1) < min_area_px
+        stats = np.delete(stats, lone[stray], axis=0)
+    return [(r0 * b, min((r0 + rh) * b, h), c0 * b, min((c0 + cw) * b, w)) for c0, r0, cw, rh, _ in stats.tolist()]
 
 
 def _measure(work: np.ndarray, labels: np.ndarray, stat: np.ndarray, k: int, thr: float,

@@ -64,29 +64,36 @@ def locate_in_frame(camera: Camera, pose: CameraPose, uv: np.ndarray, ground: Fl
         pts = dem_hits(ground, frame, cam_enu, rays[:n])
     else:
         pts = ground_intersection(camera, pose, uv, ground.alt_m, frame)
-    d = rays[:n]
-    s = d[:, :2] / d[:, 2:]  # horizontal shift of the ground point per metre of height (n, 2)
-    k = (cam_enu[2] - pts[:, 2]) / -d[:, 2]
-    # The ground point g = C_h + height * d_h / (-d_z) moves by k * (m_h - s * m_z) when
-    # the ray d moves by m. Ray moves (n, 5, 3): small rotations about E, N, U (e x d),
-    # and one pixel right / down.
-    moves = np.zeros((n, 5, 3))
-    moves[:, 0, 1], moves[:, 0, 2] = -d[:, 2], d[:, 1]
-    moves[:, 1, 0], moves[:, 1, 2] = d[:, 2], -d[:, 0]
-    moves[:, 2, 0], moves[:, 2, 1] = -d[:, 1], d[:, 0]
-    moves[:, 3], moves[:, 4] = rays[n:2 * n] - d, rays[2 * n:] - d
-    g = k[:, None, None] * (moves[:, :, :2] - s[:, None, :] * moves[:, :, 2:])  # (n, 5, 2)
     tilt = math.radians(uncertainty.tilt_sigma_deg) ** 2
+    yaw = math.radians(uncertainty.heading_deg) ** 2
     px = uncertainty.pixel_sigma_px ** 2
-    var = np.array([tilt, tilt, math.radians(uncertainty.heading_deg) ** 2, px, px])
+    pos = uncertainty.position_sigma_m ** 2
     ground_var = ground.sigma_m ** 2
     vert = uncertainty.vertical_m ** 2 + ground_var
-    cov = np.empty((n, 3, 3))
-    # Camera east/north move the point one for one; camera and ground height by the slope.
-    cov[:, :2, :2] = (np.einsum("j,nja,njb->nab", var, g, g) + uncertainty.position_sigma_m ** 2 * np.eye(2)
-                      + vert * s[:, :, None] * s[:, None, :])
-    cov[:, :2, 2] = cov[:, 2, :2] = ground_var * s
-    cov[:, 2, 2] = ground_var
+    rays_l, heights = rays.tolist(), (cam_enu[2] - pts[:, 2]).tolist()
+    cov = np.zeros((n, 3, 3))
+    # A frame holds a handful of hotspots: plain float arithmetic per hotspot is faster
+    # than numpy on (n, 5, 2) arrays of that size (one fire: 3x).
+    for i in range(n):
+        dx, dy, dz = rays_l[i]
+        sx, sy = dx / dz, dy / dz  # horizontal shift of the ground point per metre of height
+        k = heights[i] / -dz
+        # The ground point g = C_h + height * d_h / (-d_z) moves by k * (m_h - s * m_z)
+        # when the ray d moves by m. Ray moves: small rotations about E, N, U (e x d), and
+        # one pixel right / down.
+        (ux, uy, uz), (vx, vy, vz) = rays_l[n + i], rays_l[2 * n + i]
+        moves = ((0.0, -dz, dy, tilt), (dz, 0.0, -dx, tilt), (-dy, dx, 0.0, yaw),
+                 (ux - dx, uy - dy, uz - dz, px), (vx - dx, vy - dy, vz - dz, px))
+        cee = cen = cnn = 0.0
+        for mx, my, mz, var in moves:
+            ge, gn = k * (mx - sx * mz), k * (my - sy * mz)
+            cee += var * ge * ge
+            cen += var * ge * gn
+            cnn += var * gn * gn
+        # Camera east/north move the point one for one; camera and ground height by the slope.
+        cov[i] = ((cee + pos + vert * sx * sx, cen + vert * sx * sy, ground_var * sx),
+                  (cen + vert * sx * sy, cnn + pos + vert * sy * sy, ground_var * sy),
+                  (ground_var * sx, ground_var * sy, ground_var))
     return pts, cov
 
 
