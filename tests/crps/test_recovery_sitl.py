@@ -24,13 +24,13 @@ HOME = (46.52, 6.63, 372.0, 0.0)  # the SITL drone's home: lat, lon (deg), alt A
 SPEED = 2.0
 
 
-@pytest.mark.xfail(strict=True, reason="issue 18 open: helpers now detect the SITL drone (80-95 % of in-view frames, "
-                   "first fused fix 4-6 s after the loss) and it starts home, but while it flies on the injected fix its "
-                   "EKF velocity echoes that fix (1-2.5 m/s off SIM_STATE), the requester's fusion keeps it as a slowly "
-                   "wandering bias it cannot learn (FusionConfig.bias_walk 0.01 m/s/sqrt s) and the helpers are known "
-                   "to it only by 2 Hz fixes: the fix drifts 10-15 m from the truth, it lands 40-50 m away or (4 of 6 "
-                   "runs at 10:00-10:20 UTC) flies off hundreds of metres; "
-                   "the autopilot side alone passes (tests/drivers/test_drivers_sitl_lost.py)")
+@pytest.mark.xfail(strict=True, reason="issue 18 open (run of 13:20 UTC on 1f9daf3: correlated peer fixes, peers' "
+                   "velocities, echo velocity-bias walk 0.45 m/s/sqrt s, 3/4 m hysteresis): helpers detect the SITL drone "
+                   "(100 % of in-view frames), first fused fix 4.9 s after the loss, return home starts at 5.2 s with "
+                   "0.5 m error; on the way home its EKF velocity (no velocity source but the injected fix) reads 2-4 m/s "
+                   "slower than SIM_STATE, the fused fix falls 4 m behind (stated sigma 2.7 m) in 9 s, the helpers' "
+                   "gimbals, aimed at that fix, lose the drone, and without observations it runs off (860 m, holding at "
+                   "the end); the autopilot side alone passes (tests/drivers/test_drivers_sitl_lost.py)")
 def test_sitl_lost_drone_returns_home_on_the_helpers_cameras():
     from skyfix.crps.recovery import RecoveryConfig, run_recovery
     from skyfix.drivers.injection import ARDUPILOT_INJECTED_GPS2_PARAMS
