@@ -212,8 +212,9 @@ def _previous_geolocate_many(camera, pose, uv, ground, frame, unc):
 
 def test_dem_geolocation_matches_the_previous_per_fire_implementation(terrain):
     """The vectorised DEM path (rigid frame-to-frame motion instead of pyproj round trips,
-    numpy covariances for a frame's fires at once) gives the previous results: positions
-    to 1e-6 m (pyproj round trips: ~1e-8 m), covariances to 1e-7 relative."""
+    rays shared by the hit and the pixel Jacobian, the fixes' covariance rotations all at
+    once) gives the previous results: positions to 1e-6 m (pyproj round trips: ~1e-8 m),
+    covariances to 1e-7 relative."""
     from skyfix.geo import inverse
     from skyfix.thermal import PoseUncertainty, geolocate_many
     from skyfix.thermal.ground import frame_near
