@@ -48,7 +48,10 @@ def _skyfix_map(photos: Path, out: Path, interrupt_after_matching: bool, extra: 
     env = dict(os.environ, GLOG_minloglevel="2")
     cmd = [sys.executable, "-m", "skyfix.cli", "-q", "map", str(photos), "-o", str(out), *extra]
     start = time.perf_counter()
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    # SIGINT at its default in the child: a shell starts background jobs with SIGINT ignored,
+    # and Python keeps an ignored SIGINT, so the Ctrl-C below would pass unnoticed.
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # noqa: PLW1509
     marker = out / "work" / "stages" / "matches.json"
     if interrupt_after_matching:
         while proc.poll() is None and not marker.exists():
