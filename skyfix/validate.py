@@ -174,6 +174,8 @@ def covariance(name: str, value: Any, dim: int) -> np.ndarray:
     arr = finite_array(name, value)
     if arr.shape != (dim, dim):
         raise InputError(f"{name} must have shape ({dim}, {dim}), got {arr.shape}")
+    if dim == 3 and _clearly_positive_definite_3x3(arr.tolist()):
+        return arr
     scale = max(1.0, float(np.abs(arr).max()))
     # Same test as np.allclose(arr, arr.T, rtol=1e-9, atol=1e-12 * scale), without its overhead.
     if (np.abs(arr - arr.T) > 1e-12 * scale + 1e-9 * np.abs(arr.T)).any():
@@ -181,6 +183,22 @@ def covariance(name: str, value: Any, dim: int) -> np.ndarray:
     if np.linalg.eigvalsh(arr).min() < -1e-9 * scale:
         raise InputError(f"{name} must be positive semi-definite")
     return arr
+
+
+def _clearly_positive_definite_3x3(m: list[list[float]]) -> bool:
+    """True only for a 3x3 matrix that :func:`covariance` accepts: symmetric by its own test and
+    positive definite by Sylvester's leading minors of the lower triangle (what ``eigvalsh``
+    reads). Anything else, boundary cases included, goes to the general test; plain floats
+    because a GeoFix per detected fire validates one (numpy's per-call cost was half of it)."""
+    (a, b, c), (d, e, f), (g, h, i) = m
+    scale = max(1.0, abs(a), abs(b), abs(c), abs(d), abs(e), abs(f), abs(g), abs(h), abs(i))
+    tol = 1e-12 * scale
+    for x, y in ((b, d), (c, g), (f, h)):
+        if abs(x - y) > tol + 1e-9 * abs(y) or abs(y - x) > tol + 1e-9 * abs(x):
+            return False
+    minor2 = a * e - d * d
+    det = a * (e * i - h * h) - d * (d * i - h * g) + g * (d * h - e * g)
+    return a > 0.0 and minor2 > 0.0 and det > 0.0
 
 
 def integer_in(name: str, value: Any, lo: int, hi: int | None = None) -> int:

@@ -34,3 +34,32 @@ def test_integer_in_without_upper_bound():
     assert isinstance(validate.integer_in("rows", 4.0, 1), int)
     with pytest.raises(InputError, match="rows must be an integer >= 1, got 0"):
         validate.integer_in("rows", 0, 1)
+
+
+def _accepted_by_eigenvalues(m: np.ndarray) -> bool:
+    """covariance()'s general test, written out: symmetric within tolerance, smallest eigenvalue >= -tol."""
+    scale = max(1.0, float(np.abs(m).max()))
+    if (np.abs(m - m.T) > 1e-12 * scale + 1e-9 * np.abs(m.T)).any():
+        return False
+    return bool(np.linalg.eigvalsh(m).min() >= -1e-9 * scale)
+
+
+def test_covariance_3x3_fast_path_accepts_and_refuses_exactly_as_the_eigenvalue_test():
+    rng = np.random.default_rng(7)
+    cases = []
+    for k in range(4000):
+        a = rng.normal(size=(3, 3)) * 10.0 ** rng.uniform(-6, 6)
+        m = [a @ a.T, a + a.T, a @ a.T, np.outer(a[0], a[0])][k % 4]
+        if k % 4 == 2:  # asymmetric by about the tolerance
+            m[0, 1] += rng.normal() * 3e-9 * abs(m[0, 1])
+        if k % 4 == 3:  # rank 1: on the boundary
+            m = m + np.diag(rng.normal(size=3) * 1e-12)
+        cases.append(m)
+    cases += [np.zeros((3, 3)), np.diag([1.0, 1.0, -1e-10]), np.diag([1.0, 1.0, -1e-6])]
+    for m in cases:
+        try:
+            validate.covariance("cov_m2", m, 3)
+            accepted = True
+        except InputError:
+            accepted = False
+        assert accepted == _accepted_by_eigenvalues(m), m
