@@ -10,7 +10,7 @@ Measures, with a plain pymavlink client as the peer where one exists:
   3. safety-violation latency on the simulator (run in its own process): from it sending the first telemetry message
      outside the fence to it receiving the driver's mode change (goal: <= 50 ms, worst case);
   4. ArduPilot SITL: the simulated receiver switched off (SIM_GPS1_ENABLE 0) -> skyfix's
-     GpsStatus flags no fix (goal: <= 1 s, worst case).
+     GnssFix flags no fix (goal: <= 1 s, worst case).
 
 The SITL column is skipped (said so) where ../shared/sitl / $SKYFIX_SITL_DIR is absent.
 ``--soak N`` runs two copies of the quick benchmark at once, N times in a row, and fails
@@ -210,7 +210,7 @@ def violation_latency(trials: int) -> tuple[list[float], list[float]]:
 def sitl_column(n_rt: int, runs: int, trials: int) -> dict[str, list[float]] | None:
     """The same measurements on ArduPilot Copter SITL at speed-up 1 (None when it is absent):
     round trips (skyfix on SERIAL0, plain pymavlink on SERIAL1), 500-item uploads, and the
-    receiver switched off -> skyfix's GpsStatus shows no fix."""
+    receiver switched off -> skyfix's GnssFix shows no fix."""
     reason = sitl.missing_reason()
     if reason:
         print(f"ArduPilot SITL column skipped: {reason}")

@@ -141,13 +141,13 @@ def accuracy(rng, n_per_range: int, detector, fit) -> tuple[dict, dict]:
             det = min(found, key=lambda d: float(np.linalg.norm(d.centroid_uv - view.truth.centroid_uv)))
             obs = observe(CAMERA, helper, det, 0.5, attitude_sigma_deg=0.0)
             err.append(obs.range_m / view.truth.range_m - 1.0)
-            zs.append((obs.range_m - view.truth.range_m) / math.sqrt(obs.bearing_enu @ obs.cov_enu_m2 @ obs.bearing_enu))
+            zs.append((obs.range_m - view.truth.range_m) / math.sqrt(obs.bearing_unit_enu @ obs.cov_enu_m2 @ obs.bearing_unit_enu))
             obs_fit = observe(CAMERA, helper, fit(view.image, det, helper), 0.5, attitude_sigma_deg=0.0)
             err_fit.append(obs_fit.range_m / view.truth.range_m - 1.0)
-            sigma_fit_m = math.sqrt(obs_fit.bearing_enu @ obs_fit.cov_enu_m2 @ obs_fit.bearing_enu)
+            sigma_fit_m = math.sqrt(obs_fit.bearing_unit_enu @ obs_fit.cov_enu_m2 @ obs_fit.bearing_unit_enu)
             zs_fit.append((obs_fit.range_m - view.truth.range_m) / sigma_fit_m)
             sig_fit.append(sigma_fit_m / obs_fit.range_m)
-            berr.append(math.degrees(math.acos(min(1.0, float(obs.bearing_enu @ view.truth.bearing_enu)))))
+            berr.append(math.degrees(math.acos(min(1.0, float(obs.bearing_unit_enu @ view.truth.bearing_unit_enu)))))
             s1 = bbox_width_px(view.image, view.truth.centroid_uv)
             d_src = float(range_from_reference(20.0, s0, s1)[0]) if np.isfinite(s1) and s1 > 0 else np.inf
             src.append(d_src / view.truth.range_m - 1.0)
@@ -167,7 +167,7 @@ def accuracy(rng, n_per_range: int, detector, fit) -> tuple[dict, dict]:
             # The target drifts at 0.5 m/s in a random horizontal direction; 15 frames at 30 Hz.
             heading = rng.uniform(0, 360)
             for k in range(TRACK_FRAMES):
-                lat, lon = destination(target.lat, target.lon, heading, 0.5 * k / 30.0)
+                lat, lon = destination(target.lat_deg, target.lon_deg, heading, 0.5 * k / 30.0)
                 moved = TargetPose(float(lat), float(lon), target.alt_m, target.yaw_deg, target.pitch_deg,
                                    target.roll_deg)
                 view = render(rng, helper, moved)
@@ -179,7 +179,7 @@ def accuracy(rng, n_per_range: int, detector, fit) -> tuple[dict, dict]:
             if det_fit is not None and abs(det_fit.time_s - (TRACK_FRAMES - 1) / 30.0) < 1e-9:
                 obs = observe(CAMERA, helper, det_fit, 0.5, attitude_sigma_deg=0.0)
                 errs_fit.append(obs.range_m / truth.range_m - 1.0)
-                z_trk.append((obs.range_m - truth.range_m) / math.sqrt(obs.bearing_enu @ obs.cov_enu_m2 @ obs.bearing_enu))
+                z_trk.append((obs.range_m - truth.range_m) / math.sqrt(obs.bearing_unit_enu @ obs.cov_enu_m2 @ obs.bearing_unit_enu))
         tracked[rng_m] = errs
         tracked_fit[rng_m] = errs_fit
     return rows, {"all": (allr, alls, allb), "tracked": tracked, "tracked_fit": tracked_fit, "z": np.array(zs),
@@ -324,7 +324,7 @@ def terrain_sequences(rng, detector, fit, textures, n_seq: int, with_target: boo
             t = k / 30.0
             lat, lon = destination(float(start[0]), float(start[1]), heading, speed * t)
             truth = CameraPose(float(lat), float(lon), ALT0 + agl, yaw_deg=yaw0 + 2.0 * t, gimbal_pitch_deg=pitch)
-            e, n, u = (float(x) for x in frame.to_enu(truth.lat, truth.lon, truth.alt_m))
+            e, n, u = (float(x) for x in frame.to_enu(truth.lat_deg, truth.lon_deg, truth.alt_m))
             est = frame.to_geodetic(e + rng.normal(0, 0.3), n + rng.normal(0, 0.3), u + rng.normal(0, 0.3))
             pose = CameraPose(float(est[0]), float(est[1]), float(est[2]), yaw_deg=truth.yaw_deg + rng.normal(0, 0.3),
                               gimbal_pitch_deg=pitch + rng.normal(0, 0.3), gimbal_roll_deg=rng.normal(0, 0.3))

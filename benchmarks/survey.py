@@ -134,7 +134,7 @@ def simulator_missions() -> bool:
                 lat0, lon0 = home.lat_deg, home.lon_deg
                 poly = [(lat0, lon0), at(90, 60, lat0, lon0), at(56.31, 72.1, lat0, lon0), at(0, 40, lat0, lon0)]
                 plan = plan_polygon(poly, Camera.from_fov(1200, 900, 70.0), 20.0, 0.7, 0.6)
-                items = mission_items(plan, speed_m_s=5.0)
+                items = mission_items(plan, speed_mps=5.0)
                 t0 = time.perf_counter()
                 v.upload_mission([to_driver_item(it) for it in items])
                 back = v.download_mission()

@@ -106,7 +106,7 @@ def ground_error_m(lat: float, lon: float, truth: tuple[float, float]) -> float:
 def source_estimate(u8: np.ndarray, pose: CameraPose) -> tuple[float, float] | None:
     return source_method_locate(
         u8, threshold_level=SOURCE_THRESHOLD, hfov_deg=CAMERA.hfov_deg, vfov_deg=CAMERA.vfov_deg,
-        lat_deg=pose.lat, lon_deg=pose.lon, height_m=pose.alt_m - FRAME.alt0_m, heading_deg=pose.yaw_deg,
+        lat_deg=pose.lat_deg, lon_deg=pose.lon_deg, height_m=pose.alt_m - FRAME.alt0_m, heading_deg=pose.yaw_deg,
         pitch_deg=pose.pitch_deg, camera_depression_deg=-pose.gimbal_pitch_deg)
 
 
@@ -164,7 +164,7 @@ def section_b(n_fires: int, rng: np.random.Generator) -> tuple[bool, float]:
         for k in range(20):
             pose = random_view(rng, target, yaw_deg=(yaw0 + 18.0 * k) % 360.0)
             counts = sensor.to_counts(sensor.observe(scene.render(CAMERA, pose, 0.5 * k), rng))
-            e, nn, u = FRAME.to_enu(pose.lat, pose.lon, pose.alt_m)
+            e, nn, u = FRAME.to_enu(pose.lat_deg, pose.lon_deg, pose.alt_m)
             lat, lon, alt = FRAME.to_geodetic(e + rng.normal(0, 1.5), nn + rng.normal(0, 1.5), u + rng.normal(0, 1.5))
             noisy = CameraPose(float(lat), float(lon), float(alt), pose.roll_deg + rng.normal(0, 0.5),
                                pose.pitch_deg + rng.normal(0, 0.5), pose.yaw_deg + rng.normal(0, 0.5),
@@ -262,7 +262,7 @@ def section_e(keep: list) -> bool:
         "empty frame": lambda: detect_hotspots(np.zeros((0, 0), np.uint16)),
         "constant frame": lambda: detect_hotspots(np.full((512, 640), 30000, np.uint16)),
         "all-NaN frame": lambda: detect_hotspots(np.full((512, 640), np.nan, np.float32)),
-        "NaN attitude": lambda: CameraPose(pose.lat, pose.lon, pose.alt_m, float("nan"), 0.0, 0.0),
+        "NaN attitude": lambda: CameraPose(pose.lat_deg, pose.lon_deg, pose.alt_m, float("nan"), 0.0, 0.0),
         "NaN pixel": lambda: geolocate_many(np.array([[np.nan, 3.0]]), CAMERA, pose, FRAME.alt0_m),
         "ground above camera": lambda: geolocate_many(np.array([[320.0, 256.0]]), CAMERA, pose, pose.alt_m + 10),
     }
@@ -482,7 +482,7 @@ def _terrain_throughput(keep: list, repeats: int = 7) -> tuple[bool, float]:
         spots = detect_hotspots(counts)
         if spots:
             geolocate_many(spots, CAMERA, pose, dems[seed])
-        frames.setdefault(seed, frame_near(pose.lat, pose.lon, dems[seed].alt_m))
+        frames.setdefault(seed, frame_near(pose.lat_deg, pose.lon_deg, dems[seed].alt_m))
     per_frame, enu_frame, n_fix = [], [], 0
     for _ in range(repeats):
         n_fix = 0

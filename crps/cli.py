@@ -90,7 +90,7 @@ def _pose(spec: str | None):
         raise InputError(f"--pose must be comma-separated numbers, got {spec!r}") from None
     if len(vals) < 3 or len(vals) > 8:
         raise InputError(f"--pose needs lat,lon,alt_m and up to 5 angles, got {len(vals)} values")
-    names = ("lat", "lon", "alt_m", "roll_deg", "pitch_deg", "yaw_deg", "gimbal_pitch_deg", "gimbal_yaw_deg")
+    names = ("lat_deg", "lon_deg", "alt_m", "roll_deg", "pitch_deg", "yaw_deg", "gimbal_pitch_deg", "gimbal_yaw_deg")
     kwargs = {"gimbal_pitch_deg": 0.0, **dict(zip(names, vals, strict=False))}
     return CameraPose(**kwargs), True
 
@@ -144,15 +144,15 @@ def run_range(args: argparse.Namespace) -> int:
     if vis.ndim == 2:
         vis = cv2.cvtColor(vis, cv2.COLOR_GRAY2BGR)
     records = []
-    frame = LocalFrame(pose.lat, pose.lon, pose.alt_m)
+    frame = LocalFrame(pose.lat_deg, pose.lon_deg, pose.alt_m)
     for i, det in enumerate(detections):
         obs = observe(camera, pose, det, args.size_m, model=model, attitude_sigma_deg=args.attitude_sigma_deg,
                       observer_id="helper", target_id=f"target{i}" if det.marker_id is None else None)
-        sigma_r = float(np.sqrt(obs.bearing_enu @ obs.cov_enu_m2 @ obs.bearing_enu))
+        sigma_r = float(np.sqrt(obs.bearing_unit_enu @ obs.cov_enu_m2 @ obs.bearing_unit_enu))
         rec = {"index": i, "kind": det.kind, "score": det.score, "marker_id": det.marker_id,
                "centroid_uv": det.centroid_uv.tolist(), "bbox_px": list(det.bbox_px),
                "range_m": obs.range_m, "range_sigma_m": sigma_r,
-               "bearing_enu": obs.bearing_enu.tolist(), "cov_enu_m2": obs.cov_enu_m2.tolist()}
+               "bearing_enu": obs.bearing_unit_enu.tolist(), "cov_enu_m2": obs.cov_enu_m2.tolist()}
         if has_pose:
             lat, lon, alt = (float(x) for x in frame.to_geodetic(*obs.offset_enu_m))
             rec["target_lat_deg"], rec["target_lon_deg"], rec["target_alt_m"] = lat, lon, alt

@@ -164,11 +164,11 @@ class GroundMotionFilter:
     def _anchor(self, pose: CameraPose) -> None:
         """Tangent plane of the ground near the helper; re-anchored after 2 km (plane sag < 0.3 m)."""
         if self._frame is not None:
-            east, north, _ = (float(x) for x in self._frame.to_enu(pose.lat, pose.lon, self.ground_alt_m))
+            east, north, _ = (float(x) for x in self._frame.to_enu(pose.lat_deg, pose.lon_deg, self.ground_alt_m))
             if math.hypot(east, north) < 2000.0:
                 return
             self.reset()
-        self._frame = LocalFrame(pose.lat, pose.lon, self.ground_alt_m)
+        self._frame = LocalFrame(pose.lat_deg, pose.lon_deg, self.ground_alt_m)
 
     def _on_ground(self, pose: CameraPose, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(ground points (N, 3), ray (N, 3), distance (N,), NaN where the ray misses) in the anchor frame."""

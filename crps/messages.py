@@ -287,7 +287,7 @@ def estimate_fix(msg: FusedEstimate, sender: str) -> GeoFix:
 
 def relative_message(obs: RelativeObservation) -> RelativeObs:
     """A :class:`RelativeObservation` made by this drone, as a message."""
-    return RelativeObs(obs.target_id, obs.time_s, tuple(float(v) for v in obs.bearing_enu), obs.range_m,
+    return RelativeObs(obs.target_id, obs.time_s, tuple(float(v) for v in obs.bearing_unit_enu), obs.range_m,
                        _flat(obs.cov_enu_m2), obs.observer_lat_deg, obs.observer_lon_deg, obs.observer_alt_m,
                        () if obs.observer_cov_enu_m2 is None else _flat(obs.observer_cov_enu_m2))
 

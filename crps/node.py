@@ -95,7 +95,7 @@ class Node:
         ``velocity_sigma_mps``: while the autopilot flies on the injected fix, the 1-sigma of its velocity's
         echo of that fix (:data:`ECHO_VELOCITY_SIGMA_MPS`; None: the EKF's usual white error only), fused as
         the velocity bias's walk (:func:`echo_bias_walk`).
-        Heights: the fix's ellipsoidal height (``GpsStatus.alt_ellipsoid_m``); sigmas: the
+        Heights: the fix's ellipsoidal height (``GnssFix.alt_ellipsoid_m``); sigmas: the
         receiver's h_acc/v_acc in metres, else HDOP (unitless) for the engine's UERE model.
         """
         vel = state.velocity

@@ -142,8 +142,8 @@ def observe(camera: Camera, helper_pose: CameraPose, detection: Detection, targe
     return RelativeObservation(
         observer_id=str(observer_id), target_id=str(target_id),
         time_s=detection.time_s if time_s is None else time_s,
-        bearing_enu=bearing, range_m=range_m, cov_enu_m2=cov,
-        observer_lat_deg=helper_pose.lat, observer_lon_deg=helper_pose.lon, observer_alt_m=helper_pose.alt_m,
+        bearing_unit_enu=bearing, range_m=range_m, cov_enu_m2=cov,
+        observer_lat_deg=helper_pose.lat_deg, observer_lon_deg=helper_pose.lon_deg, observer_alt_m=helper_pose.alt_m,
         observer_cov_enu_m2=observer_cov_enu_m2)
 
 

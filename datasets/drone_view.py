@@ -44,16 +44,16 @@ _PART_SHADE = {"body": 0.9, "arm": 1.0, "motor": 0.85, "rotor": 1.1}
 class TargetPose:
     """Target position (WGS84 degrees, ellipsoidal metres) and attitude (Z-Y-X degrees, NED)."""
 
-    lat: float
-    lon: float
+    lat_deg: float
+    lon_deg: float
     alt_m: float
     yaw_deg: float = 0.0
     pitch_deg: float = 0.0
     roll_deg: float = 0.0
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "lat", float(validate.latitude("TargetPose.lat", self.lat)))
-        object.__setattr__(self, "lon", float(validate.longitude("TargetPose.lon", self.lon)))
+        object.__setattr__(self, "lat_deg", float(validate.latitude("TargetPose.lat_deg", self.lat_deg)))
+        object.__setattr__(self, "lon_deg", float(validate.longitude("TargetPose.lon_deg", self.lon_deg)))
         for name in ("alt_m", "yaw_deg", "pitch_deg", "roll_deg"):
             object.__setattr__(self, name, validate.finite_scalar(f"TargetPose.{name}", getattr(self, name)))
 
@@ -100,7 +100,7 @@ class DroneTruth:
     """Exact ground truth of one rendered frame.
 
     ``target_enu_m`` target origin in the helper's ENU frame (origin at the helper
-    camera), ``range_m`` its distance, ``bearing_enu`` unit vector helper -> target in
+    camera), ``range_m`` its distance, ``bearing_unit_enu`` unit vector helper -> target in
     ENU at the helper, ``centroid_uv`` the target origin's raw pixel, ``elevation_deg``
     the angle of the line of sight below the target's horizontal (positive: seen from
     above), ``bbox_px`` (u0, v0, u1, v1) of the drawn target (None if nothing was drawn),
@@ -110,7 +110,7 @@ class DroneTruth:
 
     target_enu_m: np.ndarray
     range_m: float
-    bearing_enu: np.ndarray
+    bearing_unit_enu: np.ndarray
     centroid_uv: np.ndarray
     elevation_deg: float
     bbox_px: tuple[int, int, int, int] | None
@@ -262,8 +262,8 @@ def _draw_target(image: np.ndarray, camera: Camera, helper_pose: CameraPose, fra
     ``frame``. Raises :class:`GeometryError` when the target is at or behind the camera.
     """
     cam_enu, r_frame_from_cam = helper_pose.in_frame(frame)
-    target_enu = np.array([float(c) for c in frame.to_enu(target.lat, target.lon, target.alt_m)])
-    r_frame_from_body = (frame.enu_rotation_at(target.lat, target.lon) @ R_ENU_FROM_NED
+    target_enu = np.array([float(c) for c in frame.to_enu(target.lat_deg, target.lon_deg, target.alt_m)])
+    r_frame_from_body = (frame.enu_rotation_at(target.lat_deg, target.lon_deg) @ R_ENU_FROM_NED
                          @ r_ned_from_frd(target.yaw_deg, target.pitch_deg, target.roll_deg))
     offset = target_enu - cam_enu
     range_m = float(np.linalg.norm(offset))
@@ -274,7 +274,7 @@ def _draw_target(image: np.ndarray, camera: Camera, helper_pose: CameraPose, fra
         raise GeometryError(f"target is behind the helper camera (range {range_m:.2f} m)")
     centroid_uv = camera.project((offset @ r_frame_from_cam)[None, :])[0]
     # Elevation of the line of sight below the target's own horizontal plane.
-    up_at_target = frame.enu_rotation_at(target.lat, target.lon)[:, 2]
+    up_at_target = frame.enu_rotation_at(target.lat_deg, target.lon_deg)[:, 2]
     elevation_deg = math.degrees(math.asin(float(np.clip(-bearing @ up_at_target, -1.0, 1.0))))
 
     shapes: list[np.ndarray] = []
@@ -291,7 +291,7 @@ def _draw_target(image: np.ndarray, camera: Camera, helper_pose: CameraPose, fra
         raise GeometryError("part of the target is at or behind the helper camera plane")
     bbox, visible, coverage_out = _composite(image, camera, shapes, values, plate, plate_cam, all_cam,
                                              supersample, frac, occluder_gray, rng)
-    return DroneTruth(target_enu_m=offset.copy(), range_m=range_m, bearing_enu=bearing,
+    return DroneTruth(target_enu_m=offset.copy(), range_m=range_m, bearing_unit_enu=bearing,
                       centroid_uv=centroid_uv, elevation_deg=elevation_deg, bbox_px=bbox,
                       visible_fraction=visible, coverage=coverage_out)
 
@@ -331,7 +331,7 @@ def render_drone_view(camera: Camera, helper_pose: CameraPose, target: TargetPos
             raise InputError(f"background image must be ({camera.height}, {camera.width}), got {image.shape}")
         image = image.copy()
 
-    frame = LocalFrame(helper_pose.lat, helper_pose.lon, helper_pose.alt_m)
+    frame = LocalFrame(helper_pose.lat_deg, helper_pose.lon_deg, helper_pose.alt_m)
     truth = _draw_target(image, camera, helper_pose, frame, target, model, plate, drone_gray, supersample,
                          frac, occluder_gray, rng)
     if blur_sigma_px > 0:
@@ -374,10 +374,10 @@ def render_drones(image: np.ndarray, camera: Camera, helper_pose: CameraPose, ta
     out: list[DroneTruth | None] = [None] * len(targets)
     if not targets:
         return out
-    frame = LocalFrame(helper_pose.lat, helper_pose.lon, helper_pose.alt_m)
+    frame = LocalFrame(helper_pose.lat_deg, helper_pose.lon_deg, helper_pose.alt_m)
     cam_enu, r_frame_from_cam = helper_pose.in_frame(frame)
-    lat = np.array([t.lat for t in targets])
-    lon = np.array([t.lon for t in targets])
+    lat = np.array([t.lat_deg for t in targets])
+    lon = np.array([t.lon_deg for t in targets])
     alt = np.array([t.alt_m for t in targets])
     enu = np.stack([np.asarray(c, float).reshape(-1) for c in frame.to_enu(lat, lon, alt)], axis=1)
     in_cam = (enu - cam_enu) @ r_frame_from_cam

@@ -193,7 +193,7 @@ class FusionScenario:
             else:
                 data = {"obs": RelativeObservation(
                     observer_id=ids[int(tab.drone[row])], target_id=ids[int(c["target"][row])],
-                    time_s=float(tab.time_s[row]), bearing_enu=c["bearing_enu"][row].copy(),
+                    time_s=float(tab.time_s[row]), bearing_unit_enu=c["bearing_enu"][row].copy(),
                     range_m=float(c["range_m"][row]), cov_enu_m2=c["cov_enu_m2"][row].copy())}
             yield FusionEvent(float(tab.time_s[row]), float(tab.arrival_s[row]), kind,
                               ids[int(tab.drone[row])], data)

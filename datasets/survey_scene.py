@@ -236,7 +236,7 @@ def survey_camera(width: int = 512, height: int = 288) -> Camera:
 def write_survey(out_dir: str | Path, scene: SurveyScene, *, height_m: float = 30.0, lines: int = 3,
                  per_line: int = 5, line_spacing_m: float = 14.0, photo_spacing_m: float = 8.0,
                  camera: Camera | None = None, calibrated_focal: bool = True, focal_plane: bool = False,
-                 gps_sigma_m: tuple[float, float] = (0.4, 0.2), speed_m_s: float = 5.0, gps_lag_s: float = 0.0,
+                 gps_sigma_m: tuple[float, float] = (0.4, 0.2), speed_mps: float = 5.0, gps_lag_s: float = 0.0,
                  seed: int = 0) -> list[SurveyPhoto]:
     """Fly a nadir grid (lines along north, alternating direction) ``height_m`` above the
     take-off point and write ``IMG_nnnn.jpg`` with EXIF and DJI XMP into ``out_dir``.
@@ -246,7 +246,7 @@ def write_survey(out_dir: str | Path, scene: SurveyScene, *, height_m: float = 3
     DJI's XMP CalibratedFocalLength, ``focal_plane`` the EXIF focal-plane resolution.
     GPS error: a random walk per axis (horizontal, vertical sigmas ``gps_sigma_m`` per
     photo, zero mean over the flight) as consumer GNSS drifts; the barometric relative
-    altitude has 0.1 m noise. The drone flies at ``speed_m_s`` (10 s per turn); EXIF time
+    altitude has 0.1 m noise. The drone flies at ``speed_mps`` (10 s per turn); EXIF time
     stamps have millisecond sub-seconds; ``gps_lag_s`` makes each tag the position that
     many seconds before the photo (a stale GPS fix), trailing along the line.
     """
@@ -263,8 +263,8 @@ def write_survey(out_dir: str | Path, scene: SurveyScene, *, height_m: float = 3
         line, k = divmod(i, per_line)
         along = (k - (per_line - 1) / 2.0) * photo_spacing_m * (1 if line % 2 == 0 else -1)
         centre = np.array([(line - (lines - 1) / 2.0) * line_spacing_m, along, height_m])
-        velocity = np.array([0.0, speed_m_s * (1 if line % 2 == 0 else -1), 0.0])
-        time_s = line * (per_line * photo_spacing_m / speed_m_s + 10.0) + k * photo_spacing_m / speed_m_s
+        velocity = np.array([0.0, speed_mps * (1 if line % 2 == 0 else -1), 0.0])
+        time_s = line * (per_line * photo_spacing_m / speed_mps + 10.0) + k * photo_spacing_m / speed_mps
         yaw_rad = math.radians(rng.normal(0.0, 1.0))
         tilt = np.radians(rng.normal(0.0, 0.5, 2))
         # camera x = east, y = south, z = down, turned by small yaw and tilts (gimbal jitter)

@@ -79,7 +79,7 @@ def run_thermal_flight(args: argparse.Namespace) -> int:
         return _simulate_mountain(args, Camera.from_fov(width, height, args.hfov))
     rng = np.random.default_rng(args.seed)
     frame = LocalFrame(args.lat, args.lon, args.ground_alt)
-    fires = random_fires(args.fires, rng, half_extent_m=15.0, growth_m_per_s=args.growth,
+    fires = random_fires(args.fires, rng, half_extent_m=15.0, growth_mps=args.growth,
                          smoke_opacity=args.smoke)
     scene = ThermalScene(frame, fires, size_m=300.0, seed=args.seed)
     camera = Camera.from_fov(width, height, args.hfov)

@@ -82,7 +82,7 @@ def write_poses_csv(path: str | Path, rows: list[tuple[str, float, CameraPose]])
         writer = csv.writer(fh)
         writer.writerow(POSE_COLUMNS)
         for name, t, p in rows:
-            writer.writerow([name, t, p.lat, p.lon, p.alt_m, p.roll_deg, p.pitch_deg, p.yaw_deg,
+            writer.writerow([name, t, p.lat_deg, p.lon_deg, p.alt_m, p.roll_deg, p.pitch_deg, p.yaw_deg,
                              p.gimbal_pitch_deg, p.gimbal_roll_deg, p.gimbal_yaw_deg, int(p.stabilized)])
     return Path(path)
 
@@ -139,7 +139,7 @@ def write_flight(out_dir: str | Path, scene: ThermalScene, camera: Camera, fligh
     for i, f in enumerate(scene.fires):
         lat, lon, alt = scene.frame.to_geodetic(f.east_m, f.north_m, 0.0)
         truth["fires"].append({"index": i, "lat_deg": float(lat), "lon_deg": float(lon), "alt_m": float(alt),
-                               "radius_m": f.radius_m, "growth_m_per_s": f.growth_m_per_s,
+                               "radius_m": f.radius_m, "growth_mps": f.growth_mps,
                                "start_s": None if np.isinf(f.start_s) else f.start_s,
                                "end_s": None if np.isinf(f.end_s) else f.end_s})
     (out / "truth.json").write_text(json.dumps(truth, indent=2))

@@ -37,7 +37,7 @@ ZERO_C_IN_K = 273.15
 @dataclass(frozen=True)
 class FireSpec:
     """One fire: centre (``east_m``, ``north_m``) in the scene frame, burning-disc radius
-    ``radius_m`` at ``start_s`` changing by ``growth_m_per_s`` (negative: dying), peak
+    ``radius_m`` at ``start_s`` changing by ``growth_mps`` (negative: dying), peak
     temperature ``peak_c``, burning between ``start_s`` and ``end_s`` (seconds).
     ``smoke_opacity`` (0-1) and ``smoke_length_m`` describe a plume drifting towards
     ``wind_to_deg`` (clockwise from north)."""
@@ -46,7 +46,7 @@ class FireSpec:
     north_m: float
     radius_m: float = 1.5
     peak_c: float = 600.0
-    growth_m_per_s: float = 0.0
+    growth_mps: float = 0.0
     start_s: float = -math.inf
     end_s: float = math.inf
     smoke_opacity: float = 0.0
@@ -54,7 +54,7 @@ class FireSpec:
     wind_to_deg: float = 45.0
 
     def __post_init__(self) -> None:
-        for name in ("east_m", "north_m", "peak_c", "growth_m_per_s", "smoke_length_m", "wind_to_deg"):
+        for name in ("east_m", "north_m", "peak_c", "growth_mps", "smoke_length_m", "wind_to_deg"):
             validate.finite_scalar(f"FireSpec.{name}", getattr(self, name))
         validate.positive_scalar("FireSpec.radius_m", self.radius_m)
         if not 0.0 <= self.smoke_opacity <= 1.0:
@@ -67,18 +67,18 @@ class FireSpec:
         if not self.start_s <= time_s <= self.end_s:
             return 0.0
         dt = 0.0 if math.isinf(self.start_s) else time_s - self.start_s
-        return max(self.radius_m + self.growth_m_per_s * dt, 0.0)
+        return max(self.radius_m + self.growth_mps * dt, 0.0)
 
 
 def random_fires(n: int, rng: np.random.Generator, *, half_extent_m: float = 20.0,
                  radius_m: tuple[float, float] = (0.6, 1.5), peak_c: tuple[float, float] = (350.0, 700.0),
-                 growth_m_per_s: float = 0.0, start_s: float = 0.0, smoke_opacity: float = 0.0) -> list[FireSpec]:
+                 growth_mps: float = 0.0, start_s: float = 0.0, smoke_opacity: float = 0.0) -> list[FireSpec]:
     """``n`` fires uniformly within +-``half_extent_m`` of the scene origin, radius and peak
     temperature uniform in the given (low, high) ranges, all starting at ``start_s``."""
     n = validate.integer_in("n", n, 0)
     half = validate.positive_scalar("half_extent_m", half_extent_m)
     return [FireSpec(float(rng.uniform(-half, half)), float(rng.uniform(-half, half)),
-                     float(rng.uniform(*radius_m)), float(rng.uniform(*peak_c)), growth_m_per_s=growth_m_per_s,
+                     float(rng.uniform(*radius_m)), float(rng.uniform(*peak_c)), growth_mps=growth_mps,
                      start_s=start_s, smoke_opacity=smoke_opacity, wind_to_deg=float(rng.uniform(0.0, 360.0)))
             for _ in range(int(n))]
 

@@ -28,7 +28,7 @@ _EXPORTS = {
     "Position": "skyfix.drivers.state",
     "Velocity": "skyfix.drivers.state",
     "Attitude": "skyfix.drivers.state",
-    "GpsStatus": "skyfix.drivers.state",
+    "GnssFix": "skyfix.drivers.state",
     "Battery": "skyfix.drivers.state",
     "Home": "skyfix.drivers.state",
 }

@@ -86,7 +86,7 @@ class Attitude:
 
 
 @dataclass(frozen=True)
-class GpsStatus(_Heights):
+class GnssFix(_Heights):
     """Raw GNSS receiver report (GPS_RAW_INT): GPS_FIX_TYPE, satellites, accuracies.
 
     ``h_acc_m``/``v_acc_m``: the receiver's 1-sigma accuracies in metres (NaN when the
@@ -173,7 +173,7 @@ class VehicleState:
     position: Position | None = None
     velocity: Velocity | None = None
     attitude: Attitude | None = None
-    gps: GpsStatus | None = None
+    gps: GnssFix | None = None
     ekf: EkfStatus | None = None
     battery: Battery | None = None
     home: Home | None = None

@@ -81,7 +81,7 @@ class TelemetryHandlers:
                                        math.degrees(msg.yaw) % 360.0, now))
 
     def _rx_gps_raw_int(self, msg, now: float, t_mono: float) -> None:
-        self._update(gps=units.gps_status(msg, now))
+        self._update(gps=units.gnss_fix(msg, now))
 
     def _rx_ekf_status_report(self, msg, now: float, t_mono: float) -> None:
         self._update(ekf=units.ekf_status(msg, now))

@@ -16,7 +16,7 @@ import math
 import struct
 
 from skyfix.drivers.mav import mavlink
-from skyfix.drivers.state import Battery, EkfStatus, GpsStatus, Home, Position, Velocity
+from skyfix.drivers.state import Battery, EkfStatus, GnssFix, Home, Position, Velocity
 from skyfix.geo import Height, VerticalDatum
 
 UINT16_UNKNOWN = 65535
@@ -40,8 +40,8 @@ def _acc_m(raw_mm: int) -> float:
     return raw_mm / 1000.0 if raw_mm > 0 else math.nan
 
 
-def gps_status(msg, now_s: float) -> GpsStatus:
-    """GPS_RAW_INT -> :class:`GpsStatus` (metres, degrees; DOPs unitless; NaN = unknown)."""
+def gnss_fix(msg, now_s: float) -> GnssFix:
+    """GPS_RAW_INT -> :class:`GnssFix` (metres, degrees; DOPs unitless; NaN = unknown)."""
     lat, lon = msg.lat / 1e7, msg.lon / 1e7
     alt_amsl = msg.alt / 1000.0
     alt_ell_mm = getattr(msg, "alt_ellipsoid", 0)
@@ -52,7 +52,7 @@ def gps_status(msg, now_s: float) -> GpsStatus:
         alt_ell, source = ellipsoidal_from_amsl_m(lat, lon, alt_amsl), AMSL.value
     else:
         alt_ell, source = math.nan, "none"
-    return GpsStatus(
+    return GnssFix(
         fix_type=msg.fix_type, satellites=msg.satellites_visible,
         h_acc_m=_acc_m(getattr(msg, "h_acc", 0)), v_acc_m=_acc_m(getattr(msg, "v_acc", 0)),
         hdop=_dop(msg.eph), vdop=_dop(msg.epv), lat_deg=lat, lon_deg=lon, alt_amsl_m=alt_amsl,

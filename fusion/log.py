@@ -47,7 +47,7 @@ def _plain(value):
         return value.item()
     if isinstance(value, RelativeObservation):
         return {"type": "RelativeObservation", "observer_id": value.observer_id, "target_id": value.target_id,
-                "time_s": value.time_s, "bearing_enu": value.bearing_enu.tolist(), "range_m": value.range_m,
+                "time_s": value.time_s, "bearing_unit_enu": value.bearing_unit_enu.tolist(), "range_m": value.range_m,
                 "cov_enu_m2": value.cov_enu_m2.tolist(), "observer_lat_deg": value.observer_lat_deg,
                 "observer_lon_deg": value.observer_lon_deg, "observer_alt_m": value.observer_alt_m,
                 "observer_cov_enu_m2": None if value.observer_cov_enu_m2 is None else value.observer_cov_enu_m2.tolist()}
@@ -61,6 +61,8 @@ def _revive(value):
     """Inverse of :func:`_plain` for the measurement types (NaN observer fields were written as null)."""
     if isinstance(value, dict) and value.get("type") == "RelativeObservation":
         fields = {k: v for k, v in value.items() if k != "type"}
+        if "bearing_enu" in fields:  # logs written before the field was renamed (issue 22)
+            fields["bearing_unit_enu"] = fields.pop("bearing_enu")
         for name in ("observer_lat_deg", "observer_lon_deg", "observer_alt_m"):
             if fields.get(name) is None:
                 fields[name] = float("nan")

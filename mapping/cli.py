@@ -23,7 +23,7 @@ log = logging.getLogger("skyfix.mapping")
 FLAG_NAMES = {"step_m": "--step", "altitude_m": "--alt", "hold_s": "--hold", "forward_overlap": "--forward",
               "side_overlap": "--side", "heading_deg": "--heading", "turnaround_m": "--turnaround",
               "joining_drones": "--joining", "growth_per_drone": "--growth", "alarm_latlon": "--alarm",
-              "next_index": "--next-index", "stopped_at_latlon": "--stopped-at", "speed_m_s": "--speed",
+              "next_index": "--next-index", "stopped_at_latlon": "--stopped-at", "speed_mps": "--speed",
               "jpeg_quality": "--quality", "workers": "--workers", "resolution_cm": "--resolution-cm",
               "dsm_resolution_m": "--dsm-resolution-m", "dense_scale": "--dense-scale",
               "max_ortho_mpx": "--max-ortho-mpx", "max_image_size_px": "--max-image-size",
@@ -265,7 +265,7 @@ def _finish_plan(plan, args, parts=None, extra: dict | None = None) -> int:
         parts = split_survey(plan, drones)
     save_plan(out / "plan.json", plan)
     homes = {name: (*pos, 0.0) for name, pos in {**drones, **_drones_dict(getattr(args, "available", None))}.items()}
-    written = write_all(out, parts or plan, home_latlon_alt=homes, speed_m_s=getattr(args, "speed", None))
+    written = write_all(out, parts or plan, home_latlon_alt=homes, speed_mps=getattr(args, "speed", None))
     summary = {"kind": plan.kind, "waypoints": plan.n_waypoints, "path_length_m": plan.path_length_m,
                "step_m": plan.step_m, "trigger_distance_m": plan.trigger_distance_m, "files": written, **(extra or {})}
     if parts:

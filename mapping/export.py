@@ -141,7 +141,7 @@ def write_png(path: str | os.PathLike, plan_or_parts, *, footprints: bool = True
     plt.close(fig)
 
 
-def write_all(out_dir: str | os.PathLike, plan_or_parts, *, home_latlon_alt=None, speed_m_s: float | None = None,
+def write_all(out_dir: str | os.PathLike, plan_or_parts, *, home_latlon_alt=None, speed_mps: float | None = None,
               stem: str = "plan") -> dict[str, str]:
     """GeoJSON, KML, PNG and one QGC mission file per drone in ``out_dir``; returns {kind: path}.
 
@@ -163,6 +163,6 @@ def write_all(out_dir: str | os.PathLike, plan_or_parts, *, home_latlon_alt=None
         if home is None:
             home = (*part.plan.waypoints_latlon()[0], 0.0)
         path = out / f"{stem}_{part.drone_id}.waypoints"
-        write_qgc_mission(path, mission_items(part, home_latlon_alt=home, speed_m_s=speed_m_s))
+        write_qgc_mission(path, mission_items(part, home_latlon_alt=home, speed_mps=speed_mps))
         written[f"mission_{part.drone_id}"] = path
     return {k: str(v) for k, v in written.items()}

@@ -71,12 +71,12 @@ def _deg_e7(value: float) -> int:
 
 
 def mission_items(plan: SurveyPlan | SurveyPart, *, home_latlon_alt=None, takeoff: bool = True,
-                  speed_m_s: float | None = None, return_to_launch: bool = True,
+                  speed_mps: float | None = None, return_to_launch: bool = True,
                   target_system: int = 1, target_component: int = 1) -> list[MissionItemInt]:
     """Mission items flying ``plan`` (or one drone's part); see the module docstring.
 
     ``home_latlon_alt``: (lat_deg, lon_deg, alt_m AMSL) written as item 0 (ArduPilot's home
-    slot; omit for PX4). ``speed_m_s``: ground speed set after take-off.
+    slot; omit for PX4). ``speed_mps``: ground speed set after take-off.
     """
     if isinstance(plan, SurveyPart):
         plan = plan.plan
@@ -92,9 +92,9 @@ def mission_items(plan: SurveyPlan | SurveyPart, *, home_latlon_alt=None, takeof
     if takeoff:
         items.append((MAV_FRAME.GLOBAL_RELATIVE_ALT_INT, MAV_CMD.NAV_TAKEOFF, (0, 0, 0, float("nan")),
                       latlon[0, 0], latlon[0, 1], alt))
-    if speed_m_s is not None:
+    if speed_mps is not None:
         items.append((MAV_FRAME.MISSION, MAV_CMD.DO_CHANGE_SPEED,
-                      (1, validate.positive_scalar("speed_m_s", speed_m_s), -1, 0), 0.0, 0.0, 0.0))
+                      (1, validate.positive_scalar("speed_mps", speed_mps), -1, 0), 0.0, 0.0, 0.0))
     triggering = False
     for k, (lat, lon) in enumerate(latlon):
         items.append((MAV_FRAME.GLOBAL_RELATIVE_ALT_INT, MAV_CMD.NAV_WAYPOINT,

@@ -18,6 +18,7 @@ from skyfix.distortion import Barrel, BrownConrady, Distortion, Fisheye
 from skyfix.errors import GeometryError, InputError
 from skyfix.geo import LocalFrame
 from skyfix.rotation import R_ENU_FROM_NED, R_FRD_FROM_CAM, r_ned_from_frd, rot_x, rot_y, rot_z
+from skyfix.units import PixelArray, Pixels
 
 __all__ = ["Barrel", "BrownConrady", "Camera", "CameraPose", "Distortion", "Fisheye",
            "ground_intersection", "world_to_pixel"]
@@ -41,10 +42,10 @@ class Camera:
 
     width: int
     height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
+    fx: Pixels
+    fy: Pixels
+    cx: Pixels
+    cy: Pixels
     distortion: Distortion | None = None
 
     def __post_init__(self) -> None:
@@ -102,13 +103,13 @@ class Camera:
         return Camera(round(self.width * f), round(self.height * f), self.fx * f, self.fy * f,
                       (self.cx + 0.5) * f - 0.5, (self.cy + 0.5) * f - 0.5, self.distortion)
 
-    def in_image(self, uv: np.ndarray) -> np.ndarray:
+    def in_image(self, uv: PixelArray) -> np.ndarray:
         """Boolean mask ``(N,)``: pixel inside the image (edges at -0.5 and size - 0.5)."""
         uv = validate.points("uv", uv, 2)
         return ((uv[:, 0] >= -0.5) & (uv[:, 0] <= self.width - 0.5)
                 & (uv[:, 1] >= -0.5) & (uv[:, 1] <= self.height - 0.5))
 
-    def pixel_to_ray(self, uv: np.ndarray) -> np.ndarray:
+    def pixel_to_ray(self, uv: PixelArray) -> np.ndarray:
         """Raw pixels ``(N, 2)`` -> unit rays ``(N, 3)`` in the camera optical frame."""
         uv = validate.points("uv", uv, 2)
         if self.distortion is not None:
@@ -119,7 +120,7 @@ class Camera:
         rays[:, 2] = 1.0
         return rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
-    def project(self, xyz: np.ndarray) -> np.ndarray:
+    def project(self, xyz: np.ndarray) -> PixelArray:
         """Points ``(N, 3)`` in the camera optical frame -> raw pixels ``(N, 2)``.
 
         Rows with z <= 0 (at or behind the camera) come back as NaN.
@@ -139,7 +140,7 @@ class Camera:
 class CameraPose:
     """Where a camera is and where it looks.
 
-    Position: ``lat``/``lon`` in degrees, ``alt_m`` metres above the WGS84 ellipsoid
+    Position: ``lat_deg``/``lon_deg`` in degrees, ``alt_m`` metres above the WGS84 ellipsoid
     (convert AMSL altitudes with a geoid model first). Vehicle attitude in degrees,
     aerospace Z-Y-X relative to local NED: ``yaw_deg`` 0 = north, clockwise positive;
     ``pitch_deg`` nose-up positive; ``roll_deg`` right-wing-down positive.
@@ -157,8 +158,8 @@ class CameraPose:
         array([ 0.,  0., -1.])
     """
 
-    lat: float
-    lon: float
+    lat_deg: float
+    lon_deg: float
     alt_m: float
     roll_deg: float = 0.0
     pitch_deg: float = 0.0
@@ -169,8 +170,8 @@ class CameraPose:
     stabilized: bool = True
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "lat", float(validate.latitude("CameraPose.lat", self.lat)))
-        object.__setattr__(self, "lon", float(validate.longitude("CameraPose.lon", self.lon)))
+        object.__setattr__(self, "lat_deg", float(validate.latitude("CameraPose.lat_deg", self.lat_deg)))
+        object.__setattr__(self, "lon_deg", float(validate.longitude("CameraPose.lon_deg", self.lon_deg)))
         for name in ("alt_m", "roll_deg", "pitch_deg", "yaw_deg", "gimbal_pitch_deg",
                      "gimbal_yaw_deg", "gimbal_roll_deg"):
             object.__setattr__(self, name, validate.finite_scalar(f"CameraPose.{name}", getattr(self, name)))
@@ -204,8 +205,8 @@ class CameraPose:
 @functools.lru_cache(maxsize=64)
 def _pose_in_frame(pose: CameraPose, frame: LocalFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(camera ENU, frame <- camera rotation, local up at the camera in frame axes), read-only."""
-    e, n, u = frame.to_enu(pose.lat, pose.lon, pose.alt_m)
-    r_frame_from_enu_here = frame.enu_rotation_at(pose.lat, pose.lon)
+    e, n, u = frame.to_enu(pose.lat_deg, pose.lon_deg, pose.alt_m)
+    r_frame_from_enu_here = frame.enu_rotation_at(pose.lat_deg, pose.lon_deg)
     out = (np.array([float(e), float(n), float(u)]), r_frame_from_enu_here @ pose.r_enu_from_cam(),
            r_frame_from_enu_here[:, 2].copy())
     for a in out:
@@ -213,7 +214,7 @@ def _pose_in_frame(pose: CameraPose, frame: LocalFrame) -> tuple[np.ndarray, np.
     return out
 
 
-def ground_intersection(camera: Camera, pose: CameraPose, uv: np.ndarray, ground_alt_m: float,
+def ground_intersection(camera: Camera, pose: CameraPose, uv: PixelArray, ground_alt_m: float,
                         frame: LocalFrame, *, max_range_m: float = 100_000.0) -> np.ndarray:
     """Cast raw pixels ``(N, 2)`` onto the surface of constant ellipsoidal height.
 
@@ -263,7 +264,7 @@ def ground_intersection(camera: Camera, pose: CameraPose, uv: np.ndarray, ground
     return cam_enu + t[:, None] * d
 
 
-def world_to_pixel(camera: Camera, pose: CameraPose, frame: LocalFrame, enu_m: np.ndarray) -> np.ndarray:
+def world_to_pixel(camera: Camera, pose: CameraPose, frame: LocalFrame, enu_m: np.ndarray) -> PixelArray:
     """Project points ``(N, 3)`` given in ``frame``'s ENU metres to raw pixels ``(N, 2)``.
 
     Points at or behind the camera come back as NaN (see :meth:`Camera.project`).

@@ -26,7 +26,7 @@ import os
 import re
 import sys
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import skyfix
 from skyfix import progress
@@ -233,7 +233,7 @@ def error_line(exc: BaseException) -> str:
     return re.sub(r"^([^:\s]+): (\1: )+", r"\1: ", text)
 
 
-def run_command(func, args: argparse.Namespace, verbose: int = 0) -> int:
+def run_command(func: Callable[[argparse.Namespace], int | None], args: argparse.Namespace, verbose: int = 0) -> int:
     """Run a command function; turn its errors into one line on stderr and an exit code:
     2 for bad input (skyfix input errors, a file the user named that cannot be read or
     written), 1 for a failed operation, 130 for Ctrl-C. The traceback only with -v."""

@@ -21,19 +21,20 @@ import numpy as np
 
 from skyfix import validate
 from skyfix.errors import GeometryError
+from skyfix.units import PixelArray, Pixels
 
 
 class Intrinsics(Protocol):
     """Pinhole intrinsics in pixels (OpenCV convention) and the image size in pixels."""
 
     @property
-    def fx(self) -> float: ...
+    def fx(self) -> Pixels: ...
     @property
-    def fy(self) -> float: ...
+    def fy(self) -> Pixels: ...
     @property
-    def cx(self) -> float: ...
+    def cx(self) -> Pixels: ...
     @property
-    def cy(self) -> float: ...
+    def cy(self) -> Pixels: ...
     @property
     def width(self) -> int: ...
     @property
@@ -44,9 +45,9 @@ class Intrinsics(Protocol):
 class Distortion(Protocol):
     """What a lens model must provide (see module docstring)."""
 
-    def distort(self, uv_ideal: np.ndarray, camera: Intrinsics) -> np.ndarray: ...
+    def distort(self, uv_ideal: PixelArray, camera: Intrinsics) -> PixelArray: ...
 
-    def undistort(self, uv_raw: np.ndarray, camera: Intrinsics) -> np.ndarray: ...
+    def undistort(self, uv_raw: PixelArray, camera: Intrinsics) -> PixelArray: ...
 
 
 def _to_normalized(uv: np.ndarray, camera: Intrinsics) -> np.ndarray:
@@ -117,10 +118,10 @@ class BrownConrady:
         yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
         return np.stack((xd, yd), axis=1)
 
-    def distort(self, uv_ideal: np.ndarray, camera: Intrinsics) -> np.ndarray:
+    def distort(self, uv_ideal: PixelArray, camera: Intrinsics) -> PixelArray:
         return _to_pixels(self._forward(_to_normalized(uv_ideal, camera)), camera)
 
-    def undistort(self, uv_raw: np.ndarray, camera: Intrinsics) -> np.ndarray:
+    def undistort(self, uv_raw: PixelArray, camera: Intrinsics) -> PixelArray:
         xy = _newton_invert_2d(self._forward, _to_normalized(uv_raw, camera))
         return _to_pixels(xy, camera)
 
@@ -158,14 +159,14 @@ class Fisheye:
         t2 = theta * theta
         return theta * (1.0 + t2 * (self.k1 + t2 * (self.k2 + t2 * (self.k3 + t2 * self.k4))))
 
-    def distort(self, uv_ideal: np.ndarray, camera: Intrinsics) -> np.ndarray:
+    def distort(self, uv_ideal: PixelArray, camera: Intrinsics) -> PixelArray:
         xy = _to_normalized(uv_ideal, camera)
         r = np.hypot(xy[:, 0], xy[:, 1])
         theta = np.arctan(r)
         scale = np.where(r > 1e-12, self._theta_d(theta) / np.maximum(r, 1e-300), 1.0)
         return _to_pixels(xy * scale[:, None], camera)
 
-    def undistort(self, uv_raw: np.ndarray, camera: Intrinsics) -> np.ndarray:
+    def undistort(self, uv_raw: PixelArray, camera: Intrinsics) -> PixelArray:
         xy_d = _to_normalized(uv_raw, camera)
         rd = np.hypot(xy_d[:, 0], xy_d[:, 1])
         theta = rd.copy()
@@ -221,13 +222,13 @@ class Barrel:
         """Source-radius factor ``a r^3 + b r^2 + c r + d`` at normalised radius ``r``."""
         return ((self.a * r + self.b) * r + self.c) * r + self.d
 
-    def distort(self, uv_ideal: np.ndarray, camera: Intrinsics) -> np.ndarray:
+    def distort(self, uv_ideal: PixelArray, camera: Intrinsics) -> PixelArray:
         centre, scale = self._centre_and_scale(camera)
         offset = uv_ideal - centre
         r = np.hypot(offset[:, 0], offset[:, 1]) / scale
         return centre + offset * self.radial_factor(r)[:, None]
 
-    def undistort(self, uv_raw: np.ndarray, camera: Intrinsics) -> np.ndarray:
+    def undistort(self, uv_raw: PixelArray, camera: Intrinsics) -> PixelArray:
         centre, scale = self._centre_and_scale(camera)
         offset = uv_raw - centre
         r_src = np.hypot(offset[:, 0], offset[:, 1]) / scale

@@ -20,6 +20,7 @@ import pyproj
 from skyfix import validate
 from skyfix.errors import InputError
 from skyfix.geoid import undulation_near_m
+from skyfix.units import LatLonAltArray
 
 WGS84 = pyproj.Geod(ellps="WGS84")
 
@@ -134,12 +135,12 @@ class LocalFrame:
                                         direction=pyproj.enums.TransformDirection.INVERSE)
         return np.asarray(alt)
 
-    def to_enu_points(self, lla: np.ndarray) -> np.ndarray:
+    def to_enu_points(self, lla: LatLonAltArray) -> np.ndarray:
         """``(N, 3)`` array of (lat_deg, lon_deg, alt_m) -> ``(N, 3)`` ENU metres."""
         pts = validate.points("lla", lla, 3)
         return np.stack(self.to_enu(pts[:, 0], pts[:, 1], pts[:, 2]), axis=1)
 
-    def to_geodetic_points(self, enu_m: np.ndarray) -> np.ndarray:
+    def to_geodetic_points(self, enu_m: np.ndarray) -> LatLonAltArray:
         """``(N, 3)`` ENU metres -> ``(N, 3)`` array of (lat_deg, lon_deg, alt_m)."""
         pts = validate.points("enu_m", enu_m, 3)
         return np.stack(self.to_geodetic(pts[:, 0], pts[:, 1], pts[:, 2]), axis=1)

@@ -73,9 +73,9 @@ class GeoFix:
 class RelativeObservation:
     """One vehicle's observation of another: where the target is relative to the observer.
 
-    ``bearing_enu`` is a unit vector (3,) from the observer towards the target in the
+    ``bearing_unit_enu`` is a unit vector (3,) from the observer towards the target in the
     local ENU axes at the observer; ``range_m`` the distance; ``cov_enu_m2`` the 3x3
-    covariance of the relative position ``range_m * bearing_enu`` (ENU, m^2), including
+    covariance of the relative position ``range_m * bearing_unit_enu`` (ENU, m^2), including
     the observer's attitude uncertainty but not its position uncertainty, which fusion
     takes from the observer's own estimate.
 
@@ -88,7 +88,7 @@ class RelativeObservation:
     observer_id: str
     target_id: str
     time_s: float
-    bearing_enu: np.ndarray
+    bearing_unit_enu: np.ndarray
     range_m: float
     cov_enu_m2: np.ndarray
     observer_lat_deg: float = float("nan")
@@ -100,12 +100,12 @@ class RelativeObservation:
         object.__setattr__(self, "time_s", validate.finite_scalar("RelativeObservation.time_s", self.time_s))
         rng = validate.positive_scalar("RelativeObservation.range_m", self.range_m)
         object.__setattr__(self, "range_m", rng)
-        b = validate.finite_array("RelativeObservation.bearing_enu", self.bearing_enu)
+        b = validate.finite_array("RelativeObservation.bearing_unit_enu", self.bearing_unit_enu)
         if b.shape != (3,) or abs(np.linalg.norm(b) - 1.0) > 1e-6:
-            raise InputError(f"RelativeObservation.bearing_enu must be a unit (3,) vector, got {b}")
+            raise InputError(f"RelativeObservation.bearing_unit_enu must be a unit (3,) vector, got {b}")
         b = b.copy()
         b.setflags(write=False)
-        object.__setattr__(self, "bearing_enu", b)
+        object.__setattr__(self, "bearing_unit_enu", b)
         object.__setattr__(self, "cov_enu_m2", _frozen_cov("RelativeObservation.cov_enu_m2", self.cov_enu_m2, 3))
         if self.observer_cov_enu_m2 is not None:
             object.__setattr__(self, "observer_cov_enu_m2",
@@ -114,7 +114,7 @@ class RelativeObservation:
     @property
     def offset_enu_m(self) -> np.ndarray:
         """Observer -> target vector in ENU metres, (3,)."""
-        return self.range_m * self.bearing_enu
+        return self.range_m * self.bearing_unit_enu
 
     @property
     def has_observer_position(self) -> bool:

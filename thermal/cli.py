@@ -288,7 +288,7 @@ def run_locate(args: argparse.Namespace) -> int:
                                kelvin_per_count=args.kelvin_per_count)
     tracker = FireTracker(camera, ground, uncertainty=_uncertainty(args), settings=settings)
     if isinstance(ground, DemGround):
-        ground.check_covers([p.lat for _, _, p in rows], [p.lon for _, _, p in rows], f"the flight in {args.poses}")
+        ground.check_covers([p.lat_deg for _, _, p in rows], [p.lon_deg for _, _, p in rows], f"the flight in {args.poses}")
     last, track, detections = None, [], []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RelativeTemperatureWarning)
@@ -302,7 +302,7 @@ def run_locate(args: argparse.Namespace) -> int:
                 tracker.frames_dropped += 1
                 continue
             detections.append((t, spots))
-            track.append((pose.lat, pose.lon))
+            track.append((pose.lat_deg, pose.lon_deg))
             if spots:
                 last = (path, spots, seen)
     if caught:

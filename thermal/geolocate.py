@@ -120,7 +120,7 @@ def geolocate_many(hotspots_or_uv, camera: Camera, pose: CameraPose,
     if not isinstance(uncertainty, PoseUncertainty):
         raise InputError(f"uncertainty must be a PoseUncertainty, got {type(uncertainty).__name__}")
     if frame is None:
-        frame = frame_near(pose.lat, pose.lon, ground.alt_m)
+        frame = frame_near(pose.lat_deg, pose.lon_deg, ground.alt_m)
     pts, cov = locate_in_frame(camera, pose, uv, ground, frame, uncertainty)
     lat, lon, alt = frame.to_geodetic(pts[:, 0], pts[:, 1], pts[:, 2])
     # Frame axes -> each fix's own ENU axes, all fixes at once.

@@ -70,8 +70,7 @@ class PoseLog:
             raise InputError("PoseLog.from_poses needs a non-empty list of CameraPose")
         if len({p.stabilized for p in poses}) != 1:
             raise InputError("PoseLog.from_poses: poses mix stabilised and hard-mounted cameras")
-        attr = {"lat_deg": "lat", "lon_deg": "lon"}
-        cols = {name: np.array([getattr(p, attr.get(name, name)) for p in poses]) for name in _SERIES}
+        cols = {name: np.array([getattr(p, name) for p in poses]) for name in _SERIES}
         return cls(np.asarray(time_s, float), **cols, stabilized=poses[0].stabilized)
 
     @property

@@ -159,7 +159,7 @@ class FireTracker:
         """Like :meth:`update` for hotspots already detected in a frame (raises on bad input)."""
         t = validate.finite_scalar("time_s", time_s)
         if self.frame is None:
-            self.frame = LocalFrame(pose.lat, pose.lon, self.ground.alt_m)
+            self.frame = LocalFrame(pose.lat_deg, pose.lon_deg, self.ground.alt_m)
         self.last_hotspots = list(hotspots)
         self.frames_used += 1
         if hotspots:

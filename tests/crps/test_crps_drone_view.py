@@ -25,8 +25,8 @@ def target_at(bearing_deg, dist_m, dz_m=0.0, **att):
 def test_truth_matches_projection_and_geodesy():
     t = target_at(35.0, 20.0, 1.5, yaw_deg=10.0)
     view = render_drone_view(CAM, HELPER, t, DroneModel.quad(), rng=np.random.default_rng(0))
-    frame = LocalFrame(HELPER.lat, HELPER.lon, HELPER.alt_m)
-    enu = np.array([float(x) for x in frame.to_enu(t.lat, t.lon, t.alt_m)])
+    frame = LocalFrame(HELPER.lat_deg, HELPER.lon_deg, HELPER.alt_m)
+    enu = np.array([float(x) for x in frame.to_enu(t.lat_deg, t.lon_deg, t.alt_m)])
     np.testing.assert_allclose(view.truth.target_enu_m, enu, atol=1e-6)
     assert view.truth.range_m == pytest.approx(math.hypot(20.0, 1.5), abs=0.01)
     np.testing.assert_allclose(view.truth.centroid_uv, world_to_pixel(CAM, HELPER, frame, enu)[0], atol=1e-6)

@@ -34,7 +34,7 @@ def scene(dist_m, elev_deg, yaw_deg, helper_yaw=20.0):
 
 def range_error(view, helper, det):
     obs = observe(CAM, helper, det, 0.5, attitude_sigma_deg=0.0)
-    sigma = math.sqrt(obs.bearing_enu @ obs.cov_enu_m2 @ obs.bearing_enu)
+    sigma = math.sqrt(obs.bearing_unit_enu @ obs.cov_enu_m2 @ obs.bearing_unit_enu)
     return obs.range_m - view.truth.range_m, sigma
 
 
@@ -100,7 +100,7 @@ def test_tracker_uses_the_fit_when_given_the_helper_pose():
     plain = Tracker(DETECT)
     errs = []
     for k in range(6):
-        lat, lon = destination(target.lat, target.lon, 90.0, 0.5 * k / 30.0)
+        lat, lon = destination(target.lat_deg, target.lon_deg, 90.0, 0.5 * k / 30.0)
         moved = TargetPose(float(lat), float(lon), target.alt_m, target.yaw_deg)
         view = render_drone_view(CAM, helper, moved, DroneModel.quad(), blur_sigma_px=BLUR, noise_sigma=0.01, rng=rng)
         det = tracker.update(view.image, k / 30.0, helper)

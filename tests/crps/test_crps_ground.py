@@ -52,7 +52,7 @@ def flight(k: int, rng: np.random.Generator | None = None) -> tuple[CameraPose, 
     truth = CameraPose(float(lat), float(lon), GROUND + 40.0, yaw_deg=70.0, gimbal_pitch_deg=-80.0)
     if rng is None:
         return truth, truth
-    noisy = CameraPose(truth.lat, truth.lon, truth.alt_m + rng.normal(0, 0.2), yaw_deg=70.0 + rng.normal(0, 0.2),
+    noisy = CameraPose(truth.lat_deg, truth.lon_deg, truth.alt_m + rng.normal(0, 0.2), yaw_deg=70.0 + rng.normal(0, 0.2),
                        gimbal_pitch_deg=-80.0 + rng.normal(0, 0.2), gimbal_roll_deg=rng.normal(0, 0.2))
     return truth, noisy
 

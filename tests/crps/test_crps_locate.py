@@ -72,7 +72,7 @@ def test_covariance_is_calibrated_monte_carlo():
             # The helper reports its noisy position and what it saw from its true one.
             o = observation(frame, h, noisy_target, cov)
             lat, lon, alt = (float(x) for x in frame.to_geodetic(*noisy_helper))
-            obs.append(RelativeObservation("h", "t", 0.0, o.bearing_enu, o.range_m, cov, lat, lon, alt, pos_cov))
+            obs.append(RelativeObservation("h", "t", 0.0, o.bearing_unit_enu, o.range_m, cov, lat, lon, alt, pos_cov))
         fix = locate(obs, frame)
         err = np.array([float(x) for x in frame.to_enu(fix.lat_deg, fix.lon_deg, fix.alt_m)]) - target
         nees.append(float(err @ np.linalg.solve(fix.cov_enu_m2, err)))

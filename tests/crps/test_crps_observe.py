@@ -55,16 +55,16 @@ def test_observe_range_and_bearing(dist_m):
     assert len(dets) == 1
     assert shape_consistent(CAM, helper, dets[0])
     obs = observe(CAM, helper, dets[0], 0.5, observer_id="h1", target_id="t", attitude_sigma_deg=0.0)
-    sigma_r = math.sqrt(obs.bearing_enu @ obs.cov_enu_m2 @ obs.bearing_enu)
+    sigma_r = math.sqrt(obs.bearing_unit_enu @ obs.cov_enu_m2 @ obs.bearing_unit_enu)
     # At 20 deg elevation the model's yaw spread is ~1.2 %; noise adds a little at 40 m.
     assert abs(obs.range_m - view.truth.range_m) <= max(3.0 * sigma_r, 0.01 * dist_m)
     assert sigma_r / obs.range_m < 0.04
-    bearing_err_deg = math.degrees(math.acos(min(1.0, float(obs.bearing_enu @ view.truth.bearing_enu))))
+    bearing_err_deg = math.degrees(math.acos(min(1.0, float(obs.bearing_unit_enu @ view.truth.bearing_unit_enu))))
     # Centroid noise is ~0.05 px; the airframe is not symmetric top to bottom (rotors sit ~1 cm
     # above the arms), which moves the silhouette centroid by up to ~0.05 deg at 12 m.
     assert bearing_err_deg < 0.06
     assert obs.time_s == 12.5 and obs.observer_id == "h1"
-    assert obs.observer_lat_deg == helper.lat and obs.has_observer_position
+    assert obs.observer_lat_deg == helper.lat_deg and obs.has_observer_position
     assert np.linalg.eigvalsh(obs.cov_enu_m2).min() > 0
 
 

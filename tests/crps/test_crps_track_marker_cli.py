@@ -18,11 +18,11 @@ CAM = Camera.from_fov(1280, 720, 80.0)
 HELPER = CameraPose(47.0, 8.0, 400.0, yaw_deg=0.0, gimbal_pitch_deg=10.0)
 
 
-def frames(n, rng, speed_m_s=2.0, dt=0.1):
-    """A target 25 m north, 5 m up, crossing east at ``speed_m_s``."""
+def frames(n, rng, speed_mps=2.0, dt=0.1):
+    """A target 25 m north, 5 m up, crossing east at ``speed_mps``."""
     for k in range(n):
         lat, lon = destination(47.0, 8.0, 0.0, 25.0)
-        lat, lon = destination(float(lat), float(lon), 90.0, speed_m_s * dt * k + 1.0)
+        lat, lon = destination(float(lat), float(lon), 90.0, speed_mps * dt * k + 1.0)
         view = render_drone_view(CAM, HELPER, TargetPose(float(lat), float(lon), 405.0, yaw_deg=20.0),
                                  DroneModel.quad(), blur_sigma_px=0.7, noise_sigma=0.01, rng=rng)
         yield k * dt, view
@@ -89,9 +89,9 @@ def test_marker_identity_and_range(dist_m):
     assert [d.marker_id for d in dets] == [7]
     obs = observe(CAM, helper, dets[0], 0.2, attitude_sigma_deg=0.0)
     assert obs.target_id == "marker:7"
-    sigma = math.sqrt(obs.bearing_enu @ obs.cov_enu_m2 @ obs.bearing_enu)
+    sigma = math.sqrt(obs.bearing_unit_enu @ obs.cov_enu_m2 @ obs.bearing_unit_enu)
     assert abs(obs.range_m - view.truth.range_m) < max(3 * sigma, 0.01 * dist_m)
-    assert math.degrees(math.acos(min(1.0, obs.bearing_enu @ view.truth.bearing_enu))) < 0.05
+    assert math.degrees(math.acos(min(1.0, obs.bearing_unit_enu @ view.truth.bearing_unit_enu))) < 0.05
     assert MarkerDetector(CAM, ids={1, 2})(view.image) == []
 
 
@@ -108,7 +108,7 @@ def test_cli_range_writes_png_and_json(tmp_path):
     assert len(report["detections"]) == 1
     rec = report["detections"][0]
     assert rec["range_m"] == pytest.approx(view.truth.range_m, rel=0.05)
-    np.testing.assert_allclose(rec["bearing_enu"], view.truth.bearing_enu, atol=1e-3)
+    np.testing.assert_allclose(rec["bearing_enu"], view.truth.bearing_unit_enu, atol=1e-3)
     png = cv2.imread(str(out.with_suffix(".png")))
     assert png.shape == (720, 1280, 3)
     # the same camera as a skyfix camera file made for a 1920x1080 sensor: rescaled, same answer

@@ -76,7 +76,7 @@ def test_helper_eye_observes_the_target_and_fusion_places_it(seed):
     for obs in observations:
         at_helper = geo.LocalFrame(obs.observer_lat_deg, obs.observer_lon_deg, obs.observer_alt_m)
         true_offset = np.array([float(c) for c in at_helper.to_enu(target["lat_deg"], target["lon_deg"], target["alt_m"])])
-        err = obs.bearing_enu * obs.range_m - true_offset
+        err = obs.bearing_unit_enu * obs.range_m - true_offset
         nis.append(float(err @ np.linalg.solve(obs.cov_enu_m2 + obs.observer_cov_enu_m2, err)))
     assert np.mean(np.array(nis) < CHI2_3DOF_999) >= 0.9, f"normalised errors {np.round(nis, 1)}"
     # ranging: a 0.5 m quad at ~36 m, ~14 px across: a few per cent

@@ -68,7 +68,7 @@ def _fly_echo(echo_sigma_mps: float | None) -> tuple[float, float]:
     5 Hz, as Service feeds them) see it every 0.8 s, each observation 1.6 s late. Returns the largest
     horizontal error from 15 s on (once observations of the drift have arrived; m) and over the stated sigma."""
     from skyfix.crps.node import Node
-    from skyfix.drivers.state import GpsStatus, VehicleState, Velocity
+    from skyfix.drivers.state import GnssFix, VehicleState, Velocity
     from skyfix.types import GeoFix
 
     rng = np.random.default_rng(5)
@@ -83,7 +83,7 @@ def _fly_echo(echo_sigma_mps: float | None) -> tuple[float, float]:
     for k in range(int(25.0 / 0.2)):
         t = round(0.2 * k, 6)
         lat, lon, alt = FRAME.to_geodetic(*(where(t) + rng.normal(0, 0.3, 3)))
-        gps = GpsStatus(fix_type=3 if t < 6 else 1, satellites=12, h_acc_m=0.5, v_acc_m=0.8, hdop=0.9, vdop=1.2,
+        gps = GnssFix(fix_type=3 if t < 6 else 1, satellites=12, h_acc_m=0.5, v_acc_m=0.8, hdop=0.9, vdop=1.2,
                         lat_deg=float(lat), lon_deg=float(lon), alt_amsl_m=float(alt), alt_ellipsoid_m=float(alt),
                         alt_ellipsoid_source="autopilot", time_s=t)
         v = rng.normal(0, 0.05, 3)

@@ -11,7 +11,7 @@ import pytest
 from mcap.reader import make_reader
 
 from skyfix.crps.node import Node
-from skyfix.drivers.state import GpsStatus, VehicleState, Velocity
+from skyfix.drivers.state import GnssFix, VehicleState, Velocity
 from skyfix.errors import DataError
 from skyfix.fusion.log_mcap import McapLog, iter_messages, read_mcap_log
 from skyfix.fusion.replay import replay
@@ -35,7 +35,7 @@ def fly(node: Node, seconds: float = 8.0, seed: int = 3) -> list:
         for d in ("1", "2"):
             p = p0[d] + v[d] * t
             lat, lon, alt = (float(c) for c in frame.to_geodetic(*(p + rng.normal(0, [0.8, 0.8, 1.5]))))
-            gps = GpsStatus(fix_type=3, satellites=12, h_acc_m=0.8, v_acc_m=1.5, hdop=0.9, vdop=1.2, lat_deg=lat,
+            gps = GnssFix(fix_type=3, satellites=12, h_acc_m=0.8, v_acc_m=1.5, hdop=0.9, vdop=1.2, lat_deg=lat,
                             lon_deg=lon, alt_amsl_m=alt, alt_ellipsoid_m=alt, alt_ellipsoid_source="autopilot",
                             time_s=t)
             vn = v[d] + rng.normal(0, 0.1, 3)

@@ -51,7 +51,7 @@ def test_three_instances_start_fly_apart_and_stop(tmp_path):
                 egm96.wait(5.0)
                 assert egm96.truth()["alt_m"] - t["alt_amsl_m"] == pytest.approx(
                     float(geoid_undulation_m(46.52, 6.63)), abs=0.5)
-                assert t["age_s"] < 1.0 and truth.target_pose().lat == pytest.approx(t["lat_deg"], abs=1e-6)
+                assert t["age_s"] < 1.0 and truth.target_pose().lat_deg == pytest.approx(t["lat_deg"], abs=1e-6)
             finally:
                 truth.close()
         finally:

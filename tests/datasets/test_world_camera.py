@@ -83,7 +83,7 @@ def test_target_where_the_pinhole_model_puts_it_and_ranged(sim):
     assert np.linalg.norm(det.centroid_uv - uv_rep) <= allowed_px + 3.0 * centroid_sigma
     # the silhouette ranges to the true distance within the ranging module's stated sigma
     obs = observe(CAM, pose, det, wc.model.span_m, attitude_sigma_deg=wc.gimbal_cfg.pointing_sigma_deg)
-    sigma_r = math.sqrt(obs.bearing_enu @ obs.cov_enu_m2 @ obs.bearing_enu)
+    sigma_r = math.sqrt(obs.bearing_unit_enu @ obs.cov_enu_m2 @ obs.bearing_unit_enu)
     true_range = float(np.linalg.norm(target_enu[0] - _truth_enu(sim, 0, world)))
     assert sigma_r <= 0.06 * true_range  # a single frame at ~35 m: a few per cent (crps README)
     assert abs(obs.range_m - true_range) <= 3.0 * sigma_r

@@ -33,7 +33,7 @@ def _raw(**kw):
 
 
 def test_gps_raw_int_fields_in_their_units():
-    g = units.gps_status(_raw(), now_s=100.0)
+    g = units.gnss_fix(_raw(), now_s=100.0)
     assert (g.h_acc_m, g.v_acc_m) == (0.3, 0.45)     # millimetres -> metres
     assert (g.hdop, g.vdop) == (1.21, 2.0)           # x100, unitless
     assert g.alt_amsl_m == 372.0
@@ -42,10 +42,10 @@ def test_gps_raw_int_fields_in_their_units():
     assert g.alt_ellipsoid_m == pytest.approx(372.0 + n_m, abs=0.02)  # cache grid: 0.001 deg
     assert g.autopilot_time_s == 5.0
     # the autopilot's own ellipsoid height wins; unknown values become NaN, not numbers
-    g2 = units.gps_status(_raw(alt_ellipsoid=421_833, eph=65535, epv=65535, h_acc=0, v_acc=0), 0.0)
+    g2 = units.gnss_fix(_raw(alt_ellipsoid=421_833, eph=65535, epv=65535, h_acc=0, v_acc=0), 0.0)
     assert g2.alt_ellipsoid_m == 421.833 and g2.alt_ellipsoid_source == "autopilot"
     assert all(math.isnan(x) for x in (g2.hdop, g2.vdop, g2.h_acc_m, g2.v_acc_m))
-    nofix = units.gps_status(_raw(fix_type=1, lat=0, lon=0, alt=0), 0.0)
+    nofix = units.gnss_fix(_raw(fix_type=1, lat=0, lon=0, alt=0), 0.0)
     assert nofix.alt_ellipsoid_source == "none" and math.isnan(nofix.alt_ellipsoid_m)
 
 
@@ -53,18 +53,18 @@ def test_records_give_heights_that_name_their_datum():
     """GPS_RAW_INT's alt is EGM96 AMSL and alt_ellipsoid WGS84: a caller asks for a datum and
     gets a Height that says which, never a float whose datum lives in its name."""
     n_m = float(geoid_undulation_m(46.52, 6.63))  # ~49.8 m: a misread datum is off by that much
-    g = units.gps_status(_raw(), now_s=0.0)
+    g = units.gnss_fix(_raw(), now_s=0.0)
     assert g.height("egm96") == Height(372.0, VerticalDatum.EGM96)
     assert g.height().datum is VerticalDatum.WGS84 and g.height().value_m == pytest.approx(372.0 + n_m, abs=0.01)
     # The autopilot's own ellipsoidal height is kept as sent; its AMSL stays the AMSL it sent.
-    g2 = units.gps_status(_raw(alt_ellipsoid=421_833), 0.0)
+    g2 = units.gnss_fix(_raw(alt_ellipsoid=421_833), 0.0)
     assert g2.height(VerticalDatum.WGS84) == Height(421.833, "wgs84") and g2.height("egm96").value_m == 372.0
     pos, _ = units.position_velocity(mavlink.MAVLink_global_position_int_message(
         1000, 465200000, 66300000, 380_000, 8_000, 0, 0, 0, 0), 0.0)
     assert pos.height().value_m == pytest.approx(380.0 + n_m, abs=0.01)
     assert pos.height().to("egm96", pos.lat_deg, pos.lon_deg).value_m == pytest.approx(380.0, abs=1e-9)
     with pytest.raises(NotAvailableError, match="no fix"):
-        units.gps_status(_raw(fix_type=1, lat=0, lon=0, alt=0), 0.0).height()
+        units.gnss_fix(_raw(fix_type=1, lat=0, lon=0, alt=0), 0.0).height()
 
 
 def test_simulator_reports_like_an_autopilot_and_skyfix_reads_it():
@@ -113,7 +113,7 @@ def test_sitl_telemetry_log_parses_with_real_units():
 
 
 def test_gps_input_comes_back_in_the_same_units():
-    """GPS_INPUT (AMSL, accuracies in metres, DOPs) -> the autopilot's GPS_RAW_INT -> GpsStatus."""
+    """GPS_INPUT (AMSL, accuracies in metres, DOPs) -> the autopilot's GPS_RAW_INT -> GnssFix."""
     with Simulator(SimulatorConfig(vehicles=1, speed=5.0, seed=4, params={"GPS1_TYPE": 14})) as sim:
         with Vehicle.connect(sim.url(0), timeout_s=5.0) as v:
             t = sim.truth(0)

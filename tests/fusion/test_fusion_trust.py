@@ -60,7 +60,7 @@ def test_an_observer_not_yet_localised_is_ignored_not_listed():
     engine.add_velocity("X", 0.0, np.zeros(3), 0.1)               # X reports (so it may observe) but has no fix
     engine.add_velocity("A", 0.0, np.zeros(3), 0.1)
     obs = _forged(0.05)
-    engine.add_relative(RelativeObservation("X", "A", 0.05, obs.bearing_enu, obs.range_m, obs.cov_enu_m2,
+    engine.add_relative(RelativeObservation("X", "A", 0.05, obs.bearing_unit_enu, obs.range_m, obs.cov_enu_m2,
                                             obs.observer_lat_deg, obs.observer_lon_deg, obs.observer_alt_m,
                                             obs.observer_cov_enu_m2))
     assert "relative:X" not in engine.health("A")

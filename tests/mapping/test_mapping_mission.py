@@ -38,7 +38,7 @@ def test_fields_and_constants_match_mavlink_definition():
 
 def test_station_mission_items_pack_as_mavlink_messages():
     plan = plan_three_corners((LAT0, LON0), _at(90, 28), _at(0, 35), 7.0, 10.0, hold_s=2.0)
-    items = mission_items(plan, home_latlon_alt=(LAT0, LON0, 30.0), speed_m_s=3.0)
+    items = mission_items(plan, home_latlon_alt=(LAT0, LON0, 30.0), speed_mps=3.0)
     assert [it.seq for it in items] == list(range(len(items)))
     assert items[0].frame == MAV_FRAME.GLOBAL_INT and items[1].command == MAV_CMD.NAV_TAKEOFF
     assert items[2].command == MAV_CMD.DO_CHANGE_SPEED and items[2].param2 == 3.0

@@ -39,7 +39,7 @@ def test_survey_missions_round_trip(flavour):
             grid = plan_three_corners((lat0, lon0), at(90, 28), at(0, 35), 7.0, 10.0, hold_s=2.0)
             part = split_survey(grid, {"a": (lat0, lon0), "b": at(0, 40)})[1]
             for plan in (photo, part):
-                items = mission_items(plan, speed_m_s=5.0)
+                items = mission_items(plan, speed_mps=5.0)
                 stats = v.upload_mission([to_driver_item(it) for it in items])
                 assert stats.items == len(items)
                 back = v.download_mission()

@@ -227,7 +227,7 @@ def test_dem_geolocation_matches_the_previous_per_fire_implementation(terrain):
         lat, lon, alt = FRAME.to_geodetic(e, n, terrain.max_up_m + 120.0)
         pose = CameraPose(float(lat), float(lon), float(alt), 3.0, -4.0, yaw, g_pitch, 0.0, 0.0, False)
         fixes = geolocate_many(uv, CAM, pose, dem, uncertainty=unc)
-        frame = frame_near(pose.lat, pose.lon, dem.alt_m)
+        frame = frame_near(pose.lat_deg, pose.lon_deg, dem.alt_m)
         for fix, (la, lo, al, cov) in zip(fixes, _previous_geolocate_many(CAM, pose, uv, dem, frame, unc), strict=True):
             assert float(inverse(fix.lat_deg, fix.lon_deg, la, lo)[1]) < 1e-6 and abs(fix.alt_m - al) < 1e-6
             np.testing.assert_allclose(fix.cov_enu_m2, cov, rtol=1e-7, atol=1e-7 * np.abs(cov).max())

@@ -52,7 +52,7 @@ def test_hand_computed_nadir_case():
     # Nadir camera, heading north, 100 m above flat ground: image right is east, image up is north.
     pose = pose_at(0.0, 0.0, 100.0, gimbal_pitch_deg=-90.0)
     centre = geolocate([CAM.cx, CAM.cy], CAM, pose, 30.0)
-    assert float(inverse(pose.lat, pose.lon, centre.lat_deg, centre.lon_deg)[1]) < 1e-3
+    assert float(inverse(pose.lat_deg, pose.lon_deg, centre.lat_deg, centre.lon_deg)[1]) < 1e-3
     du = CAM.fx * math.tan(math.radians(10.0))
     east = geolocate([CAM.cx + du, CAM.cy], CAM, pose, 30.0)
     north = geolocate([CAM.cx, CAM.cy - du], CAM, pose, 30.0)
@@ -84,7 +84,7 @@ def test_covariance_matches_monte_carlo():
     unc = PoseUncertainty(position_sigma_m=1.5, altitude_sigma_m=2.0, tilt_sigma_deg=0.5,
                           yaw_sigma_deg=1.0, pixel_sigma_px=0.7)
     p0, cov = locate_in_frame(CAM, pose, uv, FlatGround(30.0), FRAME, unc)
-    e0, n0, u0 = FRAME.to_enu(pose.lat, pose.lon, pose.alt_m)
+    e0, n0, u0 = FRAME.to_enu(pose.lat_deg, pose.lon_deg, pose.alt_m)
     samples = []
     for _ in range(3000):
         lat, lon, alt = FRAME.to_geodetic(e0 + rng.normal(0, 1.5), n0 + rng.normal(0, 1.5), u0 + rng.normal(0, 2.0))
@@ -184,7 +184,7 @@ def test_dem_ground_iterates_to_the_terrain(tmp_path):
     (lambda p: geolocate([320.0, 256.0], CAM, p, "30"), InputError, "ground_alt_m"),
     (lambda p: geolocate([320.0, 256.0], CAM, p, 30.0, uncertainty=PoseUncertainty(tilt_sigma_deg=-1)),
      InputError, "tilt_sigma_deg"),
-    (lambda p: CameraPose(p.lat, p.lon, float("nan")), InputError, "alt_m"),
+    (lambda p: CameraPose(p.lat_deg, p.lon_deg, float("nan")), InputError, "alt_m"),
 ])
 def test_bad_input(call, error, message):
     with pytest.raises(error, match=message):

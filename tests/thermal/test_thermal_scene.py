@@ -30,10 +30,10 @@ def nadir(e: float, n: float, agl: float) -> CameraPose:
 
 
 def test_fire_timing():
-    f = FireSpec(0.0, 0.0, radius_m=2.0, growth_m_per_s=-0.5, start_s=10.0, end_s=20.0)
+    f = FireSpec(0.0, 0.0, radius_m=2.0, growth_mps=-0.5, start_s=10.0, end_s=20.0)
     assert f.radius_at(9.9) == 0.0 and f.radius_at(10.0) == 2.0
     assert f.radius_at(12.0) == pytest.approx(1.0) and f.radius_at(15.0) == 0.0 and f.radius_at(21.0) == 0.0
-    assert FireSpec(0.0, 0.0, radius_m=1.0, growth_m_per_s=3.0).radius_at(100.0) == 1.0  # no start: constant
+    assert FireSpec(0.0, 0.0, radius_m=1.0, growth_mps=3.0).radius_at(100.0) == 1.0  # no start: constant
     with pytest.raises(InputError):
         FireSpec(0.0, 0.0, radius_m=-1.0)
     with pytest.raises(InputError):

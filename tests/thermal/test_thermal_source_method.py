@@ -29,7 +29,7 @@ def run(fire_en: tuple[float, float], *, roll_deg: float = 0.0, yaw_deg: float =
                       gimbal_pitch_deg=gimbal_pitch_deg, stabilized=False)
     u8 = to_display(scene.render(CAM, pose), span_c=(0.0, 150.0))
     est = source_method_locate(u8, threshold_level=200, hfov_deg=CAM.hfov_deg, vfov_deg=CAM.vfov_deg,
-                               lat_deg=pose.lat, lon_deg=pose.lon, height_m=100.0, heading_deg=yaw_deg,
+                               lat_deg=pose.lat_deg, lon_deg=pose.lon_deg, height_m=100.0, heading_deg=yaw_deg,
                                pitch_deg=0.0, camera_depression_deg=-gimbal_pitch_deg)
     truth = FRAME.to_geodetic(*fire_en, 0.0)
     with warnings.catch_warnings():

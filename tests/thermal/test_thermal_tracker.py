@@ -22,7 +22,7 @@ UNC = PoseUncertainty(position_sigma_m=1.5, tilt_sigma_deg=0.5, pixel_sigma_px=0
 
 
 def noisy(pose: CameraPose, rng: np.random.Generator) -> CameraPose:
-    e, n, u = FRAME.to_enu(pose.lat, pose.lon, pose.alt_m)
+    e, n, u = FRAME.to_enu(pose.lat_deg, pose.lon_deg, pose.alt_m)
     lat, lon, alt = FRAME.to_geodetic(e + rng.normal(0, 1.5), n + rng.normal(0, 1.5), u + rng.normal(0, 1.5))
     return CameraPose(float(lat), float(lon), float(alt), pose.roll_deg + rng.normal(0, 0.5),
                       pose.pitch_deg + rng.normal(0, 0.5), pose.yaw_deg + rng.normal(0, 0.5),
@@ -44,7 +44,7 @@ def truth_of(f: FireSpec) -> tuple[float, float]:
 
 
 def test_fires_appear_grow_and_die():
-    growing = FireSpec(0.0, 0.0, radius_m=0.8, growth_m_per_s=0.1, start_s=0.0, peak_c=600.0)
+    growing = FireSpec(0.0, 0.0, radius_m=0.8, growth_mps=0.1, start_s=0.0, peak_c=600.0)
     late = FireSpec(9.0, -6.0, radius_m=1.0, start_s=4.0, peak_c=500.0)
     dying = FireSpec(-8.0, 7.0, radius_m=1.2, end_s=6.0, peak_c=450.0)
     scene = ThermalScene(FRAME, [growing, late, dying], size_m=200.0, seed=4)
