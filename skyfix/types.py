@@ -58,6 +58,37 @@ class GeoFix:
         object.__setattr__(self, "time_s", validate.finite_scalar("GeoFix.time_s", self.time_s))
         object.__setattr__(self, "cov_enu_m2", _frozen_cov("GeoFix.cov_enu_m2", self.cov_enu_m2, 3))
 
+    @classmethod
+    def many(cls, lat_deg: np.ndarray, lon_deg: np.ndarray, alt_m: np.ndarray, cov_enu_m2: np.ndarray,
+             time_s: float = 0.0, source_id: str = "") -> list[GeoFix]:
+        """Fixes from ``(N,)`` arrays and covariances ``(N, 3, 3)`` sharing a time and a source,
+        with the constructor's checks done once over the arrays (a thermal frame gives one fix
+        per fire; N constructions cost 5x more). Each fix's covariance is a read-only view.
+
+        Example:
+            >>> fixes = GeoFix.many([47.0, 47.1], [8.0, 8.1], [450.0, 460.0], [np.eye(3), 4.0 * np.eye(3)])
+            >>> [(f.lat_deg, f.sigma_up_m) for f in fixes]
+            [(47.0, 1.0), (47.1, 2.0)]
+        """
+        lat = validate.latitude("GeoFix.lat_deg", lat_deg)
+        lon = validate.longitude("GeoFix.lon_deg", lon_deg)
+        alt = validate.finite_array("GeoFix.alt_m", alt_m)
+        cov = validate.covariances("GeoFix.cov_enu_m2", cov_enu_m2, 3).copy()
+        n = cov.shape[0]
+        if lat.shape != (n,) or lon.shape != (n,) or alt.shape != (n,):
+            raise InputError(f"GeoFix.many: lat_deg, lon_deg, alt_m must have shape ({n},) like the covariances, "
+                             f"got {lat.shape}, {lon.shape}, {alt.shape}")
+        t = validate.finite_scalar("GeoFix.time_s", time_s)
+        cov.setflags(write=False)
+        out = []
+        for la, lo, al, c in zip(lat.tolist(), lon.tolist(), alt.tolist(), cov, strict=True):
+            fix = object.__new__(cls)  # the fields are checked above: skip __post_init__
+            for key, value in (("lat_deg", la), ("lon_deg", lo), ("alt_m", al), ("cov_enu_m2", c), ("time_s", t),
+                               ("source_id", source_id)):
+                object.__setattr__(fix, key, value)
+            out.append(fix)
+        return out
+
     @property
     def sigma_horizontal_m(self) -> float:
         """Square root of the larger horizontal covariance eigenvalue, metres (1-sigma)."""

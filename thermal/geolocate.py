@@ -126,8 +126,7 @@ def geolocate_many(hotspots_or_uv, camera: Camera, pose: CameraPose,
     # Frame axes -> each fix's own ENU axes, all fixes at once.
     r = enu_axes_at(lat, lon) @ ecef_to_enu_rotation(frame.lat0_deg, frame.lon0_deg).T
     cov_fix = r @ cov @ np.transpose(r, (0, 2, 1))
-    return [GeoFix(la, lo, al, c, time_s, source_id)
-            for la, lo, al, c in zip(lat.tolist(), lon.tolist(), alt.tolist(), cov_fix, strict=True)]
+    return GeoFix.many(lat, lon, alt, cov_fix, time_s, source_id)
 
 
 def geolocate(hotspot_or_uv, camera: Camera, pose: CameraPose,

@@ -63,3 +63,21 @@ def test_covariance_3x3_fast_path_accepts_and_refuses_exactly_as_the_eigenvalue_
         except InputError:
             accepted = False
         assert accepted == _accepted_by_eigenvalues(m), m
+
+
+def test_covariances_accept_a_stack_exactly_when_covariance_accepts_each_and_name_the_first_refused():
+    rng = np.random.default_rng(8)
+    a = rng.normal(size=(300, 3, 3))
+    good = a @ np.swapaxes(a, 1, 2)
+    good[::7] = np.einsum("ni,nj->nij", a[::7, 0], a[::7, 0])  # rank 1: the boundary, accepted
+    np.testing.assert_array_equal(validate.covariances("cov_m2", good, 3), good)
+    for k, m in ((5, np.diag([1.0, 1.0, -1e-6])), (11, good[11] + np.triu(np.full((3, 3), 1e-6), 1))):
+        bad = good.copy()
+        bad[k] = m
+        with pytest.raises(InputError, match=rf"^cov_m2\[{k}\] must be"):
+            validate.covariances("cov_m2", bad, 3)
+    two = np.array([[[2.0, 0.5], [0.5, 1.0]], [[1.0, 2.0], [2.0, 1.0]]])
+    with pytest.raises(InputError, match=r"cov_m2\[1\] must be positive semi-definite"):
+        validate.covariances("cov_m2", two, 2)
+    with pytest.raises(InputError, match=r"shape \(N, 3, 3\)"):
+        validate.covariances("cov_m2", good[0], 3)
