@@ -183,13 +183,14 @@ def detect_hotspots(frame: np.ndarray, *, threshold: float | None = None, palett
                       "(use radiometric counts or deg C frames for absolute thresholds)",
                       RelativeTemperatureWarning, stacklevel=2)
         thr = auto_threshold_u8(work) if thr is None else validate.finite_scalar("threshold", thr)
-    # work > thr as 0/1 (NaN -> 0), by whichever is faster for the dtype.
-    if work.dtype == np.uint16:
-        mask = cv2.threshold(work, thr, 1, cv2.THRESH_BINARY)[1]
+    # work > thr as uint8, non-zero where hot (NaN is not), by whichever is faster for the dtype.
+    if work.dtype == np.uint16:  # 0/255; OpenCV compares integers with a fractional threshold exactly
+        mask = cv2.compare(work, thr, cv2.CMP_GT)
     else:
         mask = (work > thr).view(np.uint8)
     regions = _candidate_regions(mask, min_area_px)
-    if not regions or cv2.countNonZero(mask) == mask.size:
+    # A frame hot everywhere is one window over all of it.
+    if not regions or (regions[0] == (0, mask.shape[0], 0, mask.shape[1]) and cv2.countNonZero(mask) == mask.size):
         # Only frames with nothing (or everything) hot can be blank: check them fully.
         lo, hi, _, _ = cv2.minMaxLoc(work)
         if math.isnan(lo) or math.isnan(hi):
@@ -198,8 +199,7 @@ def detect_hotspots(frame: np.ndarray, *, threshold: float | None = None, palett
             raise InputError(f"frame is constant ({lo!r} everywhere): dropped, frozen or blank frame")
     out = []
     for r0, r1, c0, c1 in regions:
-        sub = mask[r0:r1, c0:c1].astype(np.uint8)
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(sub, connectivity=8, ltype=cv2.CV_32S)
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(mask[r0:r1, c0:c1], connectivity=8, ltype=cv2.CV_32S)
         labels = cv2.copyMakeBorder(labels, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)  # a component's padded box fits
         for k in range(1, n):
             if stats[k, cv2.CC_STAT_AREA] < min_area_px:
@@ -218,7 +218,7 @@ _RING = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], np.uint8)  # the 8 neighbour
 def _candidate_regions(mask: np.ndarray, min_area_px: int) -> list[tuple[int, int, int, int]]:
     """Pixel windows (r0, r1, c0, c1) around groups of touching 16x16 blocks that hold at
     least ``min_area_px`` hot pixels; scanning only these keeps sparse frames fast.
-    ``mask`` is 0/1 in any dtype."""
+    ``mask`` is uint8, non-zero where hot."""
     b = _BLOCK_PX
     h, w = mask.shape
     nbr, nbc = -(-h // b), -(-w // b)
@@ -226,10 +226,12 @@ def _candidate_regions(mask: np.ndarray, min_area_px: int) -> list[tuple[int, in
     if nbr * b != h or nbc * b != w:
         padded = cv2.copyMakeBorder(mask, 0, nbr * b - h, 0, nbc * b - w, cv2.BORDER_CONSTANT, value=0)
     padded = np.ascontiguousarray(padded)
-    # Read the 0/1 mask 8 bytes at a time: a block is occupied when any of its words is non-zero.
+    # Read the mask 8 bytes at a time: a block is occupied when any of its words is non-zero.
     words = b * padded.itemsize // 8
-    occupied = padded.view(np.uint64).reshape(nbr, b, nbc * words).max(axis=1)
-    occupied = (occupied.reshape(nbr, nbc, words) != 0).any(axis=2)
+    word_max = padded.view(np.uint64).reshape(nbr, b, nbc, words).max(axis=1)
+    occupied = word_max[..., 0] != 0
+    for k in range(1, words):  # or-ing word by word: numpy reduces a short last axis slowly
+        occupied |= word_max[..., k] != 0
     _, _, stats, _ = cv2.connectedComponentsWithStats(occupied.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
     stats = stats[1:]
     # A lone block can hold only stray pixels (dead pixels): count its pixels, all lone
@@ -237,8 +239,10 @@ def _candidate_regions(mask: np.ndarray, min_area_px: int) -> list[tuple[int, in
     lone = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] == 1)
     if lone.size:
         blocks = padded.reshape(nbr, b, nbc, b)[stats[lone, 1], :, stats[lone, 0], :]
-        stray = np.count_nonzero(blocks.reshape(lone.size, b * b), axis=1) < min_area_px
-        stats = np.delete(stats, lone[stray], axis=0)
+        stray = (blocks.reshape(lone.size, b * b) != 0).sum(axis=1) < min_area_px
+        kept = np.ones(stats.shape[0], bool)
+        kept[lone[stray]] = False
+        stats = stats[kept]
     return [(r0 * b, min((r0 + rh) * b, h), c0 * b, min((c0 + cw) * b, w)) for c0, r0, cw, rh, _ in stats.tolist()]
 
 
@@ -259,8 +263,7 @@ def _measure(work: np.ndarray, labels: np.ndarray, stat: np.ndarray, k: int, thr
         patch = patch.astype(np.float32)  # a copy: NaNs are patched in place below
         cv2.patchNaNs(patch, float(thr))
     mine = labels[b0 - r_off + 1:b1 - r_off + 1, a0 - c_off + 1:a1 - c_off + 1] == k
-    smooth = cv2.medianBlur(np.ascontiguousarray(patch), 3)
-    excess = np.where(mine, smooth.astype(np.float32) - np.float32(thr), np.float32(0.0))
+    excess = np.where(mine, np.subtract(cv2.medianBlur(patch, 3), np.float32(thr), dtype=np.float32), np.float32(0.0))
     np.maximum(excess, 0.0, out=excess)
     area = cv2.countNonZero(excess)
     if area < min_area_px:

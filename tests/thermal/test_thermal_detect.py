@@ -197,3 +197,58 @@ def test_caller_frame_is_not_modified():
     before = img.copy()
     detect_hotspots(img)
     np.testing.assert_array_equal(img, before)
+
+
+def _whole_frame_reference(celsius: np.ndarray, thr_c: float, min_area_px: int) -> list[tuple]:
+    """The detector's definition computed the slow way, with scipy on the whole frame:
+    8-connected components of pixels above the threshold, a 3x3 median (edge pixels
+    replicated) within each component's box grown by one pixel, the excess-weighted centroid
+    of the component's pixels still above the threshold, the peak bounded by twice the
+    hottest neighbour's excess."""
+    from scipy import ndimage
+
+    labels, n = ndimage.label(celsius > thr_c, structure=np.ones((3, 3)))
+    out = []
+    for k, box in enumerate(ndimage.find_objects(labels), start=1):
+        rows, cols = box
+        if np.count_nonzero(labels[box] == k) < min_area_px:
+            continue
+        r0, r1 = max(rows.start - 1, 0), min(rows.stop + 1, celsius.shape[0])
+        c0, c1 = max(cols.start - 1, 0), min(cols.stop + 1, celsius.shape[1])
+        patch = np.where(np.isnan(celsius[r0:r1, c0:c1]), thr_c, celsius[r0:r1, c0:c1]).astype(np.float64)
+        mine = labels[r0:r1, c0:c1] == k
+        excess = np.where(mine, np.maximum(ndimage.median_filter(patch, 3, mode="nearest") - thr_c, 0.0), 0.0)
+        if np.count_nonzero(excess) < min_area_px:
+            continue
+        vv, uu = np.mgrid[r0:r1, c0:c1]
+        ring = ndimage.maximum_filter(np.pad(patch, 1, constant_values=-np.inf), footprint=[[1, 1, 1], [1, 0, 1], [1, 1, 1]])
+        peak = np.minimum(patch, 2.0 * ring[1:-1, 1:-1] - thr_c)[mine].max()
+        out.append((np.sum(uu * excess) / excess.sum(), np.sum(vv * excess) / excess.sum(),
+                    np.count_nonzero(excess), peak))
+    return sorted(out, key=lambda s: (-s[2], s[0]))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_block_scan_finds_what_labelling_the_whole_frame_finds(seed):
+    """The detector scans only 16x16 blocks with hot pixels and drops lone blocks of stray
+    pixels; on frames full of dead pixels, hot pairs, NaN holes and fires of every size
+    (frame sizes not multiples of 16, fires on the edges) it reports exactly the
+    whole-frame definition: same fires, centroids to 1e-6 px (float32 sums), same areas."""
+    rng = np.random.default_rng(seed)
+    h, w = 250 + 7 * seed, 333 - 5 * seed
+    img = (25.0 + 3.0 * rng.standard_normal((h, w))).astype(np.float32)
+    vv, uu = np.mgrid[0:h, 0:w]
+    for u, v, s in zip(rng.uniform(-2, w + 2, 14), rng.uniform(-2, h + 2, 14), rng.uniform(0.6, 5.0, 14), strict=True):
+        img += (250.0 * np.exp(-((uu - u) ** 2 + (vv - v) ** 2) / (2 * s * s))).astype(np.float32)
+    for k, s in enumerate((0.7, 0.8, 0.9, 1.1)):  # small fires alone in a block (and dead pixels near them)
+        img += (250.0 * np.exp(-((uu - 16 * (2 * k + 1) - 7.5) ** 2 + (vv - 16 * (k + 3) - 7.5) ** 2) / (2 * s * s))
+                ).astype(np.float32)
+    img[rng.random((h, w)) < 0.0006] = 500.0  # dead pixels: most blocks hold none, a few touch fires
+    img[rng.random((h, w)) < 0.01] = np.nan
+    for min_area in (2, 4, 9):
+        ref = _whole_frame_reference(img.astype(np.float64), 100.0, min_area)
+        got = sorted(detect_hotspots(img, threshold=100.0, min_area_px=min_area), key=lambda s: (-s.area_px, s.u_px))
+        assert len(ref) >= 3 and len(got) == len(ref)
+        for spot, (u, v, area, peak) in zip(got, ref, strict=True):
+            assert spot.u_px == pytest.approx(u, abs=1e-6) and spot.v_px == pytest.approx(v, abs=1e-6)
+            assert spot.area_px == area and spot.peak == pytest.approx(peak, rel=1e-6)
