@@ -37,7 +37,9 @@ def test_sim_cli_serves_and_stops_on_ctrl_c(udp_port, capsys):
         assert state["gps"]["fix_type"] == 3
         time.sleep(0.3)
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=10) == 0
+        # what is asserted is a clean stop (exit 0), not its speed: 1-2 s here under six busy
+        # processes, but once > 10 s in a suite run at load 7
+        assert proc.wait(timeout=60) == 0
     finally:
         if proc.poll() is None:
             proc.kill()
