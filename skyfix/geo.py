@@ -25,10 +25,17 @@ from skyfix.units import LatLonAltArray
 WGS84 = pyproj.Geod(ellps="WGS84")
 
 
-def _geodetic_checked(lat, lon, alt) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _geodetic_checked(lat, lon, alt) -> tuple[np.ndarray, np.ndarray, np.ndarray] | tuple[float, float, float]:
+    """Checked inputs for pyproj: three plain floats stay floats (pyproj transforms them
+    ten times faster than 0-d arrays, to the same values), else broadcast arrays."""
+    if isinstance(lat, float) and isinstance(lon, float) and isinstance(alt, float):
+        validate.latitude("lat", lat), validate.longitude("lon", lon), validate.finite_array("alt", alt)
+        return float(lat), float(lon), float(alt)
     lat_a = validate.latitude("lat", lat)
     lon_a = validate.longitude("lon", lon)
     alt_a = validate.finite_array("alt", alt)
+    if lat_a.shape == lon_a.shape == alt_a.shape:  # broadcasting would return them as they are
+        return lat_a, lon_a, alt_a
     return np.broadcast_arrays(lat_a, lon_a, alt_a)
 
 

@@ -76,6 +76,8 @@ def finite_array(name: str, value: Any) -> np.ndarray:
         ...
         skyfix.errors.InputError: enu_m contains 2 NaN or infinite value(s)
     """
+    if isinstance(value, float) and math.isfinite(value):  # a scalar on a hot path: skip numpy's per-call cost
+        return np.array(value)
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
@@ -143,6 +145,8 @@ def latitude(name: str, value: Any) -> np.ndarray:
         >>> latitude("lat_deg", [47.0, -90.0])
         array([ 47., -90.])
     """
+    if isinstance(value, float) and -90.0 <= value <= 90.0:  # plain float fast path (NaN fails the test)
+        return np.array(value)
     arr = finite_array(name, value)
     if (np.abs(arr) > 90.0).any():
         raise InputError(f"{name} must be within [-90, 90] degrees, got {arr[np.abs(arr) > 90.0].ravel()[:3]}")
@@ -156,6 +160,8 @@ def longitude(name: str, value: Any) -> np.ndarray:
         >>> longitude("lon_deg", 359.5)
         array(359.5)
     """
+    if isinstance(value, float) and -180.0 <= value <= 360.0:  # plain float fast path (NaN fails the test)
+        return np.array(value)
     arr = finite_array(name, value)
     if ((arr < -180.0) | (arr > 360.0)).any():
         raise InputError(f"{name} must be within [-180, 360] degrees, got {arr.ravel()[:3]}")

@@ -81,3 +81,20 @@ def test_covariances_accept_a_stack_exactly_when_covariance_accepts_each_and_nam
         validate.covariances("cov_m2", two, 2)
     with pytest.raises(InputError, match=r"shape \(N, 3, 3\)"):
         validate.covariances("cov_m2", good[0], 3)
+
+
+@pytest.mark.parametrize("check", [validate.finite_array, validate.latitude, validate.longitude])
+@pytest.mark.parametrize("value", [47.0, -90.0, 90.0, 90.0 + 1e-9, -180.0, -180.5, 360.0, 360.5, np.nan, np.inf, -np.inf])
+def test_scalar_fast_paths_accept_and_refuse_as_the_array_path(check, value):
+    """A Python float (or numpy float64) takes a plain-float path: same 0-d array, same refusals."""
+    try:
+        expected = check("x_deg", np.array([value]))[0]
+    except InputError:
+        expected = None
+    for scalar in (float(value), np.float64(value)):
+        if expected is None:
+            with pytest.raises(InputError, match="x_deg"):
+                check("x_deg", scalar)
+        else:
+            got = check("x_deg", scalar)
+            assert isinstance(got, np.ndarray) and got.shape == () and got.dtype == np.float64 and got == expected
