@@ -61,6 +61,7 @@ class LocalDem:
         self.block_max_m = pad.reshape(nb, _BLOCK, nb, _BLOCK).max(axis=(1, 3))
         # The same in a ring of +inf: no ray is ever in free air off the grid.
         self._block_top_m = np.pad(self.block_max_m, 1, constant_values=np.inf)
+        self._window = 0.5 * self.step_m * np.arange(4 * _BLOCK + 1)  # a march's samples along a ray, m
 
     def _resample(self, ee, nn, heights_m, transform, crs, h_mid) -> np.ndarray:
         x0, dx, _, y0, _, dy = transform
@@ -77,11 +78,10 @@ class LocalDem:
 
     def sample(self, east_m: np.ndarray, north_m: np.ndarray) -> np.ndarray:
         """Surface ``up`` (m) at frame (east, north) (any shape); NaN off the grid or in holes."""
-        n = self.up_m.shape[0]
-        col = (east_m + self.half_m) / self.step_m
-        row = (self.half_m - north_m) / self.step_m
-        out = bilinear(self.up_m, col.astype(np.float32).ravel(), row.astype(np.float32).ravel())
-        out[(col.ravel() < 0) | (row.ravel() < 0) | (col.ravel() > n - 1) | (row.ravel() > n - 1)] = np.nan
+        col = ((east_m + self.half_m) / self.step_m).ravel()
+        row = ((self.half_m - north_m) / self.step_m).ravel()
+        out = bilinear(self.up_m, col.astype(np.float32), row.astype(np.float32))
+        out[(np.minimum(col, row) < 0) | (np.maximum(col, row) > self.up_m.shape[0] - 1)] = np.nan
         return out.reshape(np.shape(east_m))
 
     def cast(self, origin_m: np.ndarray, dirs: np.ndarray) -> np.ndarray:
@@ -95,21 +95,21 @@ class LocalDem:
         t = self._skip_air(origin_m, dirs, np.maximum((origin_m[2] - self.max_up_m) / -d_up, 0.0))
         out = np.full(dirs.shape[0], np.nan)
         todo = np.arange(dirs.shape[0])
-        step = 0.5 * self.step_m
-        window = step * np.arange(4 * _BLOCK + 1)
+        window = self._window
         for _ in range(10_000):
+            d = dirs if todo.size == dirs.shape[0] else dirs[todo]
             ts = t[todo, None] + window[None, :]
-            p = origin_m + ts[..., None] * dirs[todo, None, :]
-            gap = p[..., 2] - self.sample(p[..., 0], p[..., 1])
+            # origin + ts * d per axis: the same sums as on (n, k, 3) arrays, without them
+            gap = (origin_m[2] + ts * d[:, 2:3]) - self.sample(origin_m[0] + ts * d[:, 0:1], origin_m[1] + ts * d[:, 1:2])
             below = ~(gap > 0)  # NaN (off the grid, a hole) stops the march too
-            hit = below.any(axis=1)
             k = np.argmax(below, axis=1)
             rows = np.arange(todo.size)
+            hit = below[rows, k]
             if np.any(hit & ((k == 0) | ~np.isfinite(gap[rows, k]))):
                 raise GeometryError("a ray leaves the DEM or meets a no-data hole before the ground")
             if hit.any():
                 h = rows[hit]
-                out[todo[hit]] = self._refine(origin_m, dirs[todo[hit]], ts[h, k[h] - 1], gap[h, k[h] - 1],
+                out[todo[hit]] = self._refine(origin_m, d[hit], ts[h, k[h] - 1], gap[h, k[h] - 1],
                                               ts[h, k[h]], gap[h, k[h]])
             todo = todo[~hit]
             if todo.size == 0:
@@ -126,14 +126,12 @@ class LocalDem:
         nb = self.block_max_m.shape[0]
         span = float(np.max((o[2] - self.min_up_m) / -d[:, 2] - t))
         ts = t[:, None] + 0.5 * block_m * np.arange(max(int(span / (0.5 * block_m)) + 2, 2))[None, :]
-        p = o + ts[..., None] * d[:, None, :]
-        i = np.clip(np.floor((self.half_m - p[..., 1]) / block_m), -1, nb).astype(int) + 1
-        j = np.clip(np.floor((p[..., 0] + self.half_m) / block_m), -1, nb).astype(int) + 1
-        top = self._block_top_m[i, j]
-        clear = p[..., 2] > top
-        free = clear[:, :-1] & clear[:, 1:]  # step k (from sample k to k + 1) is in free air
-        first_blocked = np.where(free.all(axis=1), free.shape[1], np.argmin(free, axis=1))
-        return ts[np.arange(t.size), first_blocked]
+        i = np.minimum(np.maximum(np.floor((self.half_m - (o[1] + ts * d[:, 1:2])) / block_m), -1), nb).astype(int) + 1
+        j = np.minimum(np.maximum(np.floor(((o[0] + ts * d[:, 0:1]) + self.half_m) / block_m), -1), nb).astype(int) + 1
+        clear = (o[2] + ts * d[:, 2:3]) > self._block_top_m[i, j]
+        free = np.zeros(clear.shape, bool)  # step k (from sample k to k + 1) is in free air; the last never
+        np.logical_and(clear[:, :-1], clear[:, 1:], out=free[:, :-1])
+        return ts[np.arange(t.size), np.argmin(free, axis=1)]
 
     def _refine(self, o, d, ta, fa, tb, fb) -> np.ndarray:
         """Regula falsi between an above (fa > 0) and a below (fb <= 0) point; the kept
