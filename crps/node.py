@@ -23,6 +23,7 @@ import threading
 from collections.abc import Callable
 from typing import Protocol
 
+from skyfix.crps.arrival_lag import ArrivalLag
 from skyfix.errors import NotAvailableError, SkyfixError
 from skyfix.fusion.config import FusionConfig
 from skyfix.fusion.engine import FusionEngine
@@ -68,16 +69,18 @@ class Node:
     """Fusion of one drone (and whatever else it hears of) in the ENU frame about ``origin``.
 
     ``origin`` (lat_deg, lon_deg, ellipsoidal alt_m); ``lag_s`` and ``config`` as for
-    :class:`FusionEngine`; ``sink`` opened by ``make_sink(header)`` receives every engine
+    :class:`FusionEngine`; ``max_lag_s`` above ``lag_s``: the lag follows how late camera observations
+    arrive, up to that (:class:`skyfix.crps.arrival_lag.ArrivalLag`); ``sink`` opened by ``make_sink(header)`` receives every engine
     input. Times are seconds on one clock shared by every input (UNIX time in the
     service, simulated time in the demo).
     """
 
     def __init__(self, drone_id: str, origin: tuple[float, float, float], *, lag_s: float = 2.0,
-                 config: FusionConfig | None = None,
+                 config: FusionConfig | None = None, max_lag_s: float | None = None,
                  make_sink: Callable[[dict], LogSink] | None = None) -> None:
         self.drone_id = str(drone_id)
         self.engine = FusionEngine(origin, lag_s=lag_s, config=config)
+        self.arrival_lag = ArrivalLag(lag_s, lag_s if max_lag_s is None else max_lag_s)
         self.frame = self.engine.frame
         self._sink = make_sink(log_header(self.engine)) if make_sink is not None else None
         self._lock = threading.Lock()
@@ -115,7 +118,17 @@ class Node:
                    h_sigma_m=known(gps.h_acc_m), v_sigma_m=known(gps.v_acc_m), hdop=known(gps.hdop))
 
     def add_relative(self, obs: RelativeObservation) -> None:
-        """A camera observation of one drone by another (this drone's or a peer's)."""
+        """A camera observation of one drone by another (this drone's or a peer's); how late it came
+        (engine time minus exposure) sizes the lag for the next ones."""
+        with self._lock:
+            now_s = self.engine.now_s
+            self.arrival_lag.arrived(now_s, now_s - float(obs.time_s))
+            lag_s = self.arrival_lag.propose(now_s)
+            if lag_s is not None:
+                if self._sink is not None:
+                    self._sink.record("lag", {"lag_s": lag_s})
+                self.engine.set_lag(lag_s)
+                log.info("node %s: fusion lag %.2f s (camera observations arrive late)", self.drone_id, lag_s)
         self._call("relative", obs=obs)
 
     def add_fix(self, drone_id: str, fix: GeoFix) -> None:

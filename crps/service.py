@@ -74,6 +74,7 @@ class ServiceConfig:
     estimate_hz: float = 10.0
     inject_hz: float = 5.0  # GPS_INPUT rate, per wall second (ArduPilot calls a GPS unhealthy beyond ~245 ms gaps)
     lag_s: float = 2.0      # fusion's smoothing window, s of the clock (late camera observations within it count)
+    max_lag_s: float | None = None  # above lag_s: the window grows up to this while camera observations come late
     # 1-sigma error (m/s) of the autopilot's velocity while it flies on the injected fix: its EKF, with no other
     # velocity source, echoes that fix (node.ECHO_VELOCITY_SIGMA_MPS); None: its velocity does not depend on the
     # injected position (optical flow, or a simulator reporting its true velocity)
@@ -270,7 +271,7 @@ class Service:
                 return
             # the swarm's roster is the fusion's roster of trusted observers
             config = fusion_config(self.cfg.roster, self.cfg.lag_s)
-            self.node = Node(self.cfg.drone_id, origin, lag_s=self.cfg.lag_s, config=config,
+            self.node = Node(self.cfg.drone_id, origin, lag_s=self.cfg.lag_s, config=config, max_lag_s=self.cfg.max_lag_s,
                              make_sink=self.outputs.fusion_sink)
             log.info("fusion origin %.7f, %.7f, %.2f m", *origin)
         if state is not None and state.link_ok:

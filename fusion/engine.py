@@ -88,6 +88,7 @@ class FusionEngine:
         self.lag_s = validate.positive_scalar("lag_s", lag_s)
         if self.lag_s < 3 * self.config.state_dt_s:
             raise InputError(f"lag_s must be at least 3 state steps ({3 * self.config.state_dt_s:g} s), got {lag_s}")
+        self._lag0_s = self.lag_s  # set_lag moves the late-input time-outs by the lag's growth beyond this
         cfg = self.config
         self._gate = {dof: cfg.gate_chi2(dof) for dof in (1, 2, 3)}
         self._chains = StateChains(self.frame, self.lag_s, cfg)
@@ -292,7 +293,7 @@ class FusionEngine:
         if not observer.anchored:
             log.debug("observer %s not localised: observation of %s unused", observer_id, target_id)
             return
-        monitor = self._monitor(target, f"relative:{observer_id}", self.config.relative_timeout_s, t)
+        monitor = self._monitor(target, f"relative:{observer_id}", self._relative_timeout_s(), t)
         if monitor.repeat(t):
             log.debug("duplicate message at time_s=%s dropped", t)
             return
@@ -316,6 +317,32 @@ class FusionEngine:
         s_tgt, v_tgt = self._chains.shift(target, t, k)
         self._window.relative(observer.index, target.index, k, offset + s_tgt - s_obs,
                               cov + EYE3 * (v_obs + v_tgt))
+
+    def set_lag(self, lag_s: float) -> None:
+        """A new smoothing window (s, >= 3 state steps), for inputs that arrive later (or sooner) than before.
+
+        A longer lag lets the window grow forward: inputs older than what was already marginalised stay
+        refused. Relative observations' time-out and the contributing window move by as much as the lag
+        (a camera observer whose observations arrive that late is not silent). Recorded in the log.
+
+        Example:
+            >>> engine = FusionEngine((47.0, 8.0, 400.0), lag_s=2.0)
+            >>> engine.set_lag(6.0)
+            >>> engine.lag_s
+            6.0
+        """
+        lag = validate.positive_scalar("lag_s", lag_s)
+        if lag < 3 * self.config.state_dt_s:
+            raise InputError(f"lag_s must be at least 3 state steps ({3 * self.config.state_dt_s:g} s), got {lag_s}")
+        self._record("lag", dict(lag_s=lag))
+        self.lag_s = self._chains.lag_s = lag
+        if self._window is not None:
+            self._window.set_lag(lag)
+        timeout_s = self._relative_timeout_s()
+        for drone in self._drones.values():
+            for name, monitor in drone.monitors.items():
+                if name.startswith("relative:"):
+                    monitor.timeout_s = timeout_s
 
     # -- solving and answers ----------------------------------------------------------
     def update(self) -> None:
@@ -478,6 +505,9 @@ class FusionEngine:
         else:
             self._window.position(drone.index, k, enu + shift, cov + EYE3 * shift_var, robust)
 
+    def _relative_timeout_s(self) -> float:
+        return self.config.relative_timeout_s + max(0.0, self.lag_s - self._lag0_s)
+
     def _tick(self) -> None:
         for drone in self._drones.values():
             for monitor in drone.monitors.values():
@@ -488,6 +518,6 @@ class FusionEngine:
         return {name: monitor.health for name, monitor in drone.monitors.items()}
 
     def _contributing(self, drone: DroneState) -> tuple[str, ...]:
-        window_s = self.config.contributing_window_s
+        window_s = self.config.contributing_window_s + max(0.0, self.lag_s - self._lag0_s)
         return tuple(sorted(name for name, m in drone.monitors.items()
                             if self.now_s - m.last_fused_s <= window_s and m.state is not HealthState.LOST))

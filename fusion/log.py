@@ -7,7 +7,8 @@ Format ``skyfix.fusion.log`` version 1, JSON lines (UTF-8, one object per line):
 - then one record per engine call, in call order: ``{"op": "gnss" | "velocity" |
   "altitude" | "fix" | "relative", "args": {...the add_<op> keyword arguments...}}``,
   ``{"op": "update"}`` whenever the smoother ran (replay runs it at the same points, so
-  it reproduces the estimates exactly), and optionally ``{"op": "truth", "drone": id,
+  it reproduces the estimates exactly), ``{"op": "lag", "args": {"lag_s": s}}`` when the
+  engine's lag changed (``FusionEngine.set_lag``), and optionally ``{"op": "truth", "drone": id,
   "t": s, "lat": deg, "lon": deg, "alt": m}`` written by simulators (ignored by the
   engine, plotted by ``skyfix fusion replay``).
 
@@ -36,7 +37,7 @@ log = logging.getLogger(__name__)
 LOG_FORMAT = "skyfix.fusion.log"
 LOG_VERSION = 1
 INPUT_OPS = ("gnss", "velocity", "altitude", "fix", "relative")
-KNOWN_OPS = (*INPUT_OPS, "update", "truth")
+KNOWN_OPS = (*INPUT_OPS, "update", "lag", "truth")
 
 
 def _plain(value):

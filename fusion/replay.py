@@ -101,6 +101,9 @@ def replay(log_path: str | Path, *, every_update: int = 1,
             continue
         args = record["args"]
         try:
+            if op == "lag":  # the recording engine's lag changed (FusionEngine.set_lag)
+                engine.set_lag(**args)
+                continue
             getattr(engine, f"add_{op}")(**args)
         except SkyfixError as exc:
             n_rejected += 1

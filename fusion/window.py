@@ -79,6 +79,7 @@ class GraphWindow:
         self._new_measurements: list[tuple[int, int]] = []  # (bucket, slot) of measurement factors since the last solve
         self._n_new_factors = 0
         self._newest_step = -1
+        self._marginalised_before = 0               # every step older than this one is gone (a lag may grow)
         self._optimised: set[int] = set()
         self._tail_index: dict[int, int] = {}      # key -> row block in the tail covariance
         self._tail_cov: np.ndarray | None = None
@@ -99,8 +100,14 @@ class GraphWindow:
         return self.epoch_s + k * self.dt_s
 
     def oldest_alive_step(self) -> int:
-        """Steps at or after this one are in the window; older ones are (or will be at the next update) marginalised."""
-        return max(0, self._newest_step - self.lag_steps)
+        """Steps at or after this one are in the window; older ones are (or will be at the next update) marginalised.
+        After the lag grew (:meth:`set_lag`), steps already marginalised stay gone: the window grows forward."""
+        return max(0, self._newest_step - self.lag_steps, self._marginalised_before)
+
+    def set_lag(self, lag_s: float) -> None:
+        """A new window length (s); a shorter one takes effect at the next :meth:`update`."""
+        self.lag_s = float(lag_s)
+        self.lag_steps = int(np.ceil(self.lag_s / self.dt_s))
 
     @property
     def pending(self) -> bool:
@@ -351,6 +358,7 @@ class GraphWindow:
 
     def _marginalise(self, before_step: int) -> None:
         """Eliminate every variable of steps < before_step; keep their information as a prior."""
+        self._marginalised_before = max(self._marginalised_before, before_step)
         old_steps = sorted(k for k in self._keys_by_step if k < before_step)
         if not old_steps:
             return

@@ -45,10 +45,20 @@ def figure(res: RecoveryResult, name: str) -> float:
     return float(res.figures[name])
 
 
+def story_of(res: RecoveryResult) -> str:
+    """The run's timeline and figures: what a failure report needs to tell load from logic."""
+    lines = [f"{t:7.1f} {what}" for t, what in res.timeline]
+    lines.append(f"outcome {res.outcome}, landed {res.landing_error_m:.2f} m, max recovery error "
+                 f"{res.max_recovery_error_h_m:.2f} m, first fix {res.loss_to_first_fused_fix_s:.1f} s, "
+                 f"separation {res.min_separation_m:.1f} m")
+    lines.append("figures: " + ", ".join(f"{k}={v:.3g}" for k, v in sorted(res.figures.items())))
+    return "\n".join(lines)
+
+
 def assert_safe(res: RecoveryResult, whole_recovery: bool = True) -> None:
     """Home (landed <= 3 m from home) or holding with a fused position <= 5 m from the truth; never
     more than 5 m off while recovering (``whole_recovery`` False: the caller checks the error); separation kept."""
-    story = "\n".join(f"{t:7.1f} {what}" for t, what in res.timeline)
+    story = story_of(res)
     assert res.outcome in ("home", "holding"), f"outcome {res.outcome}\n{story}"
     if res.outcome == "home":
         assert res.landing_error_m <= HOME_M, story
@@ -92,7 +102,7 @@ def test_swarm_link_loses_a_fifth_of_the_messages():
 def test_mavlink_link_to_the_lost_drone_drops_for_3_s():
     res = fly(mav_outage_s=3.0)
     assert figure(res, "mavlink_dropped") > 10.0  # heartbeats, telemetry and GPS_INPUT lost both ways
-    story = "\n".join(f"{t:7.1f} {what}" for t, what in res.timeline)
+    story = story_of(res)
     assert_safe(res, whole_recovery=False)
     # while the link is down (and until its telemetry is back in the fusion window) no GPS_INPUT reaches the
     # autopilot, and d2's fusion has no velocity: its fix stays where the last observation put it while the
