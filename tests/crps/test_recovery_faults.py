@@ -131,9 +131,9 @@ def test_forged_observation_without_the_swarm_key_is_dropped_and_counted():
     "full suite and alone (15:00); that failure's figures were not captured"))
 def test_gnss_coming_back_30_m_off_is_not_trusted():
     res = fly(gnss_return_offset_m=30.0)
-    assert math.isfinite(figure(res, "gnss_back_t_s"))
+    assert math.isfinite(figure(res, "gnss_back_t_s")), story_of(res)
     # never consistent with the helpers' fix (the offset stays): never trusted, the drone still lands home
-    assert not math.isfinite(figure(res, "gnss_trusted_again_t_s"))
+    assert not math.isfinite(figure(res, "gnss_trusted_again_t_s")), story_of(res)
     assert_safe(res)
 
 
