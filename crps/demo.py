@@ -64,7 +64,10 @@ def _report(result, out: Path, elapsed_s: float) -> str:
     lines += ["", f"d2 {verdict}: {result.landing_error_m:.2f} m from its take-off point (goal <= 3 m: {met})",
               f"  GNSS lost -> first position from the helpers' cameras: {result.loss_to_first_fused_fix_s:.1f} s",
               f"  largest horizontal error of d2's fused position while recovering: "
-              f"{result.max_recovery_error_h_m:.2f} m (RMS {f.get('recovery_error_rms_h_m', math.nan):.2f} m)",
+              f"{result.max_recovery_error_h_m:.2f} m (RMS {f.get('recovery_error_rms_h_m', math.nan):.2f} m; "
+              f"{f.get('max_recovery_error_gnss_frame_h_m', math.nan):.2f} m against the swarm's GNSS frame: the GNSS "
+              f"error every receiver shares, up to {f.get('common_gnss_error_max_h_m', math.nan):.2f} m here, is in "
+              "the helpers' fixes and no drone can see it)",
               f"  closest approach between two drones: {result.min_separation_m:.1f} m (kept >= 10 m)",
               f"  helper frames searched with d2 in view (above their horizon) in which it was detected: {100 * result.detection_share:.0f} %"]
     if math.isfinite(f.get("recovery_mean_nees_3dof", math.nan)):

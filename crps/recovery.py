@@ -126,10 +126,11 @@ def _wind(cfg: RecoveryConfig, rng: np.random.Generator):
     return WindField(mean_enu_mps=mean, gust_sigma_mps=0.2 * cfg.wind_mps, seed=cfg.seed)
 
 
-def _apply_gnss_model(sim, model: GnssErrorModel, seed: int) -> None:
+def _apply_gnss_model(sim, model: GnssErrorModel, seed: int) -> CommonGnssError | None:
     """Give every simulated receiver the run's error model: the area's common error (one seeded track that
     all of them sample at their own fix times) and its own wandering error, drawn from the model's steady
-    state (a receiver switched on minutes before take-off, not one whose error starts at zero)."""
+    state (a receiver switched on minutes before take-off, not one whose error starts at zero). Returns the
+    common track (None: nothing shared), for scoring."""
     common = CommonGnssError(seed * 7919 + 11, model.common_sigma_m, model.common_tau_s) \
         if model.common_sigma_m > 0 else None
     with sim.lock:
@@ -141,6 +142,7 @@ def _apply_gnss_model(sim, model: GnssErrorModel, seed: int) -> None:
             gps.bias_sigma_m, gps.bias_tau_s = model.own_sigma_m, model.own_tau_s
             gps.noise_sigma_m, gps.common = model.white_sigma_m, common
             gps.step(20.0 * model.own_tau_s)  # forgets its start: a steady-state draw
+    return common
 
 
 def _west_of(cfg: RecoveryConfig) -> tuple[float, float, float]:
@@ -195,7 +197,7 @@ class _Run:
         self.sim = Simulator(SimulatorConfig(vehicles=len(IDS) - self.external, speed=cfg.speed, seed=cfg.seed,
                                              spacing_m=spacing, home=home, geoid_m=geoid_m, wind=_wind(cfg, self.rng),
                                              params={"GPS_AUTO_SWITCH": 0})).start()  # GPS_PRIMARY picks
-        _apply_gnss_model(self.sim, cfg.gnss, cfg.seed)
+        common = _apply_gnss_model(self.sim, cfg.gnss, cfg.seed)
         self.sitl_truth = None
         if self.external:
             from skyfix.datasets.sitl import SitlTruth
@@ -205,7 +207,7 @@ class _Run:
             self.sitl_truth.wait(30.0)
         self.key = secrets.token_bytes(32)
         self.faults = Faults(cfg, self)
-        self.recorder = Recorder(self.sim, IDS, LOST, self.truth)
+        self.recorder = Recorder(self.sim, IDS, LOST, self.truth, common=common)
         self.services, self.threads, self.cameras = [], [], []
         self.t_loss: float | None = None
         self.timeline: list[tuple[float, str]] = []

@@ -21,9 +21,10 @@ HOME_RADIUS_M = 3.0
 class Recorder:
     """Truth and belief samples of a run with drones ``ids`` (index ``lost`` is the one that loses GNSS)."""
 
-    def __init__(self, sim, ids: tuple[str, ...], lost: int, truth=None) -> None:
-        """``truth(k)`` the truth of drone ``k`` (default: the simulator's vehicle ``k``)."""
-        self.sim, self.ids, self.lost = sim, ids, lost
+    def __init__(self, sim, ids: tuple[str, ...], lost: int, truth=None, common=None) -> None:
+        """``truth(k)`` the truth of drone ``k`` (default: the simulator's vehicle ``k``); ``common`` the GNSS
+        error every receiver of the run shares (a :class:`skyfix.datasets.gnss_error.CommonGnssError`, or None)."""
+        self.sim, self.ids, self.lost, self.common = sim, ids, lost, common
         self.truth = truth or sim.truth
         self.rows: list[dict] = []
         # (helper index, t_s, target, detected, in view, searched: False when the eye did not look, e.g. the
@@ -64,6 +65,9 @@ class Recorder:
             e, n, u = (float(c) for c in self.sim.world.to_enu(fix.lat_deg, fix.lon_deg, fix.alt_m))
             row.update({"fused_east_m": e, "fused_north_m": n, "fused_up_m": u,
                         "fused_sigma_h_m": fix.sigma_horizontal_m, "fused_cov_enu_m2": fix.cov_enu_m2})
+        if self.common is not None and t >= 0.0:
+            c = self.common.at(t)
+            row.update({"common_east_m": float(c[0]), "common_north_m": float(c[1]), "common_up_m": float(c[2])})
         row["sources"] = " ".join(est.sources) if est is not None else ""
         row["mode"] = svc.help.mode.value if svc.help is not None else ""
         with self._lock:
@@ -105,6 +109,19 @@ class Recorder:
         err, _ = self._errors()
         return float(np.hypot(err[:, 0], err[:, 1]).max()) if len(err) else math.nan
 
+    def common_errors(self) -> np.ndarray:
+        """(N, 3) the GNSS error all receivers shared at each sample while recovering (zeros: none shared).
+        The helpers' fixes carry it, so a fix resting on their observations carries it too: no receiver of
+        the swarm can see it (the error against the swarm's GNSS frame is the fused one minus this)."""
+        return np.array([[r.get(f"common_{k}_m", 0.0) for k in ("east", "north", "up")] for r in self._recovering()]
+                        ).reshape(-1, 3)
+
+    def max_recovery_error_gnss_frame_m(self) -> float:
+        """The largest horizontal error while recovering against the swarm's GNSS frame (truth + common error)."""
+        err, _ = self._errors()
+        rel = err - self.common_errors()
+        return float(np.hypot(rel[:, 0], rel[:, 1]).max()) if len(rel) else math.nan
+
     def error_around(self, t0_s: float, t1_s: float) -> dict[str, float]:
         """While recovering: the largest horizontal error outside [t0_s, t1_s] (m) and, inside it, the largest
         error in units of the stated horizontal sigma (honesty while a window of inputs was missing)."""
@@ -145,7 +162,10 @@ class Recorder:
         with self._lock:
             frames = list(self.frames)
         final = self._final()
-        return {**final, "recovery_error_rms_h_m": float(np.sqrt(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2)))
+        common_h = np.hypot(*self.common_errors()[:, :2].T)
+        return {**final, "max_recovery_error_gnss_frame_h_m": self.max_recovery_error_gnss_frame_m(),
+                "common_gnss_error_max_h_m": float(common_h.max()) if len(common_h) else math.nan,
+                "recovery_error_rms_h_m": float(np.sqrt(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2)))
                 if len(err) else math.nan,
                 "recovery_mean_nees_3dof": float(np.mean(nees)) if nees else math.nan,
                 "helper_frames": float(len(frames)), "helper_frames_in_view": float(sum(f[4] for f in frames)),

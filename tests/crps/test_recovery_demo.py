@@ -29,6 +29,10 @@ def test_demo_brings_the_lost_drone_home_and_writes_its_files(tmp_path, capsys):
     assert report["detection_share"] >= 0.5
     # the fused fix follows the truth within its stated covariance (3-D NEES averages ~3 when consistent)
     assert 0.1 < report["figures"]["recovery_mean_nees_3dof"] < 9.0
+    # the error against the swarm's GNSS frame differs from the one against the truth by the shared GNSS error
+    # (realistic receivers: 1.4 m per axis common), which the recorder must have seen
+    common_m, frame_m = (report["figures"][k] for k in ("common_gnss_error_max_h_m", "max_recovery_error_gnss_frame_h_m"))
+    assert 0.0 < common_m < 10.0 and abs(frame_m - report["max_recovery_error_h_m"]) <= common_m + 1e-9
     events = [what for _, what in report["timeline"]]
     assert any("hold" in e for e in events) and any("return_home (positioned by helpers)" in e for e in events)
     assert any(e.startswith("d1: helping d2") or e.startswith("d3: helping d2") for e in events)
