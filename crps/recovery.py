@@ -394,7 +394,10 @@ class _Run:
         figures["gnss_trusted_again_t_s"] = rec.gnss_trusted_again_s(figures["gnss_back_t_s"])
         if self.faults.outage is not None:  # no GPS_INPUT reaches the autopilot then: the error is not flown on
             start, end = self.faults.outage
-            around = rec.error_around(start, end + lost.cfg.lag_s)  # telemetry back into the fusion window
+            # until the observations of the drop's end have arrived (as late as the node's lag grew for them)
+            # the error the drop left cannot be corrected
+            late_s = lost.node.arrival_lag.largest_s if lost.node is not None else lost.cfg.lag_s
+            around = rec.error_around(start, end + late_s)
             figures.update({f"mav_outage_{k}": v for k, v in around.items()})
         eyes = [s.help.eye for s in self.services if s.help is not None and s.help.eye is not None]
         figures["helper_frames_dropped"] = float(sum(e.frames_dropped for e in eyes))  # skipped, never queued
