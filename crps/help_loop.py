@@ -231,24 +231,26 @@ class HelpLoop:
         self._aim(now_s, dec.helping, dec.target)
 
     def _aim(self, now_s: float, target_id: str, target_pos) -> None:
-        """Gimbal at the target's newest fix (moved to now with its velocity); the eye looks around it."""
+        """Gimbal at where this helper's own eye last saw the target (fresh), else at the target's newest fix,
+        moved to now with the target's velocity; the eye searches around that fix (its prior gate)."""
         if self.eye is None:
             return
         own = self.svc.node.fix(self.id, now_s)
         known = self._peer_fix.get(target_id)
+        vel = known[1] if known is not None else np.zeros(3)
         if known is not None:
-            fix, vel = known
-            frame = geo.LocalFrame(fix.lat_deg, fix.lon_deg, fix.alt_m)
-            dt = max(0.0, now_s - fix.time_s)
-            lat, lon, alt = (float(c) for c in frame.to_geodetic(*(vel * dt)))
-            prior = GeoFix(lat, lon, alt, fix.cov_enu_m2, now_s, fix.source_id)
+            prior = _moved(known[0], vel, now_s)
         elif target_pos is not None:
             prior = GeoFix(*target_pos, np.diag([25.0, 25.0, 9.0]), now_s, f"request:{target_id}")
         else:
             return
+        # a fix a few metres off at 30 m puts the target at the frame's edge and the next fix further off:
+        # the camera follows what it sees, while the search window stays the requester's fix
+        seen = self.eye.sighting(target_id, now_s)
+        aim = prior if seen is None else _moved(seen, vel, now_s)
         if own is not None:
-            az_deg, dist_m = geo.inverse(own.lat_deg, own.lon_deg, prior.lat_deg, prior.lon_deg)
-            pitch_deg = math.degrees(math.atan2(prior.alt_m - own.alt_m, max(float(dist_m), 1e-3)))
+            az_deg, dist_m = geo.inverse(own.lat_deg, own.lon_deg, aim.lat_deg, aim.lon_deg)
+            pitch_deg = math.degrees(math.atan2(aim.alt_m - own.alt_m, max(float(dist_m), 1e-3)))
             self.eye.point(float(az_deg), pitch_deg)
         self.eye.set_target(target_id, prior)
 
@@ -270,6 +272,13 @@ class HelpLoop:
     def _flavour(self) -> str:
         vehicle = self.svc.vehicle
         return vehicle.autopilot if vehicle is not None and vehicle.autopilot in ("ardupilot", "px4") else "ardupilot"
+
+
+def _moved(fix: GeoFix, vel_enu_mps: np.ndarray, now_s: float) -> GeoFix:
+    """``fix`` moved on to ``now_s`` at ``vel_enu_mps`` (ENU m/s; never back in time)."""
+    frame = geo.LocalFrame(fix.lat_deg, fix.lon_deg, fix.alt_m)
+    lat, lon, alt = (float(c) for c in frame.to_geodetic(*(vel_enu_mps * max(0.0, now_s - fix.time_s))))
+    return GeoFix(lat, lon, alt, fix.cov_enu_m2, now_s, fix.source_id)
 
 
 def _requester_mode(flavour: str, role: str) -> str:

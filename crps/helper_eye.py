@@ -29,7 +29,7 @@ from skyfix.camera import Camera, CameraPose
 from skyfix.crps.detection import Detection
 from skyfix.crps.fit import SilhouetteFit
 from skyfix.crps.model import DroneModel, shape_table
-from skyfix.crps.observation import observe, shape_consistent
+from skyfix.crps.observation import locate, observe, shape_consistent
 from skyfix.crps.prior import PriorWindow, prior_gate, prior_window
 from skyfix.crps.silhouette import SilhouetteDetector
 from skyfix.crps.track import Tracker
@@ -53,6 +53,7 @@ class EyeConfig:
     attitude_sigma_deg: float = 0.5    # 1-sigma pointing error of the reported gimbal attitude
     prior_sigma_m: float = 2.0         # added to the prior's sigma: the target moves, the fix lags
     min_elevation_deg: float = 1.5     # look only above the horizon: the silhouette detector wants sky behind
+    sighting_fresh_s: float = 2.0      # the gimbal follows this eye's own last sighting while it is this recent
 
 
 class _GatedDetector:
@@ -96,6 +97,7 @@ class HelperEye:
         self._tracker: Tracker | None = None
         self._tracker_camera: Camera | None = None
         self._fresh = False
+        self._sighting: tuple[str, GeoFix] | None = None  # (target, where this eye last saw it)
         self.last_searched = False  # whether observe_frame's last frame was searched for the target
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True, name=f"skyfix-eye-{drone_id}")
@@ -111,8 +113,19 @@ class HelperEye:
         with self._lock:
             changed = self._target is None or target_id is None or self._target[0] != target_id
             self._target = None if target_id is None or prior is None else (str(target_id), prior)
+            if changed:
+                self._sighting = None
         if changed:
             self._fresh = True  # a new target: the worker starts a new track at its next frame
+
+    def sighting(self, target_id: str, now_s: float) -> GeoFix | None:
+        """Where this eye last saw ``target_id`` (its own observation: own fused position plus the ranged
+        offset, WGS84), if within ``sighting_fresh_s`` of ``now_s``; else None."""
+        with self._lock:
+            seen = self._sighting
+        if seen is None or seen[0] != str(target_id) or now_s - seen[1].time_s > self.cfg.sighting_fresh_s:
+            return None
+        return seen[1]
 
     def take(self) -> list[RelativeObservation]:
         """The observations made since the last call."""
@@ -174,6 +187,15 @@ class HelperEye:
         except Exception:  # noqa: BLE001 - a camera thread must outlive a bug in one frame
             log.exception("helper %s camera frame failed", self.drone_id)
 
+    def _sight(self, target_id: str, obs: RelativeObservation) -> None:
+        """Keep where this eye saw the target: the gimbal follows its own track, not only the requester's fix
+        (a fix a few metres off at 30 m range puts the target at the frame's edge, then outside it)."""
+        if not obs.has_observer_position:
+            return
+        seen = locate([obs])
+        with self._lock:
+            self._sighting = (target_id, seen)  # sighting() answers for this target only
+
     def _pose(self, frame) -> tuple[CameraPose, GeoFix] | None:
         own = self.own_fix(frame.t_s)
         if own is None:
@@ -218,7 +240,10 @@ class HelperEye:
         obs = observe(camera, pose, det, self.cfg.target_span_m, model=self.model, observer_id=self.drone_id,
                       target_id=target_id, time_s=frame.t_s, attitude_sigma_deg=self.cfg.attitude_sigma_deg,
                       observer_cov_enu_m2=own.cov_enu_m2)
-        return obs if math.isfinite(obs.range_m) and obs.range_m > 0 else None
+        if not math.isfinite(obs.range_m) or obs.range_m <= 0:
+            return None
+        self._sight(target_id, obs)
+        return obs
 
 
 def _elevation_deg(own: GeoFix, target: GeoFix) -> float:

@@ -79,6 +79,26 @@ def test_helper_eye_observes_the_target_and_fusion_places_it(seed):
         err = obs.bearing_unit_enu * obs.range_m - true_offset
         nis.append(float(err @ np.linalg.solve(obs.cov_enu_m2 + obs.observer_cov_enu_m2, err)))
     assert np.mean(np.array(nis) < CHI2_3DOF_999) >= 0.9, f"normalised errors {np.round(nis, 1)}"
+    # where its own eye saw the target (the gimbal follows it): fresh, within its covariance of the truth
+    seen = eye.sighting("t", observations[-1].time_s + 1.0)
+    true_enu = np.array([target["east_m"], target["north_m"], target["up_m"]])
+    off = np.array([float(c) for c in sim.world.to_enu(seen.lat_deg, seen.lon_deg, seen.alt_m)]) - true_enu
+    assert float(off @ np.linalg.solve(seen.cov_enu_m2, off)) < CHI2_3DOF_999, off
+    assert eye.sighting("t", observations[-1].time_s + 2.5) is None  # older than sighting_fresh_s: not followed
+    assert eye.sighting("other", observations[-1].time_s) is None
+    # aimed at its own sighting, the target centred in view, a requester's fix 20 m off (2 m sigma) still
+    # refuses it: the search window is the requester's fix, not where the camera points
+    frame_enu = np.array([float(c) for c in sim.world.to_enu(prior.lat_deg, prior.lon_deg, prior.alt_m)])
+    lat, lon, alt = (float(c) for c in sim.world.to_geodetic(*(frame_enu + np.array([20.0, 0.0, 0.0]))))
+    wrong = GeoFix(lat, lon, alt, prior.cov_enu_m2, prior.time_s, "peer:t")
+    own = _receiver_fix(sim, 1, 0.8)
+    az_deg, dist_m = geo.inverse(own.lat_deg, own.lon_deg, seen.lat_deg, seen.lon_deg)
+    eye.point(float(az_deg), math.degrees(math.atan2(seen.alt_m - own.alt_m, float(dist_m))))
+    sim.run_steps(10)
+    frame = cam()
+    assert cam.last_truth.in_view(0)
+    assert eye.observe_frame(frame, "t", wrong) is None
+    assert eye.observe_frame(frame, "t", prior) is not None  # the same frame, searched around the right fix
     # ranging: a 0.5 m quad at ~36 m, ~14 px across: a few per cent
     assert abs(np.median(ranges) - 1.0) < 0.05, f"range / true range {np.round(ranges, 3)}"
     # the requester's fusion (its velocity, the helper's fix, the observations) places it within 3 sigma
@@ -89,7 +109,6 @@ def test_helper_eye_observes_the_target_and_fusion_places_it(seed):
         engine.add_velocity("t", obs.time_s, np.zeros(3), 0.2)
         engine.add_relative(obs)
     est = engine.estimate("t")
-    true_enu = np.array([target["east_m"], target["north_m"], target["up_m"]])
     err = est.enu_m - true_enu
     assert "relative:h" in est.sources
     assert float(err @ np.linalg.solve(est.cov_enu_m2, err)) < CHI2_3DOF_999, (err, np.sqrt(np.diag(est.cov_enu_m2)))
