@@ -37,12 +37,15 @@ TELEMETRY_VELOCITY_SIGMA_MPS = 0.2
 #: While the autopilot flies on the position skyfix injects, an EKF that takes no other velocity source
 #: (ArduPilot with EK3_SRC2_VELXY 0) keeps its IMU's fast motion but takes the slow part of its velocity
 #: from the injected positions: that part echoes the injected fix's own error rate, a wandering error of
-#: ECHO_VELOCITY_SIGMA_MPS correlated over ECHO_CORRELATION_S (seen on ArduPilot SITL: 1-2.5 m/s off the
-#: truth for seconds while the fix ran ahead). Taken as white 0.2 m/s it outvoted the helpers' observations
-#: and the drone ran away; it is fused as the velocity bias's walk of a Gauss-Markov process of that size
-#: (sigma sqrt(2 / tau) per sqrt s), which the helpers' observations then measure.
-ECHO_VELOCITY_SIGMA_MPS = 1.0
-ECHO_CORRELATION_S = 10.0
+#: ECHO_VELOCITY_SIGMA_MPS correlated over ECHO_CORRELATION_S. Fitted on ArduPilot Copter SITL (GLOBAL_POSITION_INT
+#: velocity minus SIM_STATE's, over the first 16-17 s of injection while the helpers' observations still came,
+#: three runs): 0.25-1.5 m/s per axis (worst run 1.5 m/s north, while the drone turned for home), 1/e time
+#: 0.4-4 s. Taken as white 0.2 m/s it outvoted the helpers' observations and the drone ran away; a 1 m/s,
+#: 10 s echo (walk 0.45 m/s per sqrt s) still let the fix fall 4 m behind on the way home. It is fused as the
+#: velocity bias's walk of a Gauss-Markov process of that size (sigma sqrt(2 / tau) per sqrt s: 1.2 m/s per
+#: sqrt s), which the helpers' observations then measure.
+ECHO_VELOCITY_SIGMA_MPS = 1.5
+ECHO_CORRELATION_S = 3.0
 
 
 def echo_bias_walk(sigma_mps: float) -> float:
