@@ -28,7 +28,7 @@ import numpy as np
 from skyfix.camera import Camera
 from skyfix.geo import destination
 from skyfix.mapping.coverage import verify_coverage
-from skyfix.mapping.mission import MAV_CMD, mission_items
+from skyfix.mapping.mission import mission_items
 from skyfix.mapping.split import split_survey
 from skyfix.mapping.survey import (
     extend_survey,
@@ -36,6 +36,7 @@ from skyfix.mapping.survey import (
     plan_polygon,
     plan_three_corners,
 )
+from skyfix.mission import mavlink
 
 LAT0, LON0 = 40.6303, -8.6575  # University of Aveiro
 
@@ -110,13 +111,6 @@ def coverage_cases() -> bool:
     return ok
 
 
-def to_driver_item(item):
-    from skyfix.drivers.mission import MissionItem
-
-    return MissionItem(item.command, item.x / 1e7, item.y / 1e7, item.z, item.param1, item.param2, item.param3,
-                       item.param4, item.frame, bool(item.autocontinue))
-
-
 def simulator_missions() -> bool:
     print("== 4. missions through the simulator (MAVLink on 127.0.0.1)")
     try:
@@ -136,7 +130,7 @@ def simulator_missions() -> bool:
                 plan = plan_polygon(poly, Camera.from_fov(1200, 900, 70.0), 20.0, 0.7, 0.6)
                 items = mission_items(plan, speed_mps=5.0)
                 t0 = time.perf_counter()
-                v.upload_mission([to_driver_item(it) for it in items])
+                v.upload_mission(items)
                 back = v.download_mission()
                 dt = time.perf_counter() - t0
                 same = len(back) == len(items) and all(
@@ -148,7 +142,7 @@ def simulator_missions() -> bool:
                 if flavour != "ardupilot":
                     continue
                 photos, _ = plan.photo_positions_en_m()
-                n_lines = sum(1 for it in items if it.command == MAV_CMD.DO_SET_CAM_TRIGG_DIST and it.param1 > 0)
+                n_lines = sum(1 for it in items if it.command == mavlink.MAV_CMD_DO_SET_CAM_TRIGG_DIST and it.param1 > 0)
                 v.set_mode("GUIDED")
                 v.arm()
                 v.takeoff(20.0)

@@ -5,6 +5,7 @@ each request with exactly the item asked for, so a lost item is retransmitted al
 and when the vehicle goes quiet it resends the last packet (COUNT or item). ArduPilot
 stores home as item 0 and flies from item 1: skyfix inserts a placeholder on upload
 and drops item 0 on download, so callers see the same list on both autopilots.
+The item type is the foundation's :class:`skyfix.mission.MissionItem` (re-exported here).
 """
 
 from __future__ import annotations
@@ -12,16 +13,15 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING
 
 import msgspec
-from msgspec import Meta
 
-from skyfix import validate
 from skyfix.drivers.mav import mavlink
 from skyfix.drivers.request import DONE, transact
 from skyfix.errors import CommandRejected, InputError, SkyfixTimeout
 from skyfix.jsonfile import json_schema
+from skyfix.mission import MissionItem
 
 if TYPE_CHECKING:
     from skyfix.drivers.vehicle import Vehicle
@@ -29,73 +29,6 @@ if TYPE_CHECKING:
 M = mavlink
 _RESULTS = {v: k for k, v in vars(M).items() if k.startswith("MAV_MISSION_") and isinstance(v, int)
             and k not in ("MAV_MISSION_TYPE_MISSION", "MAV_MISSION_RESULT_ENUM_END")}
-
-
-@dataclass(frozen=True)
-class MissionItem:
-    """One mission item. ``lat_deg``/``lon_deg`` WGS84 (0, 0 = here), ``alt_m`` in ``frame``
-    (default MAV_FRAME_GLOBAL_RELATIVE_ALT_INT: metres above home); params per MAV_CMD."""
-
-    command: Annotated[int, Meta(ge=0, le=65535, description="MAV_CMD")]
-    lat_deg: Annotated[float, Meta(ge=-90, le=90)] = 0.0
-    lon_deg: Annotated[float, Meta(ge=-180, le=180)] = 0.0
-    alt_m: float = 0.0
-    param1: float = 0.0
-    param2: float = 0.0
-    param3: float = 0.0
-    param4: float = 0.0
-    frame: int = M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
-    autocontinue: bool = True
-
-    def __post_init__(self) -> None:
-        validate.latitude("MissionItem.lat_deg", validate.finite_scalar("MissionItem.lat_deg", self.lat_deg))
-        validate.longitude("MissionItem.lon_deg", validate.finite_scalar("MissionItem.lon_deg", self.lon_deg))
-        validate.finite_scalar("MissionItem.alt_m", self.alt_m)
-        for name in ("param1", "param2", "param3"):
-            validate.finite_scalar(f"MissionItem.{name}", getattr(self, name))
-
-    @classmethod
-    def waypoint(cls, lat_deg: float, lon_deg: float, alt_m: float, *, hold_s: float = 0.0,
-                 acceptance_m: float = 0.0) -> MissionItem:
-        """Fly to a point ``alt_m`` above home; hold ``hold_s``; reached within ``acceptance_m``."""
-        return cls(M.MAV_CMD_NAV_WAYPOINT, lat_deg, lon_deg, alt_m, hold_s, acceptance_m)
-
-    @classmethod
-    def takeoff(cls, alt_m: float) -> MissionItem:
-        return cls(M.MAV_CMD_NAV_TAKEOFF, 0.0, 0.0, validate.positive_scalar("alt_m", alt_m))
-
-    @classmethod
-    def land(cls, lat_deg: float = 0.0, lon_deg: float = 0.0) -> MissionItem:
-        return cls(M.MAV_CMD_NAV_LAND, lat_deg, lon_deg, 0.0)
-
-    @classmethod
-    def rtl(cls) -> MissionItem:
-        return cls(M.MAV_CMD_NAV_RETURN_TO_LAUNCH)
-
-    @classmethod
-    def camera_trigger_distance(cls, distance_m: float) -> MissionItem:
-        """Trigger the camera every ``distance_m`` metres from here on (0 stops)."""
-        validate.nonnegative_scalar("distance_m", distance_m)
-        return cls(M.MAV_CMD_DO_SET_CAM_TRIGG_DIST, param1=float(distance_m), param3=1.0,
-                   frame=M.MAV_FRAME_MISSION)
-
-    @classmethod
-    def change_speed(cls, speed_mps: float) -> MissionItem:
-        return cls(M.MAV_CMD_DO_CHANGE_SPEED, param1=1.0,
-                   param2=validate.positive_scalar("speed_mps", speed_mps), param3=-1.0,
-                   frame=M.MAV_FRAME_MISSION)
-
-    def to_message(self, seq: int, target_system: int, target_component: int):
-        return M.MAVLink_mission_item_int_message(
-            target_system, target_component, seq, self.frame, self.command, 0, int(self.autocontinue),
-            self.param1, self.param2, self.param3, self.param4, int(round(self.lat_deg * 1e7)),
-            int(round(self.lon_deg * 1e7)), float(self.alt_m), M.MAV_MISSION_TYPE_MISSION)
-
-    @classmethod
-    def from_message(cls, msg) -> MissionItem:
-        scale = 1e7 if msg.get_type() == "MISSION_ITEM_INT" else 1.0
-        return cls(msg.command, msg.x / scale, msg.y / scale, msg.z, msg.param1, msg.param2, msg.param3,
-                   msg.param4, msg.frame, bool(msg.autocontinue))
 
 
 class MissionFile(msgspec.Struct, kw_only=True):

@@ -11,7 +11,7 @@ shapely through this package):
 - calibration: :func:`calibrate`, :class:`BoardSpec` (``calibrate``, ``board``);
 - surveys: :func:`plan_survey`, :func:`plan_three_corners`, :func:`plan_polygon`,
   :func:`extend_survey` (``survey``), :func:`split_survey`, :func:`handoff` (``split``),
-  :func:`verify_coverage` (``coverage``), :func:`mission_items` / :class:`MissionItemInt`
+  :func:`verify_coverage` (``coverage``), :func:`mission_items` (of the foundation's :class:`~skyfix.mission.MissionItem`)
   (``mission``), file writers in ``export``;
 - photo-to-model pipeline: :func:`run_pipeline`, :class:`PipelineConfig`, :class:`Report`
   (``pipeline``, ``report``; stages in ``photos``, ``sfm``, ``georef``, ``dsm``, ``ortho``,
@@ -31,7 +31,7 @@ _EXPORTS = {
     "read_metadata": "exif", "BoardSpec": "board", "Calibration": "calibrate", "calibrate": "calibrate",
     "SurveyPlan": "survey", "SurveyPart": "survey", "plan_survey": "survey", "plan_three_corners": "survey",
     "plan_polygon": "survey", "extend_survey": "survey", "split_survey": "split", "handoff": "split",
-    "verify_coverage": "coverage", "MissionItemInt": "mission", "mission_items": "mission",
+    "verify_coverage": "coverage", "MissionItem": "skyfix.mission", "mission_items": "mission",
     "load_camera": "skyfix.camera_io", "save_camera": "skyfix.camera_io",
     "PipelineConfig": "pipeline", "run_pipeline": "pipeline", "Report": "report", "load_photos": "photos",
 }

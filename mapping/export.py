@@ -14,8 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from skyfix.mapping.mission import MAV_FRAME, MissionItemInt, mission_items
+from skyfix.mapping.mission import mission_items
 from skyfix.mapping.survey import SurveyPart, SurveyPlan
+from skyfix.mission import MissionItem, mavlink
 
 __all__ = ["write_geojson", "write_kml", "write_png", "write_qgc_mission", "plan_geojson"]
 
@@ -85,19 +86,19 @@ def write_kml(path: str | os.PathLike, plan_or_parts) -> None:
 
 
 #: The file holds degrees, not 1e7 integers: *_INT frames are written as their float twins.
-_WPL_FRAME = {MAV_FRAME.GLOBAL_INT: 0, MAV_FRAME.GLOBAL_RELATIVE_ALT_INT: 3}
+_WPL_FRAME = {mavlink.MAV_FRAME_GLOBAL_INT: mavlink.MAV_FRAME_GLOBAL,
+              mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT: mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT}
 
 
-def write_qgc_mission(path: str | os.PathLike, items: Sequence[MissionItemInt]) -> None:
+def write_qgc_mission(path: str | os.PathLike, items: Sequence[MissionItem]) -> None:
     """Mission file in the ``QGC WPL 110`` text format (QGroundControl, Mission Planner, MAVProxy);
     item 0 is home there, marked current as Mission Planner writes it."""
     lines = ["QGC WPL 110"]
-    for it in items:
+    for seq, it in enumerate(items):
         params = ["0" if math.isnan(p) else f"{p:.8g}" for p in (it.param1, it.param2, it.param3, it.param4)]
-        current = 1 if it.seq == 0 else it.current
-        lines.append("\t".join([str(it.seq), str(current), str(_WPL_FRAME.get(it.frame, it.frame)), str(it.command),
-                                *params,
-                                f"{it.x / 1e7:.7f}", f"{it.y / 1e7:.7f}", f"{it.z:.3f}", str(it.autocontinue)]))
+        lines.append("\t".join([str(seq), str(int(seq == 0)), str(_WPL_FRAME.get(it.frame, it.frame)), str(it.command),
+                                *params, f"{it.lat_deg:.7f}", f"{it.lon_deg:.7f}", f"{it.alt_m:.3f}",
+                                str(int(it.autocontinue))]))
     Path(path).write_text("\n".join(lines) + "\n")
 
 

@@ -33,6 +33,27 @@ def finite_scalar(name: str, value: Any) -> float:
     return out
 
 
+def finite_or_nan_scalar(name: str, value: Any) -> float:
+    """Return ``value`` as a float that is finite or NaN (MAVLink's "default / unchanged"
+    parameter); raise for an infinity or a non-number.
+
+    Example:
+        >>> finite_or_nan_scalar("param4", float("nan"))
+        nan
+        >>> finite_or_nan_scalar("param1", float("inf"))
+        Traceback (most recent call last):
+        ...
+        skyfix.errors.InputError: param1 must be finite or NaN, got inf
+    """
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a real number, got {value!r}") from None
+    if math.isinf(out):
+        raise InputError(f"{name} must be finite or NaN, got {out}")
+    return out
+
+
 def positive_scalar(name: str, value: Any) -> float:
     """Return ``value`` as a float, or raise if it is not finite and > 0.
 

@@ -106,20 +106,20 @@ class Guidance:
             self._loiter_until_s = math.inf
             if item.command in (M.MAV_CMD_NAV_RETURN_TO_LAUNCH, M.MAV_CMD_NAV_LAND):
                 self._land_xy = est[:2].copy()
-                if item.command == M.MAV_CMD_NAV_LAND and (item.x or item.y):
-                    self._land_xy = self.global_target_enu(item.frame, item.x / 1e7, item.y / 1e7, 0.0)[:2]
+                if item.command == M.MAV_CMD_NAV_LAND and (item.lat_deg or item.lon_deg):
+                    self._land_xy = self.global_target_enu(item.frame, item.lat_deg, item.lon_deg, 0.0)[:2]
                 self._rtl_phase = "climb"
         if item.command == M.MAV_CMD_NAV_TAKEOFF:
-            goal = self.home_enu_m[2] + item.z if item.frame != M.MAV_FRAME_GLOBAL_INT else \
-                item.z + self.geoid_m - self.world.alt0_m
+            goal = self.home_enu_m[2] + item.alt_m if item.frame != M.MAV_FRAME_GLOBAL_INT else \
+                item.alt_m + self.geoid_m - self.world.alt0_m
             if self.landed and not self.armed:
                 return np.zeros(3)
             if est[2] >= goal - 0.3:
                 self._advance_mission()
             return self._pos_control(np.array([*self._hold_enu_m[:2], goal]))
         if item.command in (M.MAV_CMD_NAV_WAYPOINT, M.MAV_CMD_NAV_LOITER_TIME):
-            target = self.global_target_enu(item.frame, item.x / 1e7, item.y / 1e7, item.z) \
-                if (item.x or item.y) else np.array([*est[:2], self.home_enu_m[2] + item.z])
+            target = self.global_target_enu(item.frame, item.lat_deg, item.lon_deg, item.alt_m) \
+                if (item.lat_deg or item.lon_deg) else np.array([*est[:2], self.home_enu_m[2] + item.alt_m])
             radius = item.param2 if item.command == M.MAV_CMD_NAV_WAYPOINT and item.param2 > 0 \
                 else self.acceptance_radius_m()
             hold_s = item.param1

@@ -7,8 +7,11 @@ progress; ``service_upload`` runs after each simulation step).
 
 from __future__ import annotations
 
-from skyfix.datasets.sim.vehicle import MissionItem
+import dataclasses
+
 from skyfix.drivers.mav import mavlink
+from skyfix.errors import InputError
+from skyfix.mission import MissionItem
 
 M = mavlink
 #: Mission upload timings, simulated seconds, as the firmware's: (re-request a missing item
@@ -56,12 +59,13 @@ class MissionProtocol:
             else:
                 self._request_item()  # duplicate or out of order: ask again for what we need
             return
-        if msg.get_type() == "MISSION_ITEM":
-            x, y = int(round(msg.x * 1e7)), int(round(msg.y * 1e7))
-        else:
-            x, y = msg.x, msg.y
-        up["items"][msg.seq] = MissionItem(msg.seq, msg.frame, msg.command, msg.param1, msg.param2,
-                                           msg.param3, msg.param4, x, y, msg.z, msg.autocontinue)
+        try:
+            up["items"][msg.seq] = MissionItem.from_message(msg)
+        except InputError as exc:  # NaN or out-of-range position/params: refuse the upload, as firmware does
+            self._upload = None
+            self._mission_ack(addr, M.MAV_MISSION_INVALID, msg)
+            self.statustext(f"Mission: item {msg.seq} refused: {exc}", M.MAV_SEVERITY_WARNING)
+            return
         up["next"] += 1
         up["last_rx"] = self.vehicle.t_s
         if up["next"] == up["count"]:
@@ -106,14 +110,11 @@ class MissionProtocol:
             self._mission_ack(addr, M.MAV_MISSION_INVALID_SEQUENCE, msg)
             return
         it = v.mission[msg.seq]
-        x, y, z, frame = it.x, it.y, it.z, it.frame
         if v.flavour == "ardupilot" and msg.seq == 0:  # item 0 is the current home
             lat, lon, alt = v.geodetic_amsl(v.home_enu_m)
-            x, y, z, frame = int(round(lat * 1e7)), int(round(lon * 1e7)), alt, M.MAV_FRAME_GLOBAL_INT
-        self.send(M.MAVLink_mission_item_int_message(
-            msg.get_srcSystem(), msg.get_srcComponent(), it.seq, frame, it.command,
-            1 if it.seq == v.mission_seq else 0, it.autocontinue, it.param1, it.param2, it.param3,
-            it.param4, x, y, z, 0), addr)
+            it = dataclasses.replace(it, lat_deg=lat, lon_deg=lon, alt_m=alt, frame=M.MAV_FRAME_GLOBAL_INT)
+        self.send(it.to_message(msg.seq, msg.get_srcSystem(), msg.get_srcComponent(),
+                                current=msg.seq == v.mission_seq), addr)
 
     def _on_mission_clear(self, msg, addr) -> None:
         self.vehicle.set_mission([])

@@ -27,6 +27,7 @@ from skyfix.drivers.mav import mavlink as M
 from skyfix.drivers.modes import ARDUCOPTER_MODES, PX4_MODES
 from skyfix.errors import InputError
 from skyfix.geo import LocalFrame
+from skyfix.mission import MissionItem
 
 G_MPS2 = 9.80665
 FORCE_MAGIC = 21196  # param2 of MAV_CMD_COMPONENT_ARM_DISARM that bypasses checks
@@ -79,23 +80,6 @@ class Refusal(Exception):
         super().__init__(text)
         self.result = result
         self.text = text
-
-
-@dataclass
-class MissionItem:
-    """A stored MISSION_ITEM_INT (x/y in degE7 for global frames, z metres)."""
-
-    seq: int
-    frame: int
-    command: int
-    param1: float = 0.0
-    param2: float = 0.0
-    param3: float = 0.0
-    param4: float = 0.0
-    x: int = 0
-    y: int = 0
-    z: float = 0.0
-    autocontinue: int = 1
 
 
 @dataclass

@@ -38,6 +38,8 @@ DIMENSIONLESS: dict[str, str] = {
     "distortion.py::Fisheye.opencv_coefficients": _COEFF,
     "distortion.py::Barrel.radial_factor.r": "radius normalised by the half image size",
     "rotation.py::euler_zyx_from_r_ned_from_frd.r": _ROT,
+    **{f"mission.py::MissionItem.param{i}": "MAVLink's param1..4 as on the wire: the unit is the MAV_CMD's "
+       "(waypoint: hold s, radius m; change speed: m/s)" for i in range(1, 5)},
 }
 
 

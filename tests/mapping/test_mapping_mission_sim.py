@@ -8,18 +8,11 @@ import pytest
 
 from skyfix.camera import Camera
 from skyfix.datasets.sim import Simulator, SimulatorConfig
-from skyfix.drivers.mission import MissionItem
 from skyfix.drivers.vehicle import Vehicle
 from skyfix.geo import destination
-from skyfix.mapping.mission import MissionItemInt, mission_items
+from skyfix.mapping.mission import mission_items
 from skyfix.mapping.split import split_survey
 from skyfix.mapping.survey import plan_polygon, plan_three_corners
-
-
-def to_driver_item(item: MissionItemInt) -> MissionItem:
-    """The drivers' item for one exported item (the conversion a caller writes; mapping never imports drivers)."""
-    return MissionItem(item.command, item.x / 1e7, item.y / 1e7, item.z, item.param1, item.param2, item.param3,
-                       item.param4, item.frame, bool(item.autocontinue))
 
 
 @pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
@@ -40,14 +33,16 @@ def test_survey_missions_round_trip(flavour):
             part = split_survey(grid, {"a": (lat0, lon0), "b": at(0, 40)})[1]
             for plan in (photo, part):
                 items = mission_items(plan, speed_mps=5.0)
-                stats = v.upload_mission([to_driver_item(it) for it in items])
+                stats = v.upload_mission(items)  # the same type: no conversion
                 assert stats.items == len(items)
                 back = v.download_mission()
                 assert len(back) == len(items)
                 for a, b in zip(back, items, strict=True):
                     assert a.command == b.command and a.frame == b.frame
-                    assert round(a.lat_deg * 1e7) == b.x and round(a.lon_deg * 1e7) == b.y
-                    assert a.alt_m == pytest.approx(b.z, abs=1e-4)
+                    # degE7 on the wire: 1e-7 deg (1 cm) is the resolution; alt_m is a float32 there
+                    assert round(a.lat_deg * 1e7) == round(b.lat_deg * 1e7)
+                    assert round(a.lon_deg * 1e7) == round(b.lon_deg * 1e7)
+                    assert a.alt_m == pytest.approx(b.alt_m, abs=1e-4)
                     for name in ("param1", "param2", "param3"):
                         assert getattr(a, name) == pytest.approx(getattr(b, name))
                     assert (math.isnan(a.param4) and math.isnan(b.param4)) or a.param4 == pytest.approx(b.param4)
