@@ -13,23 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from skyfix import validate
-from skyfix.errors import InputError
 
 __all__ = ["range_from_reference", "range_from_size"]
-
-
-def _positive_array(name: str, value) -> np.ndarray:
-    arr = validate.finite_array(name, value)
-    if np.any(arr <= 0.0):
-        raise InputError(f"{name} must be > 0, got {arr[arr <= 0.0].ravel()[:3]}")
-    return arr
-
-
-def _nonnegative_array(name: str, value) -> np.ndarray:
-    arr = validate.finite_array(name, value)
-    if np.any(arr < 0.0):
-        raise InputError(f"{name} must be >= 0, got {arr[arr < 0.0].ravel()[:3]}")
-    return arr
 
 
 def range_from_size(size_px, object_size_m, focal_px, size_sigma_px=0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -39,10 +24,10 @@ def range_from_size(size_px, object_size_m, focal_px, size_sigma_px=0.0) -> tupl
     size in metres, ``focal_px`` focal length in pixels, ``size_sigma_px`` 1-sigma of
     ``size_px``. Returns ``(range_m, range_sigma_m)`` arrays of the broadcast shape.
     """
-    s = _positive_array("size_px", size_px)
-    size_m = _positive_array("object_size_m", object_size_m)
-    f = _positive_array("focal_px", focal_px)
-    sigma = _nonnegative_array("size_sigma_px", size_sigma_px)
+    s = validate.positive_array("size_px", size_px)
+    size_m = validate.positive_array("object_size_m", object_size_m)
+    f = validate.positive_array("focal_px", focal_px)
+    sigma = validate.nonnegative_array("size_sigma_px", size_sigma_px)
     range_m = f * size_m / s
     return range_m, range_m * sigma / s
 
@@ -53,9 +38,9 @@ def range_from_reference(d0_m, s0_px, s1_px, s1_sigma_px=0.0) -> tuple[np.ndarra
     ``d0_m`` range of the reference image, ``s0_px`` apparent size there, ``s1_px``
     apparent size now (same camera and zoom), ``s1_sigma_px`` 1-sigma of ``s1_px``.
     """
-    d0 = _positive_array("d0_m", d0_m)
-    s0 = _positive_array("s0_px", s0_px)
-    s1 = _positive_array("s1_px", s1_px)
-    sigma = _nonnegative_array("s1_sigma_px", s1_sigma_px)
+    d0 = validate.positive_array("d0_m", d0_m)
+    s0 = validate.positive_array("s0_px", s0_px)
+    s1 = validate.positive_array("s1_px", s1_px)
+    sigma = validate.nonnegative_array("s1_sigma_px", s1_sigma_px)
     range_m = d0 * s0 / s1
     return range_m, range_m * sigma / s1

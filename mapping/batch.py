@@ -58,8 +58,8 @@ class CorrectionSpec:
         if (self.barrel is None) == (self.camera is None):
             raise InputError("CorrectionSpec needs exactly one of barrel= or camera=")
         q = self.jpeg_quality
-        if q is not None and (isinstance(q, bool) or not isinstance(q, int) or not 1 <= q <= 100):
-            raise InputError(f"jpeg_quality must be an integer in [1, 100] or None, got {q!r}")
+        if q is not None:
+            object.__setattr__(self, "jpeg_quality", validate.integer_in("jpeg_quality", q, 1, 100))
 
     def undistortion(self, width: int, height: int) -> Undistortion:
         """Tables for a ``width x height`` photo (a calibration is rescaled if the aspect matches)."""

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyproj
 
+from skyfix import validate
 from skyfix.errors import GeometryError, InputError
 from skyfix.geo import LocalFrame
 
@@ -59,8 +60,7 @@ class Grid:
     height: int
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.resolution_m) and self.resolution_m > 0):
-            raise InputError(f"grid resolution_m must be positive, got {self.resolution_m!r}")
+        validate.positive_scalar("grid resolution_m", self.resolution_m)
         if self.width < 1 or self.height < 1:
             raise GeometryError(f"grid must have at least one pixel, got {self.width}x{self.height}")
 

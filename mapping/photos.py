@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from skyfix import validate
 from skyfix.errors import DataError, InputError
 from skyfix.mapping.batch import list_photos, reason
 from skyfix.mapping.exif import PhotoMetadata, read_metadata
@@ -148,8 +149,7 @@ def check_gps_overlap(photos: list[Photo], max_agl_m: float = 120.0) -> OverlapC
     """
     from skyfix.geo import LocalFrame
 
-    if not math.isfinite(max_agl_m) or max_agl_m <= 0:
-        raise InputError(f"max_agl_m must be a positive number of metres, got {max_agl_m!r}")
+    max_agl_m = validate.positive_scalar("max_agl_m", max_agl_m)
     gps = [p for p in photos if p.has_gps]
     if len(gps) < 2:
         return OverlapCheck([p.name for p in gps], [], [], [])

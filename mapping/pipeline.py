@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from skyfix import validate
 from skyfix.camera import Camera
 from skyfix.distortion import Barrel
 from skyfix.errors import ConfigurationError, DataError, InputError, SkyfixError
@@ -85,8 +86,8 @@ class PipelineConfig:
             raise InputError(f"dense_scale must be in [0.05, 1], got {self.dense_scale!r}")
         for name in ("resolution_cm", "dsm_resolution_m", "max_ortho_mpx"):
             v = getattr(self, name)
-            if v is not None and not (math.isfinite(v) and v > 0):
-                raise InputError(f"{name} must be a positive number, got {v!r}")
+            if v is not None:
+                validate.positive_scalar(name, v)
 
 
 def _peak_mib() -> float:

@@ -10,6 +10,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from skyfix import validate
 from skyfix.errors import InputError
 from skyfix.geo import LocalFrame
 from skyfix.mapping.survey import SurveyPart, SurveyPlan, _latlon_points, _lines, _to_en
@@ -126,9 +127,7 @@ def handoff(part: SurveyPart | SurveyPlan, next_index: int, available: dict, *,
     {id: (lat_deg, lon_deg)} of drones that can take over.
     """
     plan = part.plan if isinstance(part, SurveyPart) else part
-    if isinstance(next_index, bool) or not isinstance(next_index, (int, np.integer)) \
-            or not 0 <= next_index < plan.n_waypoints:
-        raise InputError(f"next_index must be an integer in [0, {plan.n_waypoints - 1}], got {next_index!r}")
+    next_index = validate.integer_in("next_index", next_index, 0, plan.n_waypoints - 1)
     wp, flags = plan.waypoints_en_m[next_index:], plan.trigger_on[next_index:]
     if stopped_at_latlon is not None:
         stop = _to_en(plan.frame, _latlon_points("stopped_at_latlon", stopped_at_latlon, 1))[0]

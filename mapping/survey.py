@@ -233,9 +233,7 @@ def plan_three_corners(corner_a, corner_b, corner_c, step_m: float, altitude_m: 
     corners = _latlon_points("corners", [corner_a, corner_b, corner_c], 3)
     step = validate.positive_scalar("step_m", step_m)
     alt = validate.positive_scalar("altitude_m", altitude_m)
-    hold = validate.finite_scalar("hold_s", hold_s)
-    if hold < 0:
-        raise InputError(f"hold_s must be >= 0, got {hold}")
+    hold = validate.nonnegative_scalar("hold_s", hold_s)
     frame = _frame_at(corners, validate.finite_scalar("ground_alt_m", ground_alt_m))
     en = _to_en(frame, corners)
     return _stations_plan(frame, en[0], en[1] - en[0], en[2] - en[0], step, alt, hold)
@@ -354,9 +352,7 @@ def plan_polygon(polygon_latlon, camera: Camera, altitude_m: float, forward_over
         raise GeometryError("polygon must be a simple (non-self-intersecting) polygon with non-zero area")
     across, along = footprint_m(camera, alt)
     heading = _default_heading(area) if heading_deg is None else validate.finite_scalar("heading_deg", heading_deg)
-    margin = along / 2.0 if turnaround_m is None else validate.finite_scalar("turnaround_m", turnaround_m)
-    if margin < 0:
-        raise InputError(f"turnaround_m must be >= 0, got {margin}")
+    margin = along / 2.0 if turnaround_m is None else validate.nonnegative_scalar("turnaround_m", turnaround_m)
     spacing = across * (1.0 - float(side_overlap))
     trigger = along * (1.0 - float(forward_overlap))
     wp, flags = _lines(area, heading, spacing, trigger, margin)
@@ -397,9 +393,8 @@ def extend_survey(plan: SurveyPlan, alarm_latlon, joining_drones: int, *,
     the polygon about its centroid and re-plan the lines with the same camera settings.
     """
     alarm = _latlon_points("alarm_latlon", alarm_latlon, 1)
-    if isinstance(joining_drones, bool) or not isinstance(joining_drones, (int, np.integer)) or joining_drones < 0:
-        raise InputError(f"joining_drones must be an integer >= 0, got {joining_drones!r}")
-    growth = 1.0 + validate.finite_scalar("growth_per_drone", growth_per_drone) * int(joining_drones)
+    joining = validate.integer_in("joining_drones", joining_drones, 0)
+    growth = 1.0 + validate.finite_scalar("growth_per_drone", growth_per_drone) * joining
     if growth <= 0:
         raise InputError(f"area growth factor must be > 0, got {growth}")
     scale = math.sqrt(growth)
