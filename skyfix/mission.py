@@ -36,7 +36,7 @@ class MissionItem:
     """One mission item: ``lat_deg``/``lon_deg`` WGS84 (0, 0 = here, for commands without a
     position), ``alt_m`` metres in ``frame`` (default MAV_FRAME_GLOBAL_RELATIVE_ALT_INT: above
     home; MAV_FRAME_GLOBAL_INT: AMSL); param1..4 as the MAV_CMD ``command`` defines them
-    (param4 may be NaN: "unchanged", e.g. yaw).
+    (NaN: MAVLink's "default / unchanged"; the constructors refuse it where a value is needed).
 
     The fields of MAVLink ``MISSION_ITEM_INT`` without its addressing (sequence, target).
     """
@@ -55,8 +55,8 @@ class MissionItem:
     def __post_init__(self) -> None:
         validate.latitude("MissionItem.lat_deg", validate.finite_scalar("MissionItem.lat_deg", self.lat_deg))
         validate.longitude("MissionItem.lon_deg", validate.finite_scalar("MissionItem.lon_deg", self.lon_deg))
-        validate.finite_scalar("MissionItem.alt_m", self.alt_m)
-        for name in ("param1", "param2", "param3", "param4"):  # NaN is MAVLink's "default / unchanged"
+        # NaN is MAVLink's "default / unchanged"; GCSs send it (MAVSDK: z and hold of DO items)
+        for name in ("alt_m", "param1", "param2", "param3", "param4"):
             validate.finite_or_nan_scalar(f"MissionItem.{name}", getattr(self, name))
 
     @classmethod
@@ -65,6 +65,7 @@ class MissionItem:
                  yaw_deg: float = 0.0) -> MissionItem:
         """Fly to a point (``alt_m`` above home by default); hold ``hold_s``; reached within
         ``acceptance_m``; ``yaw_deg`` NaN leaves the heading to the autopilot."""
+        alt_m = validate.finite_scalar("alt_m", alt_m)
         return cls(M.MAV_CMD_NAV_WAYPOINT, lat_deg, lon_deg, alt_m, hold_s, acceptance_m, 0.0, yaw_deg, frame)
 
     @classmethod
