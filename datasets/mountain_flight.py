@@ -122,15 +122,24 @@ class MountainScene:
         slope_sun = (terrain._sample(terrain._grad[0], col, row) * self._sun_en[0]
                      + terrain._sample(terrain._grad[1], col, row) * self._sun_en[1])
         img = self.ambient_c + self.texture_sigma_c * tex + self.sun_heating_c * np.clip(slope_sun, -1.0, 1.0)
+        edge_m = np.maximum(0.15, 2.0 * np.nan_to_num(footprint_m, nan=1.0))
+        reach_m = float(np.max(edge_m)) / 2.0
+        east, north = ground[..., 0], ground[..., 1]
         for f in self.fires:
             rad = f.radius_at(time_s)
             if rad <= 0:
                 continue
-            dist = np.hypot(ground[..., 0] - f.east_m, ground[..., 1] - f.north_m)
-            edge_m = np.maximum(0.15, 2.0 * np.nan_to_num(footprint_m, nan=1.0))
-            cover = np.clip((rad - dist) / edge_m + 0.5, 0.0, 1.0)
+            # a pixel is covered (cover > 0) only where dist < rad + edge/2: the fire's terms are
+            # computed on the pixels inside that square alone (a frame is 0.3 Mpx, a fire ~100 px)
+            near = (np.abs(east - f.east_m) < rad + reach_m) & (np.abs(north - f.north_m) < rad + reach_m)
+            rows, cols = np.nonzero(near)
+            if rows.size == 0:
+                continue
+            dist = np.hypot(east[rows, cols] - f.east_m, north[rows, cols] - f.north_m)
+            cover = np.clip((rad - dist) / edge_m[rows, cols] + 0.5, 0.0, 1.0)
             core = 1.0 - 0.3 * np.clip(dist / rad, 0.0, 1.0) ** 2
-            img = np.maximum(img, np.where(cover > 0, self.ambient_c + (f.peak_c - self.ambient_c) * cover * core, -1e9))
+            fire_c = np.where(cover > 0, self.ambient_c + (f.peak_c - self.ambient_c) * cover * core, -1e9)
+            img[rows, cols] = np.maximum(img[rows, cols], fire_c)
         img = np.where(np.isfinite(img) & ok, img, SKY_C)
         return img.astype(np.float32)
 
