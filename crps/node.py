@@ -90,6 +90,7 @@ class Node:
         self._gps_seen: dict[str, float] = {}
         self.latest: dict[str, Estimate] = {}
         self.n_refused = 0
+        self.observed_s: dict[str, float] = {}  # per target: the newest camera observation of it fused, clock s
 
     # -- inputs ---------------------------------------------------------------------------
     def add_telemetry(self, drone_id: str, state, time_of: Callable[[object], float], *,
@@ -132,7 +133,10 @@ class Node:
                     self._sink.record("lag", {"lag_s": lag_s})
                 self.engine.set_lag(lag_s)
                 log.info("node %s: fusion lag %.2f s (camera observations arrive late)", self.drone_id, lag_s)
+        refused = self.n_refused
         self._call("relative", obs=obs)
+        if self.n_refused == refused:
+            self.observed_s[obs.target_id] = max(obs.time_s, self.observed_s.get(obs.target_id, -math.inf))
 
     def add_fix(self, drone_id: str, fix: GeoFix) -> None:
         """An absolute position of ``drone_id`` whose errors are independent from fix to fix (a tag fix)."""

@@ -34,6 +34,7 @@ from skyfix.drivers.vehicle import Vehicle
 from skyfix.errors import LinkError, SkyfixError
 from skyfix.fusion.config import FusionConfig
 from skyfix.fusion.engine import FusionEngine
+from skyfix.types import GeoFix
 
 log = logging.getLogger("skyfix.crps.service")
 
@@ -42,6 +43,7 @@ PEER_FIX_PERIOD_S = 0.5     # a peer's fused position goes into this drone's eng
 LINK_LOST_RECONNECT_S = 0.5  # link marked lost (no heartbeat for 2 s) this long before the link is reopened
 BACKOFF_S = (0.5, 5.0)      # first and longest wait between MAVLink connection attempts
 GNSS_OK_FIX_TYPE = 3
+INJECT_HOLD_AFTER_S = 2.0  # no camera observation of a holding or landing drone this long: its injected position held
 
 
 
@@ -111,6 +113,7 @@ class Service:
         self._inject_job: threading.Thread | None = None  # starting or stopping the injection
         self._inject_notes: list[dict] = []  # what that job did, logged by the main loop
         self._dropped_logged: dict[str, int] = {}
+        self._held_fix: GeoFix | None = None  # the injected position held while nothing measures this drone
         _warm_up()
         try:
             self.transport = transport or ZenohTransport(config.swarm, config.drone_id, config.endpoints)
@@ -325,15 +328,31 @@ class Service:
             self._switch_gps(vehicle, True)
             echo = _reports_injection(vehicle)
             # the message's time stamp is UNIX time (GPS week/ms), whatever the swarm's clock
-            injector = vehicle.start_gps_injection(
-                lambda: self.node.fix(self.cfg.drone_id, self.clock(), time_stamp_s=time.time()),
-                rate_hz=self.cfg.inject_hz)
+            injector = vehicle.start_gps_injection(self._injected_fix, rate_hz=self.cfg.inject_hz)
         except SkyfixError as exc:
             log.error("cannot inject the fused position: %s", exc)
             return
         self._gnss_echo, self.injector = echo, injector
         self._inject_notes.append({"action": "gps_injection_start", "sigma_h_m": sigma_h_m,
                                    "gps_raw_echoes_injection": echo, "injected_gps_primary": self._gps_switched})
+
+    def _injected_fix(self):
+        """The fix injected now (stamped UNIX time). While the drone holds or lands with no camera observation of
+        it for INJECT_HOLD_AFTER_S and its autopilot's velocity echoes the injected fix, the position injected
+        stays where the last measured fix put it (the covariance still grows): dead-reckoning on that echo only
+        integrates its bias estimate, the autopilot follows the injected fix, and a hold becomes a drift (SITL:
+        4.6 m in the last 4 m of a landing below the helpers' horizon)."""
+        now = self.clock()
+        fix = self.node.fix(self.cfg.drone_id, now, time_stamp_s=time.time())
+        mode = self.help.mode.value if self.help is not None else None
+        quiet = now - self.node.observed_s.get(self.cfg.drone_id, -math.inf) > INJECT_HOLD_AFTER_S
+        if fix is None or self.cfg.injected_velocity_sigma_mps is None or mode not in ("hold", "land") or not quiet:
+            self._held_fix = None
+            return fix
+        if self._held_fix is None:
+            self._held_fix = fix
+        held = self._held_fix
+        return GeoFix(held.lat_deg, held.lon_deg, held.alt_m, fix.cov_enu_m2, fix.time_s, fix.source_id)
 
     def _stop_injection(self, vehicle, injector) -> None:
         injector.stop()

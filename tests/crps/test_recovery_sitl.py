@@ -5,8 +5,10 @@ from the helpers' camera frames (rendered from the truth: the simulator's for th
 SIM_STATE for the SITL drone) and injects as its second GPS (GPS_INPUT, gps_id 1).
 
 Nothing that positions the lost drone comes from its truth: only pixels, the helpers' own
-fused poses and gimbal reports. Scored against SIM_STATE. Speed 2 (simulator and firmware),
-a few minutes; skipped with the reason where the firmware is absent.
+fused poses and gimbal reports. Scored against SIM_STATE. Real time (simulator and firmware at speed
+1): at speed 2 under load the helpers' frames reached the lost drone 3-10 s late (three services, two
+renderers and the simulator share one interpreter here, where each drone has its own computer), and the
+firmware's clock does not wait for them. About 2.5 minutes; skipped with the reason where the firmware is absent.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ pytestmark = [pytest.mark.sitl, pytest.mark.slow,
               pytest.mark.skipif(bool(sitl.missing_reason()), reason=sitl.missing_reason() or "-")]
 
 HOME = (46.52, 6.63, 372.0, 0.0)  # the SITL drone's home: lat, lon (deg), alt AMSL (m), heading (deg)
-SPEED = 2.0
+SPEED = 1.0
 
 
 @pytest.mark.xfail(strict=True, reason="issue 18 open (run of 13:20 UTC on 1f9daf3: correlated peer fixes, peers' "
@@ -41,7 +43,7 @@ def test_sitl_lost_drone_returns_home_on_the_helpers_cameras():
         fleet[0].release_start_wait()  # the truth link (second port) may connect before the drone's service
         cfg = RecoveryConfig(seed=0, speed=SPEED, lost_vehicle_url=fleet[0].url,
                              lost_vehicle_truth_url=fleet[0].url_secondary, lost_vehicle_home=HOME[:3],
-                             loss_time_s=20.0)
+                             loss_time_s=12.0, max_after_loss_s=100.0)  # home and landed ~60 s after the loss
         result = run_recovery(cfg)
     story = "\n".join(f"{t:7.1f} s  {what}" for t, what in result.timeline)
     assert result.outcome == "home", story
