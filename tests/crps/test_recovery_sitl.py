@@ -26,13 +26,13 @@ HOME = (46.52, 6.63, 372.0, 0.0)  # the SITL drone's home: lat, lon (deg), alt A
 SPEED = 1.0
 
 
-@pytest.mark.xfail(strict=True, reason="issue 18 open (run of 13:20 UTC on 1f9daf3: correlated peer fixes, peers' "
-                   "velocities, echo velocity-bias walk 0.45 m/s/sqrt s, 3/4 m hysteresis): helpers detect the SITL drone "
-                   "(100 % of in-view frames), first fused fix 4.9 s after the loss, return home starts at 5.2 s with "
-                   "0.5 m error; on the way home its EKF velocity (no velocity source but the injected fix) reads 2-4 m/s "
-                   "slower than SIM_STATE, the fused fix falls 4 m behind (stated sigma 2.7 m) in 9 s, the helpers' "
-                   "gimbals, aimed at that fix, lose the drone, and without observations it runs off (860 m, holding at "
-                   "the end); the autopilot side alone passes (tests/drivers/test_drivers_sitl_lost.py)")
+@pytest.mark.xfail(strict=False, reason="issue 18 open: lands just outside 3 m. Two runs at speed 1 on s18 (16:06-16:08 UTC, before the held injection; 16:45-16:47 on "
+                   "098b6bf; both under the heavy-job lock): helpers detect the SITL drone in 100 % of in-view frames "
+                   "(279/279, 270/270), observation latency p90 0.4-0.5 s, first fused fix 4.1-4.2 s after the loss, error "
+                   "<= 1.4 / 2.3 m all the way home (NEES 1.0 / 1.2), separation >= 15 m; but over home, below ~3-4 m, "
+                   "the helpers (>= 3 m up) see it under their horizon, no observation comes, 'land (helper fix lost "
+                   "over home)', and the drone drifts 2.4-4.6 m while it descends: landed 4.96 m / 3.35 m from home. "
+                   "Not strict: 3.35 m is near enough to 3 m that a run may pass")
 def test_sitl_lost_drone_returns_home_on_the_helpers_cameras():
     from skyfix.crps.recovery import RecoveryConfig, run_recovery
     from skyfix.drivers.injection import ARDUPILOT_INJECTED_GPS2_PARAMS
