@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 
+from skyfix import validate
 from skyfix.errors import InputError
 from skyfix.fusion.config import FusionConfig
 from skyfix.fusion.drone import DroneState
@@ -41,6 +42,9 @@ def nis(innovation: np.ndarray, cov: np.ndarray) -> float:
         return math.inf
 
 
+MAX_TIME_JUMP_S = 30.0  # an input this far ahead of the engine's clock is refused (units mix-up, bad clock)
+
+
 class StateChains:
     """The drones' state chains in one window over ``frame`` (see module docs)."""
 
@@ -58,6 +62,20 @@ class StateChains:
         self._next_index = 0
         self.window: GraphWindow | None = None
         self.now_s = -math.inf
+
+    def checked_time(self, name: str, value) -> float:
+        """``value`` as a measurement time (s); InputError when older than the window keeps or more
+        than ``MAX_TIME_JUMP_S`` ahead of the clock (a units mix-up or a bad clock)."""
+        t = validate.finite_scalar(name, value)
+        if self.window is not None:
+            oldest_s = self.window.time_of(self.window.oldest_alive_step()) - self.window.dt_s / 2
+            if t < oldest_s:
+                raise InputError(f"{name}={t} is older than the fusion lag allows (oldest usable {oldest_s:.3f}, "
+                                 f"engine time {self.now_s:.3f}, lag_s {self.lag_s:g})")
+        if self.now_s > -math.inf and t > self.now_s + MAX_TIME_JUMP_S:
+            raise InputError(f"{name}={t} jumps {t - self.now_s:.1f} s ahead of the engine time {self.now_s:.3f}; "
+                             f"more than {MAX_TIME_JUMP_S:g} s looks like a clock or unit error")
+        return t
 
     def advance(self, t_s: float, drone: DroneState) -> None:
         """Move the clock to a measurement at ``t_s`` (s); the first one places the window's grid."""

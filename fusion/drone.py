@@ -9,7 +9,7 @@ import numpy as np
 
 from skyfix.errors import InputError
 from skyfix.fusion.drift import GnssDriftTest
-from skyfix.fusion.health import SourceMonitor
+from skyfix.fusion.health import HealthState, SourceMonitor
 from skyfix.fusion.velocity import IntervalVelocity
 
 
@@ -42,6 +42,26 @@ class DroneState:
     @property
     def anchored(self) -> bool:
         return self.last_k is not None
+
+    def monitor(self, source: str, timeout_s: float, t: float, config) -> SourceMonitor:
+        """The health monitor of ``source`` (time-out s), created at time ``t`` with ``config``'s
+        (a FusionConfig) rejection and re-admission rules on its first message."""
+        monitor = self.monitors.get(source)
+        if monitor is None:
+            monitor = self.monitors[source] = SourceMonitor(timeout_s, config.reject_after, config.readmit_after_s,
+                                                            t, config.readmit_fraction)
+        return monitor
+
+    def set_relative_timeout(self, timeout_s: float) -> None:
+        """A new time-out (s) for every ``relative:*`` source of this drone (the fusion lag changed)."""
+        for name, monitor in self.monitors.items():
+            if name.startswith("relative:"):
+                monitor.timeout_s = timeout_s
+
+    def contributing(self, now_s: float, window_s: float) -> tuple[str, ...]:
+        """Sources fused within ``window_s`` of ``now_s`` (s) and not lost, sorted."""
+        return tuple(sorted(name for name, m in self.monitors.items()
+                            if now_s - m.last_fused_s <= window_s and m.state is not HealthState.LOST))
 
 
 def drone_id(value) -> str:

@@ -43,7 +43,7 @@ from skyfix.fusion.drone import DroneState
 from skyfix.fusion.drone import drone_id as _drone_id
 from skyfix.fusion.estimate import Estimate
 from skyfix.fusion.gnss import GnssFusion, gnss_quality
-from skyfix.fusion.health import HealthState, SourceHealth, SourceMonitor
+from skyfix.fusion.health import SourceHealth, SourceMonitor
 from skyfix.fusion.log import MeasurementLog
 from skyfix.fusion.trust import ObserverTrust
 from skyfix.fusion.window import GraphWindow
@@ -51,8 +51,6 @@ from skyfix.geo import LocalFrame
 from skyfix.types import GeoFix, RelativeObservation
 
 log = logging.getLogger(__name__)
-
-_MAX_TIME_JUMP_S = 30.0      # an input this far ahead of the engine's clock is refused (units mix-up, bad clock)
 
 
 class FusionEngine:
@@ -133,7 +131,7 @@ class FusionEngine:
         drone = self._reporter(drone_id)
         self._chains.advance(t, drone)
         cfg = self.config
-        monitor = self._monitor(drone, "gnss", cfg.gnss_timeout_s, t)
+        monitor = drone.monitor("gnss", cfg.gnss_timeout_s, t, self.config)
         if monitor.repeat(t):
             log.debug("duplicate message at time_s=%s dropped", t)
             return
@@ -169,7 +167,7 @@ class FusionEngine:
         drone = self._reporter(drone_id)
         drone.bias_walk_mps_per_sqrt_s = walk
         self._chains.advance(t, drone)
-        self._monitor(drone, "velocity", self.config.velocity_timeout_s, t).judge(t, True)
+        drone.monitor("velocity", self.config.velocity_timeout_s, t, self.config).judge(t, True)
         if drone.anchored and drone.axes_at_enu_m is None:
             self._chains.refresh_from_estimate(drone)
         vel_frame = drone.r_frame_from_local @ vel
@@ -201,7 +199,7 @@ class FusionEngine:
         self._record("altitude", dict(drone_id=drone_id, time_s=t, alt_m=alt, sigma_m=sigma))
         drone = self._reporter(drone_id)
         self._chains.advance(t, drone)
-        monitor = self._monitor(drone, "altitude", self.config.altitude_timeout_s, t)
+        monitor = drone.monitor("altitude", self.config.altitude_timeout_s, t, self.config)
         if monitor.repeat(t):
             log.debug("duplicate message at time_s=%s dropped", t)
             return
@@ -247,7 +245,7 @@ class FusionEngine:
         self._record("fix", dict(drone_id=drone_id, fix=fix, **({"correlated": True} if correlated else {})))
         drone = self._reporter(drone_id)
         self._chains.advance(t, drone)
-        monitor = self._monitor(drone, f"fix:{fix.source_id or 'fix'}", self.config.fix_timeout_s, t)
+        monitor = drone.monitor(f"fix:{fix.source_id or 'fix'}", self.config.fix_timeout_s, t, self.config)
         if monitor.repeat(t):
             log.debug("duplicate message at time_s=%s dropped", t)
             return
@@ -293,7 +291,7 @@ class FusionEngine:
         if not observer.anchored:
             log.debug("observer %s not localised: observation of %s unused", observer_id, target_id)
             return
-        monitor = self._monitor(target, f"relative:{observer_id}", self._relative_timeout_s(), t)
+        monitor = target.monitor(f"relative:{observer_id}", self._relative_timeout_s(), t, self.config)
         if monitor.repeat(t):
             log.debug("duplicate message at time_s=%s dropped", t)
             return
@@ -338,11 +336,8 @@ class FusionEngine:
         self.lag_s = self._chains.lag_s = lag
         if self._window is not None:
             self._window.set_lag(lag)
-        timeout_s = self._relative_timeout_s()
         for drone in self._drones.values():
-            for name, monitor in drone.monitors.items():
-                if name.startswith("relative:"):
-                    monitor.timeout_s = timeout_s
+            drone.set_relative_timeout(self._relative_timeout_s())
 
     # -- solving and answers ----------------------------------------------------------
     def update(self) -> None:
@@ -440,16 +435,7 @@ class FusionEngine:
             self._log.record(op, args)
 
     def _time(self, name: str, value) -> float:
-        t = validate.finite_scalar(name, value)
-        if self._window is not None:
-            oldest_s = self._window.time_of(self._window.oldest_alive_step()) - self._window.dt_s / 2
-            if t < oldest_s:
-                raise InputError(f"{name}={t} is older than the fusion lag allows (oldest usable {oldest_s:.3f}, "
-                                 f"engine time {self.now_s:.3f}, lag_s {self.lag_s:g})")
-        if self.now_s > -math.inf and t > self.now_s + _MAX_TIME_JUMP_S:
-            raise InputError(f"{name}={t} jumps {t - self.now_s:.1f} s ahead of the engine time {self.now_s:.3f}; "
-                             f"more than {_MAX_TIME_JUMP_S:g} s looks like a clock or unit error")
-        return t
+        return self._chains.checked_time(name, value)
 
     def _drone(self, drone_id: str) -> DroneState:
         drone = self._drones.get(drone_id)
@@ -476,14 +462,6 @@ class FusionEngine:
         if drone is None:
             raise InputError(f"unknown drone id {drone_id!r}; known: {sorted(self._drones)}")
         return drone
-
-    def _monitor(self, drone: DroneState, source: str, timeout_s: float, t: float) -> SourceMonitor:
-        monitor = drone.monitors.get(source)
-        if monitor is None:
-            cfg = self.config
-            monitor = drone.monitors[source] = SourceMonitor(timeout_s, cfg.reject_after, cfg.readmit_after_s, t,
-                                                              cfg.readmit_fraction)
-        return monitor
 
     def _absolute(self, drone: DroneState, monitor: SourceMonitor, t: float, enu: np.ndarray, cov: np.ndarray,
                   quality: str | None, robust: bool = True, wandering: bool = False) -> None:
@@ -518,6 +496,4 @@ class FusionEngine:
         return {name: monitor.health for name, monitor in drone.monitors.items()}
 
     def _contributing(self, drone: DroneState) -> tuple[str, ...]:
-        window_s = self.config.contributing_window_s + max(0.0, self.lag_s - self._lag0_s)
-        return tuple(sorted(name for name, m in drone.monitors.items()
-                            if self.now_s - m.last_fused_s <= window_s and m.state is not HealthState.LOST))
+        return drone.contributing(self.now_s, self.config.contributing_window_s + max(0.0, self.lag_s - self._lag0_s))
