@@ -14,8 +14,9 @@ shapely through this package):
   :func:`verify_coverage` (``coverage``), :func:`mission_items` (of the foundation's :class:`~skyfix.mission.MissionItem`)
   (``mission``), file writers in ``export``;
 - photo-to-model pipeline: :func:`run_pipeline`, :class:`PipelineConfig`, :class:`Report`
-  (``pipeline``, ``report``; stages in ``photos``, ``sfm``, ``georef``, ``dsm``, ``ortho``,
-  ``grid``, ``geotiff``);
+  (``pipeline``, ``report``; the project folder's files in ``project``; the stages in
+  ``photo_stages``, ``sfm_stages``, ``georef_stage``, ``surface_stages``, ``export_stage`` over
+  ``photos``, ``sfm``, ``georef``, ``dsm``, ``ortho``, ``grid``, ``geotiff``, ``model_files``);
 - camera files: :func:`load_camera`, :func:`save_camera` (the foundation's
   :mod:`skyfix.camera_io`, re-exported here).
 """

@@ -1,15 +1,18 @@
-"""A photo-to-model project folder (:mod:`skyfix.mapping.pipeline`): its paths, the stage
-markers, and the options each stage's result depends on (a marker records them; a run with
-different ones re-runs the stage).
+"""A photo-to-model project folder (:mod:`skyfix.mapping.pipeline`): the one object that
+knows its file names (OpenSfM's DataSet pattern: stages ask it for paths, never build them),
+the stage markers, the options each stage's result depends on (a marker records them; a
+run with different ones re-runs the stage), and :class:`RunState`, what the stages hand on.
 """
 
 from __future__ import annotations
 
 import json
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
-__all__ = ["STAGES", "Project", "stage_options"]
+__all__ = ["STAGES", "Project", "RunState", "stage_options"]
 
 STAGES = ("photos", "correct", "features", "matches", "mapping", "georef", "dsm", "ortho", "export")
 
@@ -42,8 +45,25 @@ def stage_options(config, stage: str) -> dict:
     return {name: plain(getattr(config, name)) for name in _STAGE_OPTIONS[stage]}
 
 
+@dataclass
+class RunState:
+    """What one pipeline run's stages hand to the later ones (in memory; markers and the
+    project's files are what survives a run)."""
+
+    photos: list = field(default_factory=list)  # mapping.photos.Photo, as used (corrected ones after `correct`)
+    image_dir: Path | None = None                # where the photos used are (the input or the corrected folder)
+    models: list = field(default_factory=list)   # pycolmap.Reconstruction of `mapping`, then of `georef`
+    pairs: list = field(default_factory=list)    # (pycolmap.Reconstruction, sfm.PairModel) two-view models
+    velocities: dict = field(default_factory=dict)  # photo name -> GPS velocity ENU m/s (gps lag)
+    frame: Any = None                            # skyfix.geo.LocalFrame of the georeference (None: no GPS)
+    referenced: list = field(default_factory=list)    # georeferenced models
+    unreferenced: list = field(default_factory=list)  # models left in their arbitrary frame
+    dsm: Any = None                              # mapping.dsm.Dsm (None: skipped)
+    ortho_grid: dict | None = None               # the orthophoto's Grid as a dict (None: skipped)
+
+
 class Project:
-    """Paths of a project folder and the stage markers."""
+    """A project folder: every file's path, and the stage markers."""
 
     def __init__(self, out_dir: Path) -> None:
         self.root = out_dir
@@ -51,9 +71,28 @@ class Project:
         self.stages = self.work / "stages"
         self.database = self.work / "database.db"
         self.sparse = self.work / "sparse"
+        self.pairs = self.sparse / "pairs"
         self.georef = self.work / "georef"
         self.corrected = self.work / "corrected"
+        self.dense_points = self.work / "dense_points.npz"
+        self.dsm_surface = self.work / "dsm_surface.npy"
+        self.dsm_filled = self.work / "dsm_filled.npy"
+        # the deliverables, in the project's root
+        self.report_json = out_dir / "report.json"
+        self.report_png = out_dir / "report.png"
+        self.points_ply = out_dir / "points.ply"
+        self.cameras_geojson = out_dir / "cameras.geojson"
+        self.dsm_tif = out_dir / "dsm.tif"
+        self.dsm_interpolated_tif = out_dir / "dsm_interpolated.tif"
+        self.orthophoto_tif = out_dir / "orthophoto.tif"
+        self.orthophoto_png = out_dir / "orthophoto.png"
         self.stages.mkdir(parents=True, exist_ok=True)
+
+    def georef_model(self, index: int) -> Path:
+        """Folder of georeferenced model ``index`` (created)."""
+        path = self.georef / str(index)
+        path.mkdir(parents=True, exist_ok=True)
+        return path
 
     def marker(self, stage: str) -> dict | None:
         path = self.stages / f"{stage}.json"

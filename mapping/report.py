@@ -5,12 +5,20 @@ from __future__ import annotations
 import json
 import math
 import os
+import resource
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["Report"]
+from skyfix.jsonfile import json_safe
+
+__all__ = ["Report", "peak_memory_mib"]
+
+
+def peak_memory_mib() -> float:
+    """Peak resident memory of this process so far, MiB (Linux ru_maxrss is in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 @dataclass
@@ -67,20 +75,9 @@ class Report:
     warnings: list[str] = field(default_factory=list)
     error: str | None = None
 
-    @property
-    def registered_share(self) -> float:
-        return len(self.registered) / max(len(self.photos_used), 1)
-
     def to_dict(self) -> dict:
-        def clean(v):
-            if isinstance(v, float) and not math.isfinite(v):
-                return None
-            if isinstance(v, dict):
-                return {k: clean(x) for k, x in v.items()}
-            if isinstance(v, list):
-                return [clean(x) for x in v]
-            return v
-        return clean(asdict(self))
+        """The report as JSON values (non-finite numbers as null)."""
+        return json_safe(asdict(self))
 
     def save_json(self, path: str | os.PathLike) -> None:
         Path(path).write_text(json.dumps(self.to_dict(), indent=1) + "\n")
