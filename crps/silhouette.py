@@ -147,79 +147,103 @@ class SilhouetteDetector:
         vv, uu = np.mgrid[0:hh, 0:ww]
         r = cfg.ring_px
         ring = (uu < r) | (vv < r) | (uu >= ww - r) | (vv >= hh - r)
-        a = np.column_stack((np.ones(int(ring.sum())), uu[ring], vv[ring]))
-        vals = win[ring]
-        coef, *_ = np.linalg.lstsq(a, vals, rcond=None)
-        res = vals - a @ coef
-        keep = np.abs(res) <= 3.0 * max(1.4826 * float(np.median(np.abs(res))), noise)
-        if keep.sum() >= 10:
-            coef, *_ = np.linalg.lstsq(a[keep], vals[keep], rcond=None)
-            res = vals[keep] - a[keep] @ coef
-        ring_rms = max(float(np.sqrt(np.mean(res ** 2))), noise)
-        diff = win - (coef[0] + coef[1] * uu + coef[2] * vv)
+        diff, ring_rms, ring_used = _subtract_background(win, uu, vv, ring, noise)
         # Polarity from the integrated contrast inside the seed box.
         seed = np.zeros(win.shape, bool)
         seed[bv0 - v0:bv1 - v0, bu0 - u0:bu1 - u0] = True
         sign = -1.0 if diff[seed].sum() < 0 else 1.0
         if (cfg.polarity == "dark" and sign > 0) or (cfg.polarity == "bright" and sign < 0):
             return None
-        # Support: the above-noise pixels connected to the seed, grown by the blur tails.
-        # Summing moments over the support only keeps far-away noise out of them.
-        peak = float((sign * diff)[seed].max())
-        above = ((sign * diff) > max(2.5 * ring_rms, 0.03 * peak)) & ~ring
-        _, labels = cv2.connectedComponents(above.view(np.uint8), connectivity=8)
-        ids = np.unique(labels[seed & above])
-        if ids.size == 0:
+        inner = _support(sign * diff, seed, ring, ring_rms, blur_sigma)
+        if inner is None:
             return None
-        grow = max(2, int(math.ceil(2.5 * blur_sigma)))
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1))
-        support = cv2.dilate(np.isin(labels, ids).view(np.uint8), kernel).astype(bool)
-        if (support & ring).any():
-            return None  # the target does not fit inside its background ring
-        inner = support
         wgt = np.where(inner, sign * diff, 0.0)
         m0 = float(wgt.sum())
-        n_inner = int(inner.sum())
-        snr = m0 / (noise * math.sqrt(n_inner))
+        snr = m0 / (noise * math.sqrt(int(inner.sum())))
         if m0 <= 0 or snr < cfg.min_snr:
             return None
         strong = wgt > 0.5 * np.percentile(wgt[inner], 99.5)
         contrast = float(np.median(wgt[strong])) if strong.any() else 0.0
         if contrast < cfg.min_clutter_ratio * ring_rms:
             return None
-        cu = float((wgt * uu).sum() / m0)
-        cv_ = float((wgt * vv).sum() / m0)
-        du, dv = (uu - cu)[inner], (vv - cv_)[inner]
-        wi = wgt[inner]
-        m2 = np.array([[(wi * du * du).sum(), (wi * du * dv).sum()],
-                       [(wi * du * dv).sum(), (wi * dv * dv).sum()]]) / m0
-        evals, evecs = np.linalg.eigh(m2)
-        # Noise on the off-diagonal moment pushes the eigenvalues apart: the largest is
-        # biased up by var(m12) / gap (second-order perturbation); remove that bias.
-        xm = du * evecs[0, -1] + dv * evecs[1, -1]
-        ym = du * evecs[0, 0] + dv * evecs[1, 0]
-        var_m12 = noise ** 2 * float(((xm * ym) ** 2).sum()) / m0 ** 2
-        gap = evals[-1] - evals[0]
-        if gap > 0:
-            shift = min(var_m12 / gap, 0.5 * gap)
-            evals = evals + np.array([shift, -shift])
-        blur_var = blur_sigma ** 2
-        if evals[-1] <= 2.0 * blur_var:
+        shape = _shape(wgt, inner, uu, vv, noise, ring_rms ** 2 / max(ring_used, 1), blur_sigma ** 2,
+                       cfg.psf_var_sigma_px2)
+        if shape is None:
             return None  # no larger than the blur: a point, not a measurable silhouette
-        true_evals = np.maximum(evals - blur_var, 0.05 * max(evals[-1] - blur_var, 1e-6))
-        moments = (evecs * true_evals) @ evecs.T
-        # Noise of the major-axis second moment: sensor noise on every pixel and the
-        # plane-offset error (ring RMS / sqrt(ring pixels)) on all of them at once.
-        x = du * evecs[0, -1] + dv * evecs[1, -1]
-        g = x * x - evals[-1]
-        var_m2 = (noise ** 2 * float((g * g).sum()) + ring_rms ** 2 / max(int(keep.sum()), 1)
-                  * float(g.sum()) ** 2) / m0 ** 2
-        sigma_rel = 0.5 * math.sqrt(var_m2 + cfg.psf_var_sigma_px2 ** 2) / true_evals[-1]
-        cen_cov = noise ** 2 * np.array([[(du * du).sum(), (du * dv).sum()],
-                                         [(du * dv).sum(), (dv * dv).sum()]]) / m0 ** 2
-        cen_cov = cen_cov + np.eye(2) * 1e-6
+        (cu, cv_), moments, sigma_rel, cen_cov = shape
         return Detection(np.array([cu + u0, cv_ + v0]), cen_cov, (bu0, bv0, bu1, bv1), snr, "silhouette",
                          moments_px2=moments, moments_sigma_rel=sigma_rel, time_s=time_s)
+
+
+def _subtract_background(win: np.ndarray, uu: np.ndarray, vv: np.ndarray, ring: np.ndarray,
+                         noise: float) -> tuple[np.ndarray, float, int]:
+    """(window minus the plane fitted robustly to its ``ring`` pixels, the ring's RMS about
+    the plane (at least ``noise``), the number of ring pixels the final fit used)."""
+    a = np.column_stack((np.ones(int(ring.sum())), uu[ring], vv[ring]))
+    vals = win[ring]
+    coef, *_ = np.linalg.lstsq(a, vals, rcond=None)
+    res = vals - a @ coef
+    keep = np.abs(res) <= 3.0 * max(1.4826 * float(np.median(np.abs(res))), noise)
+    if keep.sum() >= 10:
+        coef, *_ = np.linalg.lstsq(a[keep], vals[keep], rcond=None)
+        res = vals[keep] - a[keep] @ coef
+    ring_rms = max(float(np.sqrt(np.mean(res ** 2))), noise)
+    return win - (coef[0] + coef[1] * uu + coef[2] * vv), ring_rms, int(keep.sum())
+
+
+def _support(signal: np.ndarray, seed: np.ndarray, ring: np.ndarray, ring_rms: float,
+             blur_sigma: float) -> np.ndarray | None:
+    """The above-noise pixels connected to the seed, grown by the blur tails (None when none,
+    or when they reach the background ring). Summing moments over the support only keeps
+    far-away noise out of them."""
+    peak = float(signal[seed].max())
+    above = (signal > max(2.5 * ring_rms, 0.03 * peak)) & ~ring
+    _, labels = cv2.connectedComponents(above.view(np.uint8), connectivity=8)
+    ids = np.unique(labels[seed & above])
+    if ids.size == 0:
+        return None
+    grow = max(2, int(math.ceil(2.5 * blur_sigma)))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1))
+    support = cv2.dilate(np.isin(labels, ids).view(np.uint8), kernel).astype(bool)
+    return None if (support & ring).any() else support  # ring reached: the target does not fit
+
+
+def _shape(wgt: np.ndarray, inner: np.ndarray, uu: np.ndarray, vv: np.ndarray, noise: float,
+           plane_var: float, blur_var: float, psf_var_sigma_px2: float) -> tuple | None:
+    """Centroid ``(u, v)``, blur-corrected second moments ``(2, 2)`` px^2, their relative
+    1-sigma and the centroid covariance, from the weights ``wgt`` over ``inner``; None when
+    the silhouette is no larger than the blur. ``plane_var``: variance of the background
+    plane's offset (px value^2), common to every pixel."""
+    m0 = float(wgt.sum())
+    cu = float((wgt * uu).sum() / m0)
+    cv_ = float((wgt * vv).sum() / m0)
+    du, dv = (uu - cu)[inner], (vv - cv_)[inner]
+    wi = wgt[inner]
+    m2 = np.array([[(wi * du * du).sum(), (wi * du * dv).sum()],
+                   [(wi * du * dv).sum(), (wi * dv * dv).sum()]]) / m0
+    evals, evecs = np.linalg.eigh(m2)
+    # Noise on the off-diagonal moment pushes the eigenvalues apart: the largest is
+    # biased up by var(m12) / gap (second-order perturbation); remove that bias.
+    xm = du * evecs[0, -1] + dv * evecs[1, -1]
+    ym = du * evecs[0, 0] + dv * evecs[1, 0]
+    var_m12 = noise ** 2 * float(((xm * ym) ** 2).sum()) / m0 ** 2
+    gap = evals[-1] - evals[0]
+    if gap > 0:
+        shift = min(var_m12 / gap, 0.5 * gap)
+        evals = evals + np.array([shift, -shift])
+    if evals[-1] <= 2.0 * blur_var:
+        return None
+    true_evals = np.maximum(evals - blur_var, 0.05 * max(evals[-1] - blur_var, 1e-6))
+    moments = (evecs * true_evals) @ evecs.T
+    # Noise of the major-axis second moment: sensor noise on every pixel and the
+    # plane-offset error (ring RMS / sqrt(ring pixels)) on all of them at once.
+    x = du * evecs[0, -1] + dv * evecs[1, -1]
+    g = x * x - evals[-1]
+    var_m2 = (noise ** 2 * float((g * g).sum()) + plane_var * float(g.sum()) ** 2) / m0 ** 2
+    sigma_rel = 0.5 * math.sqrt(var_m2 + psf_var_sigma_px2 ** 2) / true_evals[-1]
+    cen_cov = noise ** 2 * np.array([[(du * du).sum(), (du * dv).sum()],
+                                     [(du * dv).sum(), (dv * dv).sum()]]) / m0 ** 2
+    return (cu, cv_), moments, sigma_rel, cen_cov + np.eye(2) * 1e-6
 
 
 def _check_roi(roi: Roi, width: int, height: int) -> Roi:

@@ -105,6 +105,6 @@ def register_map(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=-1, help="worker threads (-1: all cores)")
     p.add_argument("--force", action="append", choices=STAGES, metavar="STAGE",
                    help=f"re-run this stage and the ones after it (repeat); one of {', '.join(STAGES)}")
-    from skyfix.mapping.cli import flags_named
+    from skyfix.mapping.cli_args import flags_named
 
     p.set_defaults(func=flags_named(_map))
