@@ -41,7 +41,6 @@ import time
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
 from skyfix.camera import Camera, CameraPose
 from skyfix.crps import (
@@ -69,6 +68,7 @@ from skyfix.datasets.drone_view import (
 from skyfix.datasets.render import GroundTexture
 from skyfix.errors import GeometryError, InputError
 from skyfix.geo import LocalFrame, destination
+from skyfix.progress import progress
 from skyfix.types import GeoFix
 
 CAMERA = Camera.from_fov(1920, 1080, 80.0)
@@ -129,7 +129,7 @@ def accuracy(rng, n_per_range: int, detector, fit) -> tuple[dict, dict]:
     s0 = bbox_width_px(ref.image, ref.truth.centroid_uv)
     rows = {}
     allr, alls, allb, zs, zs_fit = [], [], [], [], []
-    for rng_m in tqdm(ranges, desc="accuracy", leave=False):
+    for rng_m in progress(ranges, desc="accuracy"):
         err, err_fit, sig_fit, src, berr, miss = [], [], [], [], [], 0
         for _ in range(n_per_range):
             helper, target = scene(rng, rng_m)
@@ -156,7 +156,7 @@ def accuracy(rng, n_per_range: int, detector, fit) -> tuple[dict, dict]:
         alls += src
         allb += berr
     tracked, tracked_fit, z_trk = {}, {}, []
-    for rng_m in tqdm(ranges, desc="tracked", leave=False):
+    for rng_m in progress(ranges, desc="tracked"):
         errs, errs_fit = [], []
         for _ in range(n_per_range):
             helper, target = scene(rng, rng_m)
@@ -204,7 +204,7 @@ def noise_free_fit(rng, detector, fit, n: int, range_m: float = 100.0) -> list[f
 
 def two_helpers(rng, n: int, detector) -> tuple[np.ndarray, np.ndarray]:
     errors, maha = [], []
-    for _ in tqdm(range(n), desc="two helpers", leave=False):
+    for _ in progress(range(n), desc="two helpers"):
         frame = LocalFrame(LAT0, LON0, ALT0)
         az0 = rng.uniform(0, 360)
         sep = rng.uniform(60.0, 120.0)
@@ -269,7 +269,7 @@ def speed(rng, detector, fit, n: int, range_m: float) -> tuple[float, float]:
 
 def sky_false_detections(rng, detector, n_sky: int) -> int:
     fp_sky = 0
-    for _ in tqdm(range(n_sky), desc="sky, no target", leave=False):
+    for _ in progress(range(n_sky), desc="sky, no target"):
         helper = CameraPose(LAT0, LON0, ALT0, yaw_deg=rng.uniform(0, 360), gimbal_pitch_deg=rng.uniform(0, 60),
                             gimbal_roll_deg=rng.normal(0, 5))
         img = sky_background(CAMERA, helper, rng, clouds=rng.uniform(0.0, 0.15), cloud_cells=int(rng.integers(4, 16)))
@@ -310,7 +310,7 @@ def terrain_sequences(rng, detector, fit, textures, n_seq: int, with_target: boo
            "seq_wrong": 0, "seq_range": [], "cpu_s": 0.0,
            "cpu_track_s": 0.0, "track_frames": 0}
     desc = "terrain sequences, target" if with_target else "terrain sequences, no target"
-    for _ in tqdm(range(n_seq), desc=desc, leave=False):
+    for _ in progress(range(n_seq), desc=desc):
         tex = textures[int(rng.integers(len(textures)))]
         agl = rng.uniform(30.0, 60.0)
         heading, speed = rng.uniform(0, 360), rng.uniform(3.0, 8.0)

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from skyfix.errors import DataError, InputError
+from skyfix.jsonfile import json_safe
 from skyfix.types import GeoFix, RelativeObservation
 
 log = logging.getLogger(__name__)
@@ -73,16 +74,6 @@ def _revive(value):
     return value
 
 
-def _nan_to_none(value):
-    if isinstance(value, float) and value != value:
-        return None
-    if isinstance(value, dict):
-        return {k: _nan_to_none(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_nan_to_none(v) for v in value]
-    return value
-
-
 class MeasurementLog:
     """Writer of a measurement log; one per engine. Use as a context manager or call close()."""
 
@@ -100,7 +91,7 @@ class MeasurementLog:
                      "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")})
 
     def _write(self, obj: dict) -> None:
-        self._file.write(json.dumps(_nan_to_none(obj), separators=(",", ":"), allow_nan=False) + "\n")
+        self._file.write(json.dumps(json_safe(obj), separators=(",", ":"), allow_nan=False) + "\n")
         self._file.flush()
         now = time.monotonic()
         if now - self._last_sync >= self._fsync_s:

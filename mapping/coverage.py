@@ -35,10 +35,6 @@ class CoverageReport:
     forward_overlap_min: float
     side_overlap_min: float
 
-    @property
-    def covered_fraction(self) -> float:
-        return 1.0 - self.uncovered_m2 / self.area_m2
-
 
 def footprints(plan: SurveyPlan, samples_per_edge: int = 8) -> list:
     """Shapely polygons (local ENU metres) of every planned photo's ground footprint."""

@@ -32,10 +32,6 @@ class Dsm:
     filled_m: np.ndarray
     observed: np.ndarray
 
-    @property
-    def coverage_share(self) -> float:
-        return float(np.isfinite(self.surface_m).mean())
-
 
 def auto_dsm_resolution_m(points_utm_m: np.ndarray, min_m: float = 0.5, max_m: float = 20.0) -> float:
     """A cell size giving about one point per 4 cells' area (twice the mean point spacing)."""

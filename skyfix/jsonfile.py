@@ -5,6 +5,7 @@ is published in ``docs/schemas/``."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 from pathlib import Path
@@ -31,6 +32,23 @@ def read_json(path: str | os.PathLike, what: str, *, missing: type[SkyfixError] 
         return json.loads(p.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise DataError(f"{what} {p} is not readable JSON: {exc}") from exc
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` with every non-finite float (NaN, infinities: JSON has none) as None, through
+    nested dicts, lists and tuples (tuples become lists), ready for ``json.dumps(allow_nan=False)``.
+
+    Example:
+        >>> json_safe({"rms_m": float("nan"), "xy": (1.0, float("inf")), "n": 3})
+        {'rms_m': None, 'xy': [1.0, None], 'n': 3}
+    """
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    return value
 
 
 def convert(data: Any, model: type[T], source: str) -> T:
