@@ -30,18 +30,22 @@ def require_torch() -> None:
 class TorchRemapper:
     """Apply one :class:`Undistortion` to batches ``(B, H, W[, C])`` of uint8 images.
 
-    ``device``: a torch device string; default CUDA when available, else CPU.
+    ``device``: a torch device string; default CUDA when available, else CPU. ``dtype``: the
+    float type pixels and tables are interpolated in ("float32" or "float64").
     """
 
-    def __init__(self, tables: Undistortion, device: str | None = None) -> None:
+    def __init__(self, tables: Undistortion, device: str | None = None, dtype: str = "float32") -> None:
         require_torch()
         import torch
 
+        if dtype not in ("float32", "float64"):
+            raise InputError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
         self._torch = torch
         self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+        self.dtype = getattr(torch, dtype)
         self.tables = tables
-        self._map_x = torch.from_numpy(np.array(tables.map_x)).to(self.device)[None]
-        self._map_y = torch.from_numpy(np.array(tables.map_y)).to(self.device)[None]
+        self._map_x = torch.from_numpy(np.array(tables.map_x)).to(self.device, self.dtype)[None]
+        self._map_y = torch.from_numpy(np.array(tables.map_y)).to(self.device, self.dtype)[None]
 
     def __call__(self, images: np.ndarray) -> np.ndarray:
         """Corrected uint8 batch ``(B, H_out, W_out[, C])``."""
@@ -55,7 +59,7 @@ class TorchRemapper:
                              f"{batch.dtype} {batch.shape}")
         gray = batch.ndim == 3
         x = torch.from_numpy(batch[..., None] if gray else batch).to(self.device)
-        x = x.permute(0, 3, 1, 2).float()
+        x = x.permute(0, 3, 1, 2).to(self.dtype)
         n = x.shape[0]
         # Clamping the sample positions to the image is exactly edge replication.
         map_x = self._map_x.clamp(0, src.width - 1).expand(n, -1, -1)

@@ -108,19 +108,31 @@ def test_calibration_spec_rescales_to_photo_size(tmp_path):
     assert cam.width == 600
 
 
-def test_torch_backend_matches_opencv(photo_dir, tmp_path):
+def _cuda() -> bool:
+    try:
+        import torch
+    except ImportError:
+        return False
+    return torch.cuda.is_available()
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not _cuda(), reason="no CUDA device on this machine"))])
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_torch_backend_matches_opencv(photo_dir, tmp_path, device, dtype):
     pytest.importorskip("kornia")
     from skyfix.mapping.remap_torch import TorchRemapper
 
     raw = cv2.imread(str(photo_dir / "IMG_0459.jpg"))
     tables = Undistortion.for_barrel(BARREL, 1200, 900)
     a = tables.apply(raw).astype(int)
-    b = TorchRemapper(tables, device="cpu")(raw[None])[0].astype(int)
+    b = TorchRemapper(tables, device=device, dtype=dtype)(raw[None])[0].astype(int)
     # Float vs OpenCV's 1/32-px fixed-point tables: rounding-level differences only.
     assert np.mean(np.abs(a - b)) < 0.2 and np.max(np.abs(a - b)) <= 3
-    report = correct_photos(list_photos(photo_dir), tmp_path / "t", CorrectionSpec(barrel=BARREL),
-                            backend="torch", device="cpu", batch_size=2, progress=False)
-    assert len(report.written) == 2 and len(report.skipped) == 3
+    if dtype == "float32":
+        report = correct_photos(list_photos(photo_dir), tmp_path / "t", CorrectionSpec(barrel=BARREL),
+                                backend="torch", device=device, batch_size=2, progress=False)
+        assert len(report.written) == 2 and len(report.skipped) == 3
 
 
 def test_jpeg_quality_estimate_and_default_keeps_input_quality(tmp_path):
