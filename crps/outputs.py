@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from skyfix.errors import InputError
-from skyfix.fusion.log import _nan_to_none, _plain
+from skyfix.fusion.log import _plain
 from skyfix.fusion.log_mcap import McapLog
+from skyfix.jsonfile import json_safe
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +63,7 @@ class Outputs:
     def live_json(self, topic: str, obj: dict) -> None:
         """``obj`` on ``topic`` of the live view only (when there is one)."""
         if self._server is not None:
-            self._live(topic, lambda: _json_channel(topic)).log(_nan_to_none(obj))
+            self._live(topic, lambda: _json_channel(topic)).log(json_safe(obj))
 
     def location_fix(self, drone_id: str, time_s: float, lat_deg: float, lon_deg: float, alt_m: float,
                      cov_enu_m2) -> None:
