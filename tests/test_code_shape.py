@@ -13,8 +13,6 @@ import ast
 import warnings
 from pathlib import Path
 
-import pytest
-
 ROOT = Path(__file__).resolve().parent.parent
 MAX_MODULE_LINES = 500
 MAX_FUNCTION_LINES = 80
@@ -81,6 +79,6 @@ def test_no_long_modules_or_functions():
                      + ", ".join(f"{k} ({v} lines)" for k, v in sorted(new.items())))
 
 
-@pytest.mark.parametrize("entry", sorted(ALLOWED))
-def test_allow_list_says_why(entry):
-    assert ALLOWED[entry].strip() and not entry.startswith("fusion/"), entry  # fusion was split: keep it so
+def test_allow_list_says_why():
+    for entry, why in ALLOWED.items():  # empty since issue 22: a new entry must say why
+        assert why.strip() and not entry.startswith("fusion/"), entry  # fusion was split: keep it so
