@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from skyfix.errors import InputError
+from skyfix.fusion.config import FusionConfig
 from skyfix.fusion.drift import GnssDriftTest
 from skyfix.fusion.health import HealthState, SourceMonitor
 from skyfix.fusion.velocity import IntervalVelocity
@@ -43,9 +44,9 @@ class DroneState:
     def anchored(self) -> bool:
         return self.last_k is not None
 
-    def monitor(self, source: str, timeout_s: float, t: float, config) -> SourceMonitor:
+    def monitor(self, source: str, timeout_s: float, t: float, config: FusionConfig) -> SourceMonitor:
         """The health monitor of ``source`` (time-out s), created at time ``t`` with ``config``'s
-        (a FusionConfig) rejection and re-admission rules on its first message."""
+        rejection and re-admission rules on its first message."""
         monitor = self.monitors.get(source)
         if monitor is None:
             monitor = self.monitors[source] = SourceMonitor(timeout_s, config.reject_after, config.readmit_after_s,
