@@ -77,12 +77,10 @@ def home(msg, now_s: float) -> Home:
                 alt_ellipsoid_m=ellipsoidal_from_amsl_m(lat, lon, alt_amsl))
 
 
-EKF_POS_HORIZ_ABS, EKF_CONST_POS_MODE = 16, 128  # EKF_STATUS_FLAGS bits
-
-
 def ekf_status(msg, now_s: float) -> EkfStatus:
     """EKF_STATUS_REPORT -> :class:`EkfStatus`."""
-    return EkfStatus(int(msg.flags), bool(msg.flags & EKF_POS_HORIZ_ABS), bool(msg.flags & EKF_CONST_POS_MODE),
+    return EkfStatus(int(msg.flags), bool(msg.flags & mavlink.EKF_POS_HORIZ_ABS),
+                     bool(msg.flags & mavlink.EKF_CONST_POS_MODE),
                      float(msg.velocity_variance), float(msg.pos_horiz_variance), now_s)
 
 
