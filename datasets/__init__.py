@@ -1,5 +1,8 @@
 """skyfix.datasets: the synthetic-image harness, the simulator and loaders for real data."""
 
-from skyfix.datasets.render import GroundTexture, Rendered, render_ground
+from __future__ import annotations
 
-__all__ = ["GroundTexture", "Rendered", "render_ground"]
+from skyfix.lazy import lazy_exports
+
+__getattr__, __dir__, __all__ = lazy_exports(
+    __name__, {"GroundTexture": "render", "Rendered": "render", "render_ground": "render"})

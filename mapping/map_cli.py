@@ -58,7 +58,7 @@ def _map(args: argparse.Namespace) -> int:
 
 def register_map(subparsers: argparse._SubParsersAction) -> None:
     """Add ``map`` to the ``skyfix`` command line."""
-    from skyfix.mapping.pipeline import STAGES
+    from skyfix.mapping.project import STAGES
 
     p = subparsers.add_parser(
         "map", formatter_class=argparse.ArgumentDefaultsHelpFormatter,

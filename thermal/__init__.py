@@ -13,26 +13,21 @@ how they evolve over a flight.
   drones have (:class:`PoseErrorPrior`: correlated GNSS, attitude drift).
 """
 
-from skyfix.thermal.detect import (
-    DEFAULT_KELVIN_PER_COUNT,
-    DEFAULT_THRESHOLD_C,
-    Hotspot,
-    RelativeTemperatureWarning,
-    detect_hotspots,
-)
-from skyfix.thermal.geolocate import geolocate, geolocate_many, locate_in_frame
-from skyfix.thermal.ground import DemGround, FlatGround
-from skyfix.thermal.joint import JointSolution, PoseErrorPrior, locate_jointly
-from skyfix.thermal.palettes import PALETTES, apply_palette, palette_to_intensity
-from skyfix.thermal.pose import PoseUncertainty, camera_pose
-from skyfix.thermal.poselog import PoseLog
-from skyfix.thermal.sightings import Sightings, associate
-from skyfix.thermal.tracker import Fire, FireTracker, TrackerSettings
+from __future__ import annotations
 
-__all__ = [
-    "DEFAULT_KELVIN_PER_COUNT", "DEFAULT_THRESHOLD_C", "PALETTES", "DemGround", "Fire",
-    "FireTracker", "FlatGround", "Hotspot", "JointSolution", "PoseErrorPrior", "PoseLog",
-    "PoseUncertainty", "RelativeTemperatureWarning", "Sightings", "TrackerSettings", "apply_palette",
-    "associate", "camera_pose", "detect_hotspots", "geolocate", "geolocate_many", "locate_in_frame",
-    "locate_jointly", "palette_to_intensity",
-]
+from skyfix.lazy import lazy_exports
+
+_EXPORTS = {
+    "DEFAULT_KELVIN_PER_COUNT": "detect", "DEFAULT_THRESHOLD_C": "detect", "Hotspot": "detect",
+    "RelativeTemperatureWarning": "detect", "detect_hotspots": "detect",
+    "geolocate": "geolocate", "geolocate_many": "geolocate", "locate_in_frame": "geolocate",
+    "DemGround": "ground", "FlatGround": "ground",
+    "JointSolution": "joint", "PoseErrorPrior": "joint", "locate_jointly": "joint",
+    "PALETTES": "palettes", "apply_palette": "palettes", "palette_to_intensity": "palettes",
+    "PoseUncertainty": "pose", "camera_pose": "pose",
+    "PoseLog": "poselog",
+    "Sightings": "sightings", "associate": "sightings",
+    "Fire": "tracker", "FireTracker": "tracker", "TrackerSettings": "tracker",
+}
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

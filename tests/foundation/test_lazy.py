@@ -20,7 +20,17 @@ def test_lazy_exports_resolve_and_cache():
 
 
 def test_importing_the_packages_loads_no_heavy_library():
-    code = ("import sys, skyfix.fusion, skyfix.drivers, skyfix.mapping, skyfix.crps; "
-            "print(sorted(m for m in ('gtsam', 'cv2', 'pymavlink', 'pycolmap') if m in sys.modules))")
+    code = ("import sys, skyfix.fusion, skyfix.drivers, skyfix.mapping, skyfix.crps, skyfix.thermal, "
+            "skyfix.tags, skyfix.datasets; "
+            "print(sorted(m for m in ('gtsam', 'cv2', 'pymavlink', 'pycolmap', 'scipy') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_building_the_whole_command_line_loads_no_heavy_library():
+    # every test and user command starts here: a heavy import would cost each of them ~1.5 s
+    code = ("import sys; from skyfix.cli import build_parser; build_parser(); "
+            "print(sorted(m for m in ('gtsam', 'cv2', 'pymavlink', 'pycolmap', 'scipy', 'torch', 'pyproj') "
+            "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
