@@ -34,3 +34,14 @@ def test_building_the_whole_command_line_loads_no_heavy_library():
             "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+@pytest.mark.parametrize("package, name", [
+    ("skyfix.thermal", "geolocate"), ("skyfix.fusion", "replay"), ("skyfix.mapping", "calibrate")])
+def test_an_export_named_like_its_module_stays_the_export(package, name):
+    # importing the submodule first binds it to the package attribute of the same name; the
+    # export must still be the function (14 thermal tests failed on import order alone)
+    code = (f"import importlib, types; importlib.import_module('{package}.{name}'); "
+            f"from {package} import {name} as x; print(isinstance(x, types.FunctionType))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "True"
