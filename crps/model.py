@@ -49,6 +49,17 @@ class DroneModel:
     Proportions are fractions of the half-span: ``rotor_fraction`` rotor radius,
     ``arm_width_fraction`` arm width, ``body_fraction`` half-length of the central body.
     The first arm points forward-right (45 deg) on a quad, forward on a hex.
+
+    Example:
+        >>> quad = DroneModel.quad(0.5)
+        >>> quad.arms, quad.scaled_to(1.0).span_m
+        (4, 1.0)
+        >>> parts = quad.parts()  # convex parts, body FRD metres
+        >>> sum(name == "rotor" for name, _ in parts)
+        4
+        >>> corners = np.concatenate([v for _, v in parts])  # rotor tips reach the half-span
+        >>> round(float(np.hypot(corners[:, 0], corners[:, 1]).max()), 2)
+        0.25
     """
 
     arms: int = 4

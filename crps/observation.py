@@ -100,6 +100,20 @@ def observe(camera: Camera, helper_pose: CameraPose, detection: Detection, targe
     ``observer_cov_enu_m2`` (3, 3) the helper's own position covariance, kept on the
     observation for :func:`locate`. ``time_s`` defaults to the detection's time and
     ``target_id`` to ``"marker:<id>"`` for markers.
+
+    Example:
+        A 0.5 m marker 27.7 px wide at the centre of a 640 px, 60-degree camera (focal
+        554 px) that looks east is 10 m east; 0.28 px of size noise is 1 % of the range:
+
+        >>> from skyfix.camera import Camera, CameraPose
+        >>> cam = Camera.from_fov(640, 480, 60.0)
+        >>> det = Detection(np.array([319.5, 239.5]), np.eye(2) * 0.01, (306, 226, 333, 253), 1.0,
+        ...                 kind="marker", size_px=27.71, size_sigma_px=0.28, marker_id=3)
+        >>> obs = observe(cam, CameraPose(47.0, 8.0, 400.0, yaw_deg=90.0, gimbal_pitch_deg=0.0), det, 0.5)
+        >>> round(obs.range_m, 2), obs.bearing_unit_enu.round(3).tolist(), obs.target_id
+        (10.0, [1.0, 0.0, 0.0], 'marker:3')
+        >>> round(float(np.sqrt(obs.cov_enu_m2[0, 0])), 2)  # range 1-sigma, m
+        0.1
     """
     if not isinstance(camera, Camera):
         raise InputError(f"camera must be a skyfix.camera.Camera, got {type(camera).__name__}")
@@ -155,6 +169,28 @@ def locate(observations: Sequence[RelativeObservation], frame: LocalFrame | None
     ``frame`` (default: ENU at the first observer); the fix covariance is returned in ENU
     axes at the fix. Time is the mean observation time; ``source_id`` is
     ``"crps:<target_id>"``. Raises :class:`EstimationError` if the covariances are singular.
+
+    Example:
+        Two helpers see the same marker 10 m away, one from the west and one from the
+        south: each axis is measured by one helper's range (1-sigma 0.10 m) and the other's
+        bearing (0.5 deg of attitude error is 0.087 m at 10 m), together 0.066 m:
+
+        >>> from skyfix.camera import Camera, CameraPose
+        >>> from skyfix.geo import destination
+        >>> cam = Camera.from_fov(640, 480, 60.0)
+        >>> det = Detection(np.array([319.5, 239.5]), np.eye(2) * 0.01, (306, 226, 333, 253), 1.0,
+        ...                 kind="marker", size_px=27.71, size_sigma_px=0.28, marker_id=3)
+        >>> lat, lon = destination(47.0, 8.0, 90.0, 10.0)  # the marker, 10 m east of the first helper
+        >>> lat2, lon2 = destination(float(lat), float(lon), 180.0, 10.0)
+        >>> west = observe(cam, CameraPose(47.0, 8.0, 400.0, yaw_deg=90.0, gimbal_pitch_deg=0.0), det, 0.5)
+        >>> south = observe(cam, CameraPose(float(lat2), float(lon2), 400.0, yaw_deg=0.0, gimbal_pitch_deg=0.0),
+        ...                 det, 0.5)
+        >>> fix = locate([west, south])
+        >>> enu_m = LocalFrame(float(lat), float(lon), 400.0).to_enu(fix.lat_deg, fix.lon_deg, fix.alt_m)
+        >>> [round(float(x), 2) + 0.0 for x in enu_m], fix.source_id
+        ([0.0, 0.0, 0.0], 'crps:marker:3')
+        >>> round(fix.sigma_horizontal_m, 3)
+        0.066
     """
     obs = list(observations)
     if not obs:

@@ -310,6 +310,21 @@ def render_drone_view(camera: Camera, helper_pose: CameraPose, target: TargetPos
     ``occlusion_fraction`` of the target is hidden behind a straight-edged occluder of
     grey ``occluder_gray`` (None: the background shows through, as if the target were
     cut off). Raises :class:`GeometryError` when the target is at or behind the camera.
+
+    Example:
+        A 0.5 m quad 20 m away, 10 deg above the helper whose camera (160 px, 30 deg: focal
+        299 px) looks at it: drawn at the image centre, 12 px wide, darker than the sky:
+
+        >>> from skyfix.crps import DroneModel
+        >>> from skyfix.geo import destination
+        >>> lat, lon = destination(47.0, 8.0, 0.0, 19.696)  # 20 m * cos(10 deg) north, 3.47 m up
+        >>> view = render_drone_view(Camera.from_fov(160, 120, 30.0), CameraPose(47.0, 8.0, 400.0, gimbal_pitch_deg=10.0),
+        ...                          TargetPose(float(lat), float(lon), 403.473), DroneModel.quad(0.5),
+        ...                          rng=np.random.default_rng(0))
+        >>> round(view.truth.range_m, 2), view.truth.centroid_uv.round(1).tolist(), view.truth.bbox_px
+        (20.0, [79.5, 59.5], (74, 56, 86, 64))
+        >>> bool(view.image[56:64, 74:86].min() < 0.5 < np.median(view.image))
+        True
     """
     if model is None and plate is None:
         raise InputError("render_drone_view needs a model, a plate or both")

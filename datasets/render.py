@@ -31,6 +31,17 @@ class GroundTexture:
     ``image`` is ``(H, W)`` or ``(H, W, C)`` (any numeric dtype; rendered as float32);
     ``metres_per_px`` the texel size; ``center_en_m`` the (east, north) position of the
     image centre in ``frame``, metres.
+
+    Example:
+        A 100 m square, black in the west and white in the east, seen by a nadir camera
+        30 m up: the edge under the camera falls between the two middle columns:
+
+        >>> image = np.zeros((200, 200), np.float32)
+        >>> image[:, 100:] = 1.0
+        >>> texture = GroundTexture(image, 0.5, LocalFrame(47.0, 8.0, 400.0))
+        >>> seen = render_ground(texture, Camera.from_fov(64, 48, 60.0), CameraPose(47.0, 8.0, 430.0))
+        >>> seen.image[24, 30:34].tolist(), bool(seen.mask.all())
+        ([0.0, 0.0, 1.0, 1.0], True)
     """
 
     image: np.ndarray

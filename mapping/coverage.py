@@ -72,7 +72,21 @@ def _runs(plan: SurveyPlan) -> list[np.ndarray]:
 
 
 def verify_coverage(plan: SurveyPlan) -> CoverageReport:
-    """Measure coverage and overlaps of a ``lines`` plan (see :class:`CoverageReport`)."""
+    """Measure coverage and overlaps of a ``lines`` plan (see :class:`CoverageReport`).
+
+    Example:
+        The footprints of a plan for 70 % forward and 60 % side overlap cover its polygon
+        and overlap as planned:
+
+        >>> from skyfix.camera import Camera
+        >>> from skyfix.geo import LocalFrame
+        >>> from skyfix.mapping.survey import plan_polygon
+        >>> en_m = np.array([[0.0, 0.0, 0.0], [150.0, 0.0, 0.0], [150.0, 100.0, 0.0], [0.0, 100.0, 0.0]])
+        >>> field = LocalFrame(40.6303, -8.6575, 0.0).to_geodetic_points(en_m)[:, :2]  # 150 m x 100 m
+        >>> report = verify_coverage(plan_polygon(field, Camera.from_fov(1200, 900, 60.0), 60.0, 0.7, 0.6))
+        >>> report.uncovered_m2, round(report.forward_overlap_min, 3), round(report.side_overlap_min, 3)
+        (0.0, 0.7, 0.6)
+    """
     from shapely import union_all
     from shapely.geometry import Polygon
 

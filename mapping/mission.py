@@ -26,6 +26,19 @@ def mission_items(plan: SurveyPlan | SurveyPart, *, home_latlon_alt=None, takeof
 
     ``home_latlon_alt``: (lat_deg, lon_deg, alt_m AMSL) written as item 0 (ArduPilot's home
     slot; omit for PX4). ``speed_mps``: ground speed set after take-off.
+
+    Example:
+        Take-off, speed, the 30 stations of a 28 m x 35 m grid, return to launch:
+
+        >>> from skyfix.geo import destination
+        >>> from skyfix.mapping.survey import plan_three_corners
+        >>> a = (40.6303, -8.6575)
+        >>> b, c = (tuple(float(x) for x in destination(*a, bearing, d)) for bearing, d in ((90.0, 28.0), (0.0, 35.0)))
+        >>> items = mission_items(plan_three_corners(a, b, c, 7.0, 10.0), speed_mps=5.0)
+        >>> names = {mavlink.MAV_CMD_NAV_TAKEOFF: "takeoff", mavlink.MAV_CMD_DO_CHANGE_SPEED: "speed",
+        ...          mavlink.MAV_CMD_NAV_WAYPOINT: "waypoint", mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH: "rtl"}
+        >>> [names[i.command] for i in items[:3]], len(items), names[items[-1].command], items[1].param2
+        (['takeoff', 'speed', 'waypoint'], 33, 'rtl', 5.0)
     """
     if isinstance(plan, SurveyPart):
         plan = plan.plan

@@ -104,6 +104,23 @@ def split_survey(plan: SurveyPlan, drones: dict) -> list[SurveyPart]:
     same lines, the first one at the other edge and/or flown the other way): the layout
     needing the shortest total approach is used, so drones waiting at one edge do not all
     fly to the far one first.
+
+    Example:
+        A 1549 m line plan shared by a drone at its west corner and one 200 m east: two
+        parts of 773 m, the eastern one starting where that drone waits:
+
+        >>> from skyfix.camera import Camera
+        >>> from skyfix.geo import destination
+        >>> from skyfix.mapping.survey import plan_polygon
+        >>> a = (40.6303, -8.6575)
+        >>> corners = [a] + [tuple(float(x) for x in destination(*a, bearing, d))
+        ...                  for bearing, d in ((90.0, 200.0), (45.0, 200.0), (0.0, 150.0))]
+        >>> plan = plan_polygon(corners, Camera.from_fov(1200, 900, 60.0), 60.0, 0.7, 0.6)
+        >>> parts = split_survey(plan, {"west": a, "east": corners[1]})
+        >>> round(plan.path_length_m), [(p.drone_id, round(p.plan.path_length_m)) for p in parts]
+        (1549, [('east', 773), ('west', 773)])
+        >>> [p.first_index for p in parts], round(parts[0].approach_m)  # east starts at the path's start, 28 m off
+        ([0, 10], 28)
     """
     ids, pos = _drone_positions(drones, plan.frame)
     layouts = [plan]

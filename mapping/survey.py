@@ -229,6 +229,16 @@ def plan_three_corners(corner_a, corner_b, corner_c, step_m: float, altitude_m: 
     v = B - A and w = C - A (local ENU metres at A) span the area; waypoints every
     ``step_m`` along v and w; ``hold_s`` seconds at each. Raises :class:`GeometryError`
     for coincident or collinear corners or a step longer than a side.
+
+    Example:
+        A 28 m x 35 m field, stations every 7 m: 5 x 6 stations, flown as a lawnmower:
+
+        >>> from skyfix.geo import destination
+        >>> a = (40.6303, -8.6575)
+        >>> b, c = (tuple(float(x) for x in destination(*a, bearing, d)) for bearing, d in ((90.0, 28.0), (0.0, 35.0)))
+        >>> plan = plan_three_corners(a, b, c, 7.0, 10.0)
+        >>> plan.kind, len(plan.waypoints_en_m), plan.waypoints_en_m[:6].round(1).tolist()
+        ('stations', 30, [[0.0, 0.0], [7.0, -0.0], [14.0, -0.0], [21.0, -0.0], [28.0, -0.0], [28.0, 7.0]])
     """
     corners = _latlon_points("corners", [corner_a, corner_b, corner_c], 3)
     step = validate.positive_scalar("step_m", step_m)
@@ -334,6 +344,19 @@ def plan_polygon(polygon_latlon, camera: Camera, altitude_m: float, forward_over
     lines defaults to the long side of the polygon's minimum rotated rectangle;
     ``turnaround_m`` (default: half the along-track footprint) extends every line
     before the first and after the last photo.
+
+    Example:
+        A 60-degree, 1200 x 900 camera (focal 1039 px) 60 m up sees 69.3 m across and
+        52.0 m along track: lines 27.7 m apart for 60 % side overlap, a photo every 15.6 m
+        for 70 % forward overlap:
+
+        >>> from skyfix.geo import destination
+        >>> a = (40.6303, -8.6575)
+        >>> corners = [a] + [tuple(float(x) for x in destination(*a, bearing, d))
+        ...                  for bearing, d in ((90.0, 200.0), (45.0, 200.0), (0.0, 150.0))]
+        >>> plan = plan_polygon(corners, Camera.from_fov(1200, 900, 60.0), 60.0, 0.7, 0.6)
+        >>> plan.kind, round(plan.step_m, 1), round(plan.trigger_distance_m, 1)
+        ('lines', 27.7, 15.6)
     """
     poly = _latlon_points("polygon", polygon_latlon, 3)
     if not isinstance(camera, Camera):

@@ -173,6 +173,16 @@ def detect_hotspots(frame: np.ndarray, *, threshold: float | None = None, palett
     pixels above the threshold (>= 2). Returns hotspots sorted by decreasing area.
     Raises :class:`InputError` for a wrong dtype/shape, an empty, all-NaN or constant
     frame.
+
+    Example:
+        A radiometric frame in deg C: 20 deg C ground and a 300 deg C fire 4 x 4 px; the
+        default threshold is 100 deg C:
+
+        >>> frame = np.full((120, 160), 20.0, np.float32)
+        >>> frame[40:44, 100:104] = 300.0
+        >>> [fire] = detect_hotspots(frame)
+        >>> fire.u_px, fire.v_px, fire.peak, fire.units
+        (101.5, 41.5, 300.0, 'celsius')
     """
     frame = _check_frame(frame)
     min_area_px = validate.integer_in("min_area_px", min_area_px, 2)  # a single pixel is never a fire

@@ -143,6 +143,17 @@ def geolocate(hotspot_or_uv, camera: Camera, pose: CameraPose,
     ``GeoFix.cov_enu_m2`` (ENU axes at the fix, m^2). ``frame``: optional local frame to
     compute in (default: a cached frame near the camera).
     Raises :class:`~skyfix.errors.GeometryError` when the ray misses the ground.
+
+    Example:
+        A nadir camera (160 px, 50 deg: focal 171.6 px) 100 m above flat ground sees a
+        hotspot 22 px right of and 18 px above the image centre: 12.8 m east, 10.5 m north.
+        1.5 m of GNSS error and 0.5 deg of tilt (0.9 m at 100 m) make 1.8 m horizontally:
+
+        >>> cam = Camera.from_fov(160, 120, 50.0)
+        >>> fix = geolocate((101.5, 41.5), cam, CameraPose(47.0, 8.0, 500.0), 400.0)
+        >>> east_m, north_m, up_m = LocalFrame(47.0, 8.0, 400.0).to_enu(fix.lat_deg, fix.lon_deg, fix.alt_m)
+        >>> round(float(east_m), 1), round(float(north_m), 1), round(fix.sigma_horizontal_m, 1)
+        (12.8, 10.5, 1.8)
     """
     uv = _as_uv(hotspot_or_uv)
     if uv.shape[0] != 1:

@@ -25,7 +25,14 @@ from skyfix.thermal.demcast import LocalDem
 
 @dataclass(frozen=True)
 class FlatGround:
-    """Ground at one ellipsoidal height ``alt_m`` (metres above WGS84), optional 1-sigma."""
+    """Ground at one ellipsoidal height ``alt_m`` (metres above WGS84), optional 1-sigma.
+
+    Example:
+        >>> FlatGround.from_amsl(219.0, geoid_undulation_m=-34.0).alt_m  # h = H + N
+        185.0
+        >>> FlatGround.from_agl(CameraPose(47.0, 8.0, 500.0), 100.0, sigma_m=2.0)
+        FlatGround(alt_m=400.0, sigma_m=2.0)
+    """
 
     alt_m: float
     sigma_m: float = 0.0

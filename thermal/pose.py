@@ -30,6 +30,16 @@ def camera_pose(lat_deg: float, lon_deg: float, alt_m: float, *, altitude_datum:
     h = H + N). ``gimbal_yaw_reference``: "vehicle" (relative to the nose) or "north"
     (absolute heading of the camera; converted with ``yaw_deg``). ``stabilized``: True
     for a gimbal that holds the horizon, False for a hard-mounted camera.
+
+    Example:
+        450 m AMSL where the geoid is 50 m above the ellipsoid is 500 m ellipsoidal; a
+        gimbal pointing east (north-referenced) on a drone heading east is straight ahead:
+
+        >>> pose = camera_pose(47.0, 8.0, 450.0, altitude_datum="amsl", geoid_undulation_m=50.0,
+        ...                    roll_deg=0.0, pitch_deg=0.0, yaw_deg=90.0, gimbal_pitch_deg=-90.0,
+        ...                    gimbal_yaw_deg=90.0, gimbal_yaw_reference="north", stabilized=True)
+        >>> pose.alt_m, pose.gimbal_yaw_deg
+        (500.0, 0.0)
     """
     if altitude_datum not in ALTITUDE_DATUMS:
         raise InputError(f"altitude_datum must be one of {ALTITUDE_DATUMS}, got {altitude_datum!r} "
