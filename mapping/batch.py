@@ -221,46 +221,15 @@ def _threaded_results(worker: _Worker, jobs: list[tuple[Path, Path]], n_threads:
             yield future.result()
 
 
-def _torch_results(worker: _Worker, jobs: list[tuple[Path, Path]], device: str | None,
-                   batch_size: int) -> Iterator[PhotoResult]:
-    from skyfix.mapping.remap_torch import TorchRemapper
-
-    remappers: dict[tuple[int, int], TorchRemapper] = {}
-    for start in range(0, len(jobs), batch_size):
-        decoded, pending = [], []
-        for src, dst in jobs[start:start + batch_size]:
-            try:
-                decoded.append((src, dst, *worker.decode(src, "BGR")))
-            except (SkyfixError, OSError, cv2.error) as exc:
-                pending.append(PhotoResult(str(src), None, reason(exc, src)))
-        by_size: dict[tuple[int, int], list] = {}
-        for item in decoded:
-            by_size.setdefault(item[3].shape[:2], []).append(item)
-        for (h, w), items in by_size.items():
-            try:
-                tables = worker.tables_for(w, h)
-                if (w, h) not in remappers:
-                    remappers[(w, h)] = TorchRemapper(tables, device=device)
-                corrected = remappers[(w, h)](np.stack([it[3] for it in items]))
-            except (SkyfixError, cv2.error) as exc:
-                pending.extend(PhotoResult(str(it[0]), None, reason(exc, it[0])) for it in items)
-                continue
-            for (src, dst, data, _), out in zip(items, corrected, strict=True):
-                try:
-                    pending.append(worker.finish(src, dst, data, out, tables))
-                except (SkyfixError, OSError, cv2.error) as exc:
-                    pending.append(PhotoResult(str(src), None, reason(exc, src)))
-        yield from pending
-
-
 def correct_photos(photos: Iterable[str | os.PathLike], out_dir: str | os.PathLike, spec: CorrectionSpec, *,
                    workers: int | None = None, backend: str = "opencv", device: str | None = None,
                    batch_size: int = 8, progress: bool = True) -> BatchReport:
     """Correct ``photos`` into ``out_dir`` (same file names); never raises for one bad photo.
 
-    ``workers``: threads for the OpenCV backend (default: CPU count; 1 runs in the calling
-    thread). ``backend='torch'`` remaps batches of ``batch_size`` photos with kornia on
-    ``device`` (default: CUDA when available, else CPU). Returns a :class:`BatchReport`;
+    ``workers``: threads (default: CPU count); with the OpenCV backend 1 runs in the calling
+    thread. ``backend='torch'`` remaps batches of ``batch_size`` photos with kornia on
+    ``device`` (default: CUDA when available, else CPU) while ``workers`` threads decode
+    the next batch and encode the last (:mod:`skyfix.mapping.batch_torch`). Returns a :class:`BatchReport`;
     bad photos are logged at WARNING and listed in ``report.skipped``.
     """
     from skyfix.progress import bar as progress_bar
@@ -283,7 +252,10 @@ def correct_photos(photos: Iterable[str | os.PathLike], out_dir: str | os.PathLi
     bar = progress_bar(desc="lens correct", total=len(jobs), unit="photo", disable=not progress)
     try:
         if backend == "torch":
-            results: Iterator[PhotoResult] = _torch_results(_Worker(spec), jobs, device, batch_size)
+            from skyfix.mapping.batch_torch import torch_results
+
+            results: Iterator[PhotoResult] = torch_results(_Worker(spec), jobs, device, batch_size,
+                                                           min(n_workers, max(1, len(jobs))))
         elif n_workers <= 1 or len(jobs) <= 1:
             worker = _Worker(spec)
             results = (worker(job) for job in jobs)
