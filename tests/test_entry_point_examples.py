@@ -16,7 +16,7 @@ ENTRY_POINTS = {
     "thermal": ["skyfix.thermal.detect:detect_hotspots", "skyfix.thermal.geolocate:geolocate",
                 "skyfix.thermal.ground:FlatGround", "skyfix.thermal.pose:camera_pose",
                 "skyfix.thermal.tracker:FireTracker"],
-    "crps": ["skyfix.crps.silhouette:SilhouetteDetector", "skyfix.crps.track:Tracker",
+    "crps": ["skyfix.crps.silhouette:SilhouetteDetector", "skyfix.crps.fit:SilhouetteFit", "skyfix.crps.track:Tracker",
              "skyfix.crps.observation:observe", "skyfix.crps.observation:locate",
              "skyfix.crps.ranging:range_from_size", "skyfix.crps.ranging:range_from_reference",
              "skyfix.crps.model:DroneModel"],
