@@ -115,7 +115,10 @@ def test_changed_option_reruns_the_stages_it_affects(tmp_path, monkeypatch):
         shutil.copy(p, photos / p.name)
     out = tmp_path / "project"
     first = run_pipeline(PipelineConfig(photos, out, **FAST))
-    assert first.resolution_cm < 10.0  # the photos' GSD, ~7 cm
+    # Without --resolution-cm the orthophoto's pixel is the photos' GSD: flying height
+    # 64.8 +- 7 m over the 925 px focal length (see test_mapping_pipeline.py).
+    assert first.resolution_cm == pytest.approx(first.gsd_cm)
+    assert 57.8 / 925.09 < first.gsd_cm / 100.0 < 71.8 / 925.09
 
     calls = _spy_on_extract_and_match(monkeypatch)
     coarse = run_pipeline(PipelineConfig(photos, out, resolution_cm=30.0, **FAST))
