@@ -194,7 +194,7 @@ def main() -> int:
     detector = SilhouetteDetector(SilhouetteConfig(psf_sigma_px=BLUR_PX))
     cfg = SilhouetteFitConfig(psf_sigma_px=BLUR_PX)
     fits = {"hand": HandGaussNewtonFit(CAMERA, MODEL, cfg), "least_squares": SilhouetteFit(CAMERA, MODEL, cfg)}
-    res = run(np.random.default_rng(args.seed), detector, fits, 3 if args.quick else 12)
+    res = run(np.random.default_rng(args.seed), detector, fits, 3 if args.quick else 36)
     print(f"{'solver':>14} {'n':>4} | {'single med':>10} {'p95':>6} {'RMS':>6} {'z RMS':>6} {'ms/fit':>7} | "
           f"{'tracked med':>11} {'p95':>6} {'RMS':>6} {'n':>4} {'ms/fit':>7}")
     for name, rec in res.items():

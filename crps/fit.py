@@ -12,11 +12,11 @@ scipy's ``least_squares`` (MINPACK Levenberg-Marquardt) on all ten parameters fr
 start of a yaw grid over the symmetry period; derivatives in rho, tilts and psi by finite
 differences of renders, in (du, dv) from the template gradient; the tilts have a Gaussian
 prior (a flying drone leans a few degrees). It replaced a hand Gauss-Newton (issue 22):
-benchmarks/crps_fit.py runs both on the same frames; on 51 scenes 40-100 m (seed 22, 28
-Nov 2026) single frames p95 5.4 % vs 7.5 % at 0.91x the CPU time, warm-started tracks
-p95 9.5 % vs 8.4 % (seeds 23, 24: 6.5 vs 11.7 %, 5.9 vs 6.9 %) at 1.35x the time per
-fit (one more render per step: the library checks each step), and the Tracker path
-keeps 48 frames/s (hand 47; goal 30). Yaw and the sideways tilt are fitted because at a
+benchmarks/crps_fit.py runs both on the same frames; on 165 scenes 40-100 m (28 Nov
+2026) single frames p95 5.95 % vs 5.91 % (RMS 2.9 vs 3.2 %) at 0.91x the CPU time,
+warm-started tracks p95 9.0 % vs 10.9 % at 1.38x the time per fit (one render more per
+step: the library evaluates the step it takes), and the Tracker path keeps 51 frames/s
+(hand 53; goal 30). Yaw and the sideways tilt are fitted because at a
 few pixels both trade against the size: on noise-free renders at 100 m (target tilted
 3 deg 1-sigma) the p95 size error was 10.6 % with yaw only weighed on a 4-step grid and
 one tilt, 6.2 % with yaw fitted, 4.5 % with both tilts fitted (hand solver). The hypotheses are averaged in log range with their
