@@ -60,7 +60,8 @@ def test_tracker_drops_a_lost_target_and_rejects_time_going_back():
     rng = np.random.default_rng(5)
     tracker = Tracker(SilhouetteDetector())
     (t0, v0), = list(frames(1, rng))
-    assert tracker.update(v0.image, t0) is not None
+    first = tracker.update(v0.image, t0)
+    assert np.linalg.norm(first.centroid_uv - v0.truth.centroid_uv) < 0.5  # as in the test above
     empty = np.full_like(v0.image, 0.7) + rng.normal(0, 0.01, v0.image.shape).astype(np.float32)
     for k in range(1, 6):
         assert tracker.update(empty, 0.1 * k) is None

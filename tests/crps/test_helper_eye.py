@@ -98,7 +98,10 @@ def test_helper_eye_observes_the_target_and_fusion_places_it(seed):
     frame = cam()
     assert cam.last_truth.in_view(0)
     assert eye.observe_frame(frame, "t", wrong) is None
-    assert eye.observe_frame(frame, "t", prior) is not None  # the same frame, searched around the right fix
+    found = eye.observe_frame(frame, "t", prior)  # the same frame, searched around the right fix
+    true_range_m = float(np.linalg.norm(sim.vehicle(0).pos_enu_m - sim.vehicle(1).pos_enu_m))
+    range_sigma_m = math.sqrt(found.bearing_unit_enu @ found.cov_enu_m2 @ found.bearing_unit_enu)
+    assert abs(found.range_m - true_range_m) <= 3.0 * range_sigma_m, (found.range_m, true_range_m, range_sigma_m)
     # ranging: a 0.5 m quad at ~36 m, ~14 px across: a few per cent
     assert abs(np.median(ranges) - 1.0) < 0.05, f"range / true range {np.round(ranges, 3)}"
     # the requester's fusion (its velocity, the helper's fix, the observations) places it within 3 sigma
