@@ -7,6 +7,7 @@ help messages itself and returns the decisions. A drone asking for help never of
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
@@ -48,13 +49,16 @@ class HelpAgent:
         self._send(self.helper.on_message(env, now_s, self._as_helper(me)))
 
     def step(self, now_s: float, gnss: SourceHealth | None, fused: Estimate | None, me: HelperStatus,
-             peer_positions: Mapping[str, tuple[float, float, float]]) -> AgentDecisions:
+             peer_positions: Mapping[str, tuple[float, float, float]], *, alt_rel_m: float | None = None,
+             floor_up_m: float = -math.inf) -> AgentDecisions:
         """Periodic work: ``gnss`` this drone's GNSS health and ``fused`` its estimate (fusion);
-        ``me`` its status; ``peer_positions`` every other drone's latest (lat_deg, lon_deg, alt_m)."""
+        ``me`` its status; ``peer_positions`` every other drone's latest (lat_deg, lon_deg, alt_m);
+        ``alt_rel_m`` its autopilot's height above home (None: unknown); ``floor_up_m`` the lowest it may
+        fly as a helper (ENU up of its frame)."""
         live = self.peers.live()
-        decision, out = self.requester.step(now_s, gnss, fused, live)
+        decision, out = self.requester.step(now_s, gnss, fused, live, alt_rel_m)
         self._send(out)
-        helper, out = self.helper.step(now_s, self._as_helper(me), peer_positions, live)
+        helper, out = self.helper.step(now_s, self._as_helper(me), peer_positions, live, floor_up_m=floor_up_m)
         self._send(out)
         return AgentDecisions(decision, helper)
 

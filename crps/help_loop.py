@@ -60,8 +60,10 @@ class HelpSetup:
     requester: RequesterConfig | None = None
     protocol: HelpConfig | None = None
     vantage: VantageConfig | None = None
-    min_alt_rel_m: float = 3.0        # a vantage point is never lower than this above home (a landing target
-                                      # stays above the helpers' horizon until ~4 m)
+    # a vantage point is never lower than this above the helper's home (take-off ground, taken as level around
+    # the target's home): low enough that a target landing at its home stays above the helpers' horizon, sky
+    # behind it, down to ~2 m (the eye looks 1.5 deg above its horizon: 0.5-0.9 m at 20-35 m)
+    min_alt_rel_m: float = 1.5
     on_frame: object | None = None    # HelperEye's on_frame (a harness scoring the camera), else None
 
     def build(self, service) -> HelpLoop:
@@ -131,6 +133,7 @@ class HelpLoop:
         self._want_sent_wall_s = -math.inf
         self._resume: str | None = None
         self._goto_enu: np.ndarray | None = None
+        self._height: tuple[float, float] | None = None  # (autopilot's height above home m, own fused ENU up m)
         self._actions = _Actions(f"skyfix-help-{self.id}")
 
     @property
@@ -162,7 +165,10 @@ class HelpLoop:
         self._status = self._my_status(now_s, state, gnss)
         peers = {p.drone_id: (p.lat_deg, p.lon_deg, p.alt_m) for p in self.svc.peers.snapshot()
                  if not p.lost and math.isfinite(p.lat_deg) and math.isfinite(p.alt_m)}
-        decisions = self.agent.step(now_s, gnss, fused, self._status, peers)
+        self._height = _height(self.svc.node, self.id, now_s, state)
+        floor_up_m = -math.inf if self._height is None else self._height[1] - self._height[0] + self.setup.min_alt_rel_m
+        decisions = self.agent.step(now_s, gnss, fused, self._status, peers, floor_up_m=floor_up_m,
+                                    alt_rel_m=None if self._height is None else self._height[0])
         if self.recovering and state is not None and state.position is not None and not state.armed \
                 and self.agent.requester.protocol.active:
             self.agent.stand_down(now_s, "landed")  # on the ground: nothing left to help with
@@ -181,8 +187,10 @@ class HelpLoop:
             and math.isfinite(state.battery.remaining_pct) else 0.0
         if fix is None:
             return HelperStatus(*self.home, battery, localised=False, available=False)
+        # flying: above half the helpers' floor (a helper looking at a landing target flies at the floor; at
+        # 2 m, the bound before the floor came down to 1.5 m, it withdrew as "recalled" in the target's descent)
         airborne = state is not None and state.armed and state.position is not None \
-            and state.position.alt_rel_m > 2.0
+            and state.position.alt_rel_m > 0.5 * self.setup.min_alt_rel_m
         localised = gnss is not None and gnss.state is HealthState.OK and fix.sigma_horizontal_m <= 3.0
         return HelperStatus(fix.lat_deg, fix.lon_deg, fix.alt_m, battery, localised=localised,
                             available=self.eye is not None and airborne)
@@ -225,7 +233,10 @@ class HelpLoop:
             if self._goto_enu is None or float(np.linalg.norm(v - self._goto_enu)) > GOTO_MOVE_M:
                 self._goto_enu = v.copy()
                 lat, lon, alt = (float(c) for c in self.svc.node.frame.to_geodetic(*v))
-                alt_rel = max(alt - self.home[2], self.setup.min_alt_rel_m)
+                # heights above home from the autopilot's own (barometric) height: home's altitude from HOME_POSITION
+                # (AMSL + the geoid) and the fused GNSS altitudes need not share a datum (ArduPilot SITL: no geoid)
+                alt_rel = alt - self.home[2] if self._height is None else self._height[0] + float(v[2]) - self._height[1]
+                alt_rel = max(alt_rel, self.setup.min_alt_rel_m)
                 self._actions.submit("move", f"{self.id} goto vantage",
                                      lambda: vehicle.goto(lat, lon, alt_rel))
         self._aim(now_s, dec.helping, dec.target)
@@ -272,6 +283,15 @@ class HelpLoop:
     def _flavour(self) -> str:
         vehicle = self.svc.vehicle
         return vehicle.autopilot if vehicle is not None and vehicle.autopilot in ("ardupilot", "px4") else "ardupilot"
+
+
+def _height(node, drone_id: str, now_s: float, state) -> tuple[float, float] | None:
+    """(the autopilot's height above home m, the drone's fused ENU up m in ``node``'s frame) now, or None."""
+    pos = state.position if state is not None else None
+    fix = node.fix(drone_id, now_s)
+    if pos is None or fix is None or not math.isfinite(pos.alt_rel_m):
+        return None
+    return float(pos.alt_rel_m), float(node.frame.to_enu(fix.lat_deg, fix.lon_deg, fix.alt_m)[2])
 
 
 def _moved(fix: GeoFix, vel_enu_mps: np.ndarray, now_s: float) -> GeoFix:

@@ -66,7 +66,14 @@ class RequesterConfig:
     fused_sigma_h_keep_m: float = 4.0
     fix_max_age_s: float = 2.0       # an older fused estimate does not count
     hold_timeout_s: float = 90.0     # no usable fix for this long while holding: land
-    land_near_home_m: float = 6.0    # returning home and this close (fused, horizontal) when the fix goes: land
+    # returning home when the helper fix goes, the drone lands where it is if it is this close to home (fused,
+    # horizontal) and either low (the helpers lose a landing drone under their horizon: nothing better comes)
+    # or sure of it (the fix's land_sigma_k-sigma circle inside that radius); else it holds for the helpers
+    land_near_home_m: float = 6.0
+    # "low", m above home: the helpers (never under 1.5 m) keep a landing drone above their horizon down to
+    # ~2-3 m; holding unobserved drifts (an autopilot flying on a held injected position: up to 2 m/s on SITL)
+    land_below_m: float = 5.0
+    land_sigma_k: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -112,8 +119,10 @@ class RequesterRole:
         return self.protocol.on_message(env, now_s)
 
     def step(self, now_s: float, gnss: SourceHealth | None, fused: Estimate | None,
-             live_peers: Iterable[str]) -> tuple[Decision, list[Body]]:
-        """One decision from fusion's GNSS health and fused estimate of this drone; the help messages to send."""
+             live_peers: Iterable[str], alt_rel_m: float | None = None) -> tuple[Decision, list[Body]]:
+        """One decision from fusion's GNSS health and fused estimate of this drone; the help messages to send.
+        ``alt_rel_m``: its height above home as its autopilot measures it (barometer), else None (the fused
+        altitude less home's is used)."""
         out: list[Body] = []
         healthy = gnss is not None and gnss.state is HealthState.OK
         if self.mode is Mode.NORMAL:
@@ -131,11 +140,11 @@ class RequesterRole:
                 self._set(Mode.NORMAL, "gnss healthy again", now_s)
                 out += self.protocol.cancel(now_s, "gnss back")
             else:
-                self._recover(now_s, fused)
+                self._recover(now_s, fused, alt_rel_m)
         out += self.protocol.tick(now_s, live_peers)
         return Decision(self.mode, self.reason, self.since_s, self._setpoint(fused), self.protocol.helpers()), out
 
-    def _recover(self, now_s: float, fused: Estimate | None) -> None:
+    def _recover(self, now_s: float, fused: Estimate | None, alt_rel_m: float | None) -> None:
         """Hold until helpers position us, then the fault response; back to hold when that fix goes."""
         good = _helper_based(fused, now_s, self.cfg, flying_on_it=self.mode in (Mode.RETURN_HOME, Mode.CONTINUE))
         if self.mode is Mode.HOLD:
@@ -144,17 +153,24 @@ class RequesterRole:
             elif now_s - self.since_s >= self.cfg.hold_timeout_s:
                 self._set(Mode.LAND, f"no helper fix for {self.cfg.hold_timeout_s:.0f} s", now_s)
         elif self.mode in (Mode.RETURN_HOME, Mode.CONTINUE) and not good:
-            if self.mode is Mode.RETURN_HOME and self._near_home(fused):
-                # over home and descending, the helpers lose it against the ground: finish the landing
+            if self.mode is Mode.RETURN_HOME and self._near_home(fused, alt_rel_m):
+                # over home and low, the helpers lose it against the ground: finish the landing
                 self._set(Mode.LAND, "helper fix lost over home", now_s)
             else:
                 self._set(Mode.HOLD, "helper fix lost", now_s)
 
-    def _near_home(self, fused: Estimate | None) -> bool:
+    def _near_home(self, fused: Estimate | None, alt_rel_m: float | None) -> bool:
+        """Whether a drone returning home that lost its helper fix should land where ``fused`` puts it: near
+        home and low, or near home counting the fix's sigma (a fix that grew loose in a link drop, 4-6 m off,
+        is not landed on at height: the helpers see it again once the link is back)."""
         if fused is None:
             return False
         _, dist_m = geo.inverse(fused.lat_deg, fused.lon_deg, self.home[0], self.home[1])
-        return float(dist_m) <= self.cfg.land_near_home_m
+        cfg = self.cfg
+        height_m = fused.alt_m - self.home[2] if alt_rel_m is None or not np.isfinite(alt_rel_m) else alt_rel_m
+        if height_m <= cfg.land_below_m:
+            return float(dist_m) <= cfg.land_near_home_m
+        return float(dist_m) + cfg.land_sigma_k * fused.sigma_horizontal_m <= cfg.land_near_home_m
 
     def _setpoint(self, fused: Estimate | None) -> tuple[float, float, float] | None:
         if self.mode is Mode.HOLD and self.last_good is not None:
@@ -197,10 +213,11 @@ class HelperRole:
 
     def step(self, now_s: float, me: HelperStatus, peers: Mapping[str, tuple[float, float, float]],
              live_peers: Iterable[str], mates_vantage: Mapping[str, np.ndarray] | None = None,
-             ) -> tuple[HelperDecision, list[Body]]:
+             floor_up_m: float = -np.inf) -> tuple[HelperDecision, list[Body]]:
         """The helper decision; ``peers`` every other drone's latest position (lat, lon, alt), the
         requester's included when known (else its request's last fix is used); ``mates_vantage`` the
-        other helpers' vantage points (ENU) where known, else their present positions are used."""
+        other helpers' vantage points (ENU) where known, else their present positions are used; ``floor_up_m``
+        the lowest this helper may fly (ENU up)."""
         out: list[Body] = []
         if self.protocol.requester_id is not None and not (me.localised and me.available):
             out += self.protocol.withdraw(now_s, "own position lost" if not me.localised else "recalled")
@@ -219,5 +236,5 @@ class HelperRole:
         mates = {h: v if v is not None else enu(peers[h]) for h, v in mates.items() if v is not None or h in peers}
         others = [enu(p) for h, p in peers.items() if h != req_id and h not in mates]
         v = vantage_point(enu(target), enu((me.lat_deg, me.lon_deg, me.alt_m)), others, list(mates.values()),
-                          target_sigma_h_m=sigma_h, cfg=self.vantage_cfg)
+                          target_sigma_h_m=sigma_h, floor_up_m=floor_up_m, cfg=self.vantage_cfg)
         return HelperDecision(req_id, v, tuple(target)), out

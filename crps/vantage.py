@@ -3,12 +3,15 @@
 All positions are ENU metres in one caller's :class:`skyfix.geo.LocalFrame`. Candidates lie
 on a grid of azimuths (every ``azimuth_step_deg``) and slant ranges (``range_min_m`` to
 ``range_max_m``, where monocular ranging is accurate, see the crps README) around the
-target, ``below_target_m`` lower so the target is seen against the sky. A candidate is
+target, ``below_target_m`` lower so the target is seen against the sky, but never below ``floor_up_m``
+(the helper's lowest safe height: a landing target ends up below it). A candidate is
 feasible when it keeps ``min_separation_m`` from every other drone (plus three sigma of the
 target's horizontal uncertainty from the target) and from the other helpers' vantage points,
 and the straight leg from the helper to it keeps that from the target and the other drones;
 the chosen one minimises a weighted sum of: distance from the preferred range, distance to
-fly, and ``1 - geometry_quality`` of the lines of sight of all helpers seen from the target.
+fly, ``1 - geometry_quality`` of the lines of sight of all helpers seen from the target, and the
+shortfall of the target's elevation above the candidate's horizon under ``want_elevation_deg``: a target
+low over the ground (landing) is kept against the sky from a closer, lower point while one exists.
 """
 
 from __future__ import annotations
@@ -35,6 +38,8 @@ class VantageConfig:
     w_range: float = 1.0             # cost of the range error, per (range span)^2
     w_travel: float = 0.5            # cost per preferred-range of distance to fly
     w_geometry: float = 2.0          # cost of collinear lines of sight
+    want_elevation_deg: float = 6.0  # the target this far above the helper's horizon (sky behind it) ...
+    w_elevation: float = 2.0         # ... else this cost per want_elevation_deg short of it
 
 
 @dataclass(frozen=True)
@@ -49,14 +54,15 @@ class Vantage:
     geometry_quality: float
 
 
-def _candidates(target_enu_m: np.ndarray, cfg: VantageConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) candidate positions and their (N,) slant ranges."""
+def _candidates(target_enu_m: np.ndarray, floor_up_m: float, cfg: VantageConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) candidate positions (never below ``floor_up_m``) and their (N,) slant ranges."""
     az = np.radians(np.arange(0.0, 360.0, cfg.azimuth_step_deg))
     slant = np.linspace(cfg.range_min_m, cfg.range_max_m, cfg.n_ranges)
     az_g, slant_g = np.meshgrid(az, slant, indexing="ij")
-    horiz = np.sqrt(np.maximum(slant_g**2 - cfg.below_target_m**2, 0.0))
+    below_m = min(cfg.below_target_m, target_enu_m[2] - floor_up_m)  # negative: the target below the floor
+    horiz = np.sqrt(np.maximum(slant_g**2 - below_m**2, 0.0))
     pts = np.stack([target_enu_m[0] + horiz * np.sin(az_g), target_enu_m[1] + horiz * np.cos(az_g),
-                    np.full_like(horiz, target_enu_m[2] - cfg.below_target_m)], axis=-1)
+                    np.full_like(horiz, target_enu_m[2] - below_m)], axis=-1)
     return pts.reshape(-1, 3), slant_g.ravel()
 
 
@@ -79,18 +85,20 @@ def _path_clearance(start: np.ndarray, ends: np.ndarray, obstacles: np.ndarray) 
 
 
 def vantage_point(target_enu_m, own_enu_m, other_drones_enu_m=(), helper_vantages_enu_m=(), *,
-                  target_sigma_h_m: float = 0.0, cfg: VantageConfig | None = None) -> Vantage | None:
+                  target_sigma_h_m: float = 0.0, floor_up_m: float = -math.inf,
+                  cfg: VantageConfig | None = None) -> Vantage | None:
     """The best vantage point for a helper at ``own_enu_m`` looking at ``target_enu_m`` (3,).
 
     ``other_drones_enu_m`` (N, 3): every other drone now (not the target, not this one);
-    ``helper_vantages_enu_m`` (M, 3): where the other helpers are going. None when no
+    ``helper_vantages_enu_m`` (M, 3): where the other helpers are going; ``floor_up_m`` the lowest the
+    helper may fly (ENU up; e.g. 1.5 m above its take-off ground, taken as level about the target). None when no
     candidate is feasible (crowded sky: hold where you are)."""
     cfg = cfg or VantageConfig()
     target = np.asarray(target_enu_m, dtype=float).reshape(3)
     own = np.asarray(own_enu_m, dtype=float).reshape(3)
     drones = np.asarray(other_drones_enu_m, dtype=float).reshape(-1, 3)
     mates = np.asarray(helper_vantages_enu_m, dtype=float).reshape(-1, 3)
-    pts, slant = _candidates(target, cfg)
+    pts, slant = _candidates(target, float(floor_up_m), cfg)
     ok = (np.linalg.norm(pts - target, axis=1) >= cfg.min_separation_m + 3.0 * target_sigma_h_m)
     ok &= _min_distance(pts, np.vstack([drones, mates])) >= cfg.min_separation_m
     # the way there keeps the separation too (or, from a drone already closer, does not close in)
@@ -112,6 +120,8 @@ def vantage_point(target_enu_m, own_enu_m, other_drones_enu_m=(), helper_vantage
     else:
         quality = np.ones(len(pts))
     cost += cfg.w_geometry * (1.0 - quality)
+    elevation_deg = np.degrees(np.arctan2(target[2] - pts[:, 2], np.hypot(*(target[:2] - pts[:, :2]).T)))
+    cost += cfg.w_elevation * np.maximum(cfg.want_elevation_deg - elevation_deg, 0.0) / cfg.want_elevation_deg
     best = int(np.argmin(cost))
     p = pts[best]
     d = target - p

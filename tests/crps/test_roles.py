@@ -149,26 +149,32 @@ def test_gnss_back_30_m_off_is_not_trusted_and_recovery_goes_on():
     assert role.protocol.active and role.protocol.helpers() == ()  # (no bus here: nobody was assigned)
 
 
-def _estimate(east_m, north_m, t, sources, sigma_m=1.0):
+def _estimate(east_m, north_m, t, sources, sigma_m=1.0, up_m=10.0):
     from skyfix.fusion.estimate import Estimate
 
-    enu = np.array([east_m, north_m, 10.0])
+    enu = np.array([east_m, north_m, up_m])
     lat, lon, alt = (float(c) for c in FRAME.to_geodetic(*enu))
     return Estimate("a", t, lat, lon, alt, enu, np.eye(3) * sigma_m**2, np.zeros(3), np.eye(3) * 0.01, sources)
 
 
-@pytest.mark.parametrize("east_m, expected", [(4.0, Mode.LAND), (20.0, Mode.HOLD)])
-def test_a_drone_returning_home_that_loses_its_helper_fix_lands_only_when_over_home(east_m, expected):
+@pytest.mark.parametrize("east_m, up_m, sigma_m, expected", [
+    (4.0, 2.0, 5.0, Mode.LAND),    # low over home: going under the helpers' horizon, holding would drift, land
+    (20.0, 2.0, 1.0, Mode.HOLD),   # low but not over home: hold
+    (1.0, 10.0, 2.0, Mode.LAND),   # high, over home and sure of it (1 m + 2 sigma <= 6 m)
+    (4.0, 10.0, 1.5, Mode.HOLD),   # high, near home but not sure (4 m + 2 sigma > 6 m): hold for the helpers
+    (20.0, 10.0, 1.0, Mode.HOLD)])
+def test_a_drone_returning_home_that_loses_its_helper_fix_lands_only_low_or_sure_over_home(east_m, up_m, sigma_m,
+                                                                                            expected):
     from skyfix.fusion.health import HealthState, SourceHealth
 
     role = RequesterRole("a", at(0.0, 0.0, 0.0))
     ok, lost = SourceHealth(HealthState.OK, "", 0.0), SourceHealth(HealthState.LOST, "no fix", 1.0)
-    role.step(0.0, ok, _estimate(east_m, 0.0, 0.0, ("gnss",)), [])
-    assert role.step(1.0, lost, _estimate(east_m, 0.0, 1.0, ("velocity",)), [])[0].mode is Mode.HOLD
-    helped = _estimate(east_m, 0.0, 2.0, ("relative:h1", "velocity"))
+    role.step(0.0, ok, _estimate(east_m, 0.0, 0.0, ("gnss",), up_m=up_m), [])
+    assert role.step(1.0, lost, _estimate(east_m, 0.0, 1.0, ("velocity",), up_m=up_m), [])[0].mode is Mode.HOLD
+    helped = _estimate(east_m, 0.0, 2.0, ("relative:h1", "velocity"), up_m=up_m)
     assert role.step(2.0, lost, helped, [])[0].mode is Mode.RETURN_HOME
-    # the helpers lose it (the estimate rests on velocity alone): over home it lands, elsewhere it holds
-    decision, _ = role.step(3.0, lost, _estimate(east_m, 0.0, 3.0, ("velocity",)), [])
+    # the helpers lose it (the estimate rests on velocity alone, its sigma as given)
+    decision, _ = role.step(3.0, lost, _estimate(east_m, 0.0, 3.0, ("velocity",), sigma_m, up_m), [])
     assert decision.mode is expected
 
 
@@ -188,3 +194,19 @@ def test_a_fix_flown_on_is_kept_until_clearly_too_loose_not_dropped_at_the_entry
     assert role.step(2.5, lost, _estimate(20.0, 0.0, 2.5, helped, sigma_m=between), [])[0].mode is Mode.RETURN_HOME
     loose = cfg.fused_sigma_h_keep_m + 0.5
     assert role.step(3.0, lost, _estimate(20.0, 0.0, 3.0, helped, sigma_m=loose), [])[0].mode is Mode.HOLD
+
+
+def test_low_over_home_is_judged_on_the_autopilots_height_when_given():
+    """The autopilot's barometric height above home decides "low", not the fused altitude less home's (their
+    datums can differ: ArduPilot SITL reports ellipsoidal = AMSL while its home converts through the geoid)."""
+    from skyfix.fusion.health import HealthState, SourceHealth
+
+    ok, lost = SourceHealth(HealthState.OK, "", 0.0), SourceHealth(HealthState.LOST, "no fix", 1.0)
+    for alt_rel_m, expected in ((2.0, Mode.LAND), (12.0, Mode.HOLD)):
+        role = RequesterRole("a", at(0.0, 0.0, 0.0))
+        role.step(0.0, ok, _estimate(4.0, 0.0, 0.0, ("gnss",)), [])
+        role.step(1.0, lost, _estimate(4.0, 0.0, 1.0, ("velocity",)), [], alt_rel_m)
+        assert role.step(2.0, lost, _estimate(4.0, 0.0, 2.0, ("relative:h1",)), [], alt_rel_m)[0].mode is Mode.RETURN_HOME
+        # fused altitude 10 m above home, sigma 1.5 m: 4 m + 2 sigma > 6 m, so only "low" can land it
+        decision, _ = role.step(3.0, lost, _estimate(4.0, 0.0, 3.0, ("velocity",), 1.5), [], alt_rel_m)
+        assert decision.mode is expected

@@ -60,3 +60,19 @@ def test_the_way_to_the_vantage_does_not_cross_the_target():
     assert v.enu_m[0] < 0  # it stays on its side
     from_east = vantage_point(TARGET, np.array([50.0, 0.0, 45.0]), [], [mate], cfg=cfg)
     assert from_east.enu_m[0] > 0
+
+
+def test_a_landing_target_is_kept_above_the_helpers_horizon_from_lower_and_closer():
+    """A target 2 m above the helpers' floor: they go down to the floor and close in to the shortest range,
+    where the target stands highest above their horizon (sky behind it); high up, the preferred range stays."""
+    cfg, floor_m = VantageConfig(), 1.5
+    low = np.array([0.0, 0.0, 3.5])
+    v = vantage_point(low, np.array([40.0, 0.0, 8.0]), floor_up_m=floor_m, cfg=cfg)
+    assert v.enu_m[2] == pytest.approx(floor_m)
+    assert v.range_m == pytest.approx(cfg.range_min_m)
+    assert v.pitch_deg == pytest.approx(math.degrees(math.asin(2.0 / cfg.range_min_m)), abs=1e-6)
+    below = vantage_point(np.array([0.0, 0.0, 0.5]), np.array([40.0, 0.0, 8.0]), floor_up_m=floor_m, cfg=cfg)
+    assert below.enu_m[2] == pytest.approx(floor_m)  # never under the floor, even for a landed target
+    high = vantage_point(TARGET, np.array([40.0, 0.0, 45.0]), floor_up_m=floor_m, cfg=cfg)
+    as_before = vantage_point(TARGET, np.array([40.0, 0.0, 45.0]), cfg=VantageConfig(w_elevation=0.0))
+    assert np.allclose(high.enu_m, as_before.enu_m) and high.range_m > cfg.range_min_m
