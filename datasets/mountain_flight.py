@@ -17,8 +17,11 @@ the truth (true log, fire positions, the error realisation) is kept apart for sc
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import islice
 from pathlib import Path
 
 import cv2
@@ -266,14 +269,29 @@ class MountainFlight:
         cam, r = self.truth_log.camera_in_frame(self.scene.frame, [tau])
         return cam[0], r[0] @ self.errors.boresight().as_matrix()
 
-    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[float, np.ndarray]]:
-        """(camera stamp s, 16-bit radiometric counts ``(H, W)``) per frame, rendered on demand."""
+    def render(self, k: int) -> np.ndarray:
+        """Noise-free apparent temperature (deg C) ``(H, W)`` of frame ``k``."""
+        cam, r = self.true_camera(k)
+        return self.scene.render(self.camera, cam, r, float(self.stamps_s[k] + self.errors.time_offset_s))
+
+    def frames(self, start: int = 0, stop: int | None = None, *, threads: int = 2
+               ) -> Iterator[tuple[float, np.ndarray]]:
+        """(camera stamp s, 16-bit radiometric counts ``(H, W)``) per frame, rendered on demand.
+
+        ``threads`` frames are rendered ahead at once (the renderer's numpy and OpenCV work
+        releases the GIL); the sensor noise is drawn in frame order, so the frames are the
+        same for any ``threads``."""
         rng = np.random.default_rng(self.seed + 17)
-        for k in range(len(self.stamps_s))[start:stop]:
-            cam, r = self.true_camera(k)
-            tau = float(self.stamps_s[k] + self.errors.time_offset_s)
-            celsius = self.scene.render(self.camera, cam, r, tau)
-            yield float(self.stamps_s[k]), self.sensor.to_counts(self.sensor.observe(celsius, rng))
+        ks = iter(range(len(self.stamps_s))[start:stop])
+        with ThreadPoolExecutor(validate.integer_in("threads", threads, 1, 64)) as pool:
+            ahead = deque((k, pool.submit(self.render, k)) for k in islice(ks, threads))
+            while ahead:
+                k, rendered = ahead.popleft()
+                nxt = next(ks, None)
+                if nxt is not None:
+                    ahead.append((nxt, pool.submit(self.render, nxt)))
+                celsius = rendered.result()
+                yield float(self.stamps_s[k]), self.sensor.to_counts(self.sensor.observe(celsius, rng))
 
 
 def projected_hotspots(flight: MountainFlight, rng: np.random.Generator, *, pixel_sigma_px: float = 0.3
