@@ -192,6 +192,11 @@ def main() -> int:
           "can be matched (same model, usable baseline), the rest only across models; cell "
           f"{report['dsm_resolution_m']:.2f} m; dense points {dense} from {report.get('dense_pairs', 0)} pairs "
           f"(sparse {sparse}); orthophoto COG {cog}, at the GSD {full_res}")
+    dsm_marker = json.loads((out / "work" / "stages" / "dsm.json").read_text())
+    for fill in dsm_marker.get("dense_fills", []):
+        print(f"  DSM fill pass at {fill['scale']:g} of the photos' size: +{fill['cells_added']} cells; where a "
+              f"finer pass measured the same cell ({fill['cells_both']} cells): |difference| "
+              f"{fill['median_abs_diff_m']:.2f} m median, {fill['p90_abs_diff_m']:.2f} m for 90 %")
     print(report["flying_height"].get("line", "no flying height check"))
     focal = report["camera_groups"][0]
     print(f"focal length {focal['focal_px']} px from {focal['focal_source']}, refined: {focal['focal_refined']}")

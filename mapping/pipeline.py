@@ -72,6 +72,7 @@ class PipelineConfig:
     seed: int = 0                         # pycolmap's random seed: the same photos give the same model
     dense: bool = True                    # DSM from dense stereo matching (False: from the sparse points)
     dense_scale: float = 0.5              # photos are matched at this fraction of their size
+    dense_fill_scales: tuple[float, ...] = (0.4, 0.3, 0.2)  # coarser SGBM passes: only cells finer ones left empty
     dense_cell_px: float = 2.0            # DSM cell = this many matched pixels on the ground
     max_dense_points: int = 5_000_000     # points.ply holds at most this many dense points (stated in the report)
     dsm_fill_max_m2: float = 4.0          # dense DSM: enclosed holes up to this area interpolated, in dsm_interpolated.tif
@@ -87,6 +88,8 @@ class PipelineConfig:
             raise ConfigurationError(f"force names unknown stage(s) {sorted(unknown)}; stages are {list(STAGES)}")
         if not 0.05 <= self.dense_scale <= 1.0:
             raise InputError(f"dense_scale must be in [0.05, 1], got {self.dense_scale!r}")
+        if any(not 0.05 <= f < self.dense_scale for f in self.dense_fill_scales):
+            raise InputError(f"dense_fill_scales must each be in [0.05, dense_scale), got {self.dense_fill_scales!r}")
         for name in ("resolution_cm", "dsm_resolution_m", "max_ortho_mpx"):
             v = getattr(self, name)
             if v is not None:

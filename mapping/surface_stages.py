@@ -109,7 +109,8 @@ def _dense(config: PipelineConfig, project: Project, state: RunState, sparse_enu
     utm = to_utm(sparse_enu)
     grid = Grid.covering(epsg, *utm[:, :2].min(axis=0), *utm[:, :2].max(axis=0), res_m)
     dsm, cloud = dense_dsm(views, {v.name: v.path for v in views}, sparse_enu, to_utm, grid,
-                           scale=config.dense_scale, max_points=config.max_dense_points, seed=config.seed)
+                           scale=config.dense_scale, fill_scales=tuple(config.dense_fill_scales),
+                           max_points=config.max_dense_points, seed=config.seed)
     np.savez(project.dense_points, xyz=cloud.xyz_utm_m, rgb=cloud.rgb)
     ground_up_m = float(np.median(sparse_enu[:, 2]))
     area = stereo_area(views, grid, to_utm, ground_up_m)
@@ -120,7 +121,7 @@ def _dense(config: PipelineConfig, project: Project, state: RunState, sparse_enu
                  "matchable_share": valid_share(matchable, area),
                  "valid_share_of_matchable": valid_share(dsm.observed, matchable),
                  "dense_points": len(cloud.xyz_utm_m), "dense_pairs": cloud.pairs, "dense_scale": cloud.scale,
-                 "dense_pairs_dropped": list(cloud.dropped),
+                 "dense_pairs_dropped": list(cloud.dropped), "dense_fills": list(cloud.fills),
                  "enu_to_utm_max_residual_m": to_utm.max_residual_m}
 
 
