@@ -153,13 +153,13 @@ class RequesterRole:
             elif now_s - self.since_s >= self.cfg.hold_timeout_s:
                 self._set(Mode.LAND, f"no helper fix for {self.cfg.hold_timeout_s:.0f} s", now_s)
         elif self.mode in (Mode.RETURN_HOME, Mode.CONTINUE) and not good:
-            if self.mode is Mode.RETURN_HOME and self._near_home(fused, alt_rel_m):
+            if self.mode is Mode.RETURN_HOME and self._near_home(fused, alt_rel_m, now_s):
                 # over home and low, the helpers lose it against the ground: finish the landing
                 self._set(Mode.LAND, "helper fix lost over home", now_s)
             else:
                 self._set(Mode.HOLD, "helper fix lost", now_s)
 
-    def _near_home(self, fused: Estimate | None, alt_rel_m: float | None) -> bool:
+    def _near_home(self, fused: Estimate | None, alt_rel_m: float | None, now_s: float) -> bool:
         """Whether a drone returning home that lost its helper fix should land where ``fused`` puts it: near
         home and low, or near home counting the fix's sigma (a fix that grew loose in a link drop, 4-6 m off,
         is not landed on at height: the helpers see it again once the link is back)."""
@@ -170,7 +170,9 @@ class RequesterRole:
         height_m = fused.alt_m - self.home[2] if alt_rel_m is None or not np.isfinite(alt_rel_m) else alt_rel_m
         if height_m <= cfg.land_below_m:
             return float(dist_m) <= cfg.land_near_home_m
-        return float(dist_m) + cfg.land_sigma_k * fused.sigma_horizontal_m <= cfg.land_near_home_m
+        # a stale estimate's sigma is not its present uncertainty (a MAVLink drop stops the estimates): not sure
+        fresh = now_s - fused.time_s <= cfg.fix_max_age_s
+        return fresh and float(dist_m) + cfg.land_sigma_k * fused.sigma_horizontal_m <= cfg.land_near_home_m
 
     def _setpoint(self, fused: Estimate | None) -> tuple[float, float, float] | None:
         if self.mode is Mode.HOLD and self.last_good is not None:

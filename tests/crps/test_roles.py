@@ -210,3 +210,18 @@ def test_low_over_home_is_judged_on_the_autopilots_height_when_given():
         # fused altitude 10 m above home, sigma 1.5 m: 4 m + 2 sigma > 6 m, so only "low" can land it
         decision, _ = role.step(3.0, lost, _estimate(4.0, 0.0, 3.0, ("velocity",), 1.5), [], alt_rel_m)
         assert decision.mode is expected
+
+
+def test_a_stale_fix_near_home_is_not_sure_enough_to_land_on_at_height():
+    """High over home, a fix that went stale (no estimate for > fix_max_age_s: a MAVLink drop) holds, though its
+    last sigma would have passed distance + 2 sigma <= 6 m; a fresh one with that sigma lands."""
+    from skyfix.fusion.health import HealthState, SourceHealth
+
+    ok, lost = SourceHealth(HealthState.OK, "", 0.0), SourceHealth(HealthState.LOST, "no fix", 1.0)
+    for fix_t, expected in ((3.0, Mode.LAND), (0.5, Mode.HOLD)):
+        role = RequesterRole("a", at(0.0, 0.0, 0.0))
+        role.step(0.0, ok, _estimate(1.0, 0.0, 0.0, ("gnss",)), [])
+        role.step(0.2, lost, _estimate(1.0, 0.0, 0.2, ("velocity",)), [], 12.0)
+        assert role.step(0.5, lost, _estimate(1.0, 0.0, 0.5, ("relative:h1",)), [], 12.0)[0].mode is Mode.RETURN_HOME
+        decision, _ = role.step(3.0, lost, _estimate(1.0, 0.0, fix_t, ("velocity",), 1.0), [], 12.0)
+        assert decision.mode is expected
