@@ -371,7 +371,17 @@ class _Run:
             return done or self.sim.time_s - self.t_loss > cfg.max_after_loss_s
 
         self.wait("the lost drone to land", landed, cfg.max_after_loss_s + 10.0)
+        self.let_helpers_go()
         return self.result()
+
+    def let_helpers_go(self, sim_timeout_s: float = 10.0) -> None:
+        """After the landing, give the release a moment to reach the helpers (a few swarm messages): the run
+        ends once none is still helping, or after ``sim_timeout_s`` simulated (then the timeline shows it)."""
+        helpers = [s for i, s in enumerate(self.services) if i != LOST and s.help is not None]
+        t_end = self.sim.time_s + sim_timeout_s
+        while any(s.help.helping is not None for s in helpers) and self.sim.time_s < t_end:
+            self.tick()
+            time.sleep(0.05)
 
     def result(self) -> RecoveryResult:
         rec = self.recorder
