@@ -145,6 +145,20 @@ def _apply_gnss_model(sim, model: GnssErrorModel, seed: int) -> CommonGnssError 
     return common
 
 
+def _sitl_shares(truth, common: CommonGnssError | None, clock: Callable[[], float], cfg: RecoveryConfig):
+    """SITL's receiver (perfect by default) given the area's common GNSS error, which the simulated receivers
+    share, before take-off (the home it records carries it, as a real drone's would) and kept current (the
+    firmware's own glitch offsets, :class:`skyfix.datasets.sitl_gnss.SitlGnssError`). None: nothing shared."""
+    from skyfix.datasets.sitl_gnss import SitlGnssError
+
+    if common is None:
+        return None
+    shared = SitlGnssError(truth.vehicle, common.at, clock, cfg.lost_vehicle_home, speedup=cfg.speed)
+    error = shared.apply_now()
+    log.info("SITL's receiver shares the area's common GNSS error: (%.2f, %.2f, %.2f) m ENU", *error)
+    return shared.start()
+
+
 def _west_of(cfg: RecoveryConfig) -> tuple[float, float, float]:
     """The simulator's home for an external lost drone at ``cfg.lost_vehicle_home``: one spacing west of it."""
     from skyfix.geo import destination
@@ -198,13 +212,14 @@ class _Run:
                                              spacing_m=spacing, home=home, geoid_m=geoid_m, wind=_wind(cfg, self.rng),
                                              params={"GPS_AUTO_SWITCH": 0})).start()  # GPS_PRIMARY picks
         common = _apply_gnss_model(self.sim, cfg.gnss, cfg.seed)
-        self.sitl_truth = None
+        self.sitl_truth = self.sitl_gnss = None
         if self.external:
             from skyfix.datasets.sitl import SitlTruth
 
             self.sitl_truth = SitlTruth.connect(cfg.lost_vehicle_truth_url, cfg.lost_vehicle_home[2],
                                                 geoid_m=self.sim.geoid_m, speedup=cfg.speed)
             self.sitl_truth.wait(30.0)
+            self.sitl_gnss = _sitl_shares(self.sitl_truth, common, self.clock, cfg)
         self.key = secrets.token_bytes(32)
         self.faults = Faults(cfg, self)
         self.recorder = Recorder(self.sim, IDS, LOST, self.truth, common=common)
@@ -346,6 +361,9 @@ class _Run:
     def fly(self) -> RecoveryResult:
         cfg = self.cfg
         self.progress("starting services", 0.0)
+        if self.sitl_gnss is not None:
+            e, n, u = self.sitl_gnss.applied_enu_m
+            self.note(f"SITL's receiver carries the area's common GNSS error, ENU ({e:.2f}, {n:.2f}, {u:.2f}) m")
         self.start_services()
         self.take_off()
         t_survey = self.sim.time_s
@@ -422,6 +440,8 @@ class _Run:
         for t in self.threads:
             t.join(timeout=10.0)
         self.faults.close()
+        if self.sitl_gnss is not None:
+            self.sitl_gnss.close()
         if self.sitl_truth is not None:
             self.sitl_truth.close()
         self.sim.stop()

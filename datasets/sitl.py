@@ -408,6 +408,11 @@ class SitlTruth:
         truth._own = vehicle
         return truth
 
+    @property
+    def vehicle(self):
+        """The connection :meth:`connect` opened (a skyfix ``Vehicle``), or None."""
+        return getattr(self, "_own", None)
+
     def close(self) -> None:
         """Close the connection :meth:`connect` opened (nothing otherwise)."""
         own = getattr(self, "_own", None)
