@@ -1,6 +1,7 @@
 """The README's and every module README's commands run as written (issue 20).
 
-- Fenced ``sh``/``bash`` blocks are run by bash in a fresh folder per README, in the order
+- Fenced ``sh``/``bash`` blocks are run by bash in a fresh folder per README (tests/readme_blocks.py,
+  once per session: tests/crps/test_recovery_demo.py checks the top README's demo run), in the order
   they appear, together with the README's Python blocks whose first line is
   ``# runs as is`` (so a block can use the files an earlier one wrote). Every command must
   succeed. The install step of the top README (``pip install -e . && ...``) is not re-run:
@@ -15,74 +16,35 @@ from __future__ import annotations
 
 import re
 import shlex
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from readme_blocks import FENCE as _FENCE
+from readme_blocks import ROOT, runnable
+from readme_blocks import rel as _rel
+from readme_blocks import shell_lines as _lines
 
 from skyfix.cli import build_parser
 
-ROOT = Path(__file__).resolve().parents[1]
 READMES = [ROOT / "README.md", *sorted(ROOT.glob("*/README.md")), *sorted((ROOT / "docs").glob("*.md"))]
-_FENCE = re.compile(r"```([a-z]*)\n(.*?)```", re.S)
 #: READMEs whose runnable blocks take long; still run in CI.
 SLOW = {"README.md", "fusion/README.md", "thermal/README.md"}
 
 
-def _rel(path: Path) -> str:
-    return str(path.relative_to(ROOT))
-
-
-def _lines(block: str) -> list[str]:
-    """Shell lines of a block with backslash continuations joined and comments dropped."""
-    joined = re.sub(r"\\\n\s*", " ", block)
-    out = []
-    for line in joined.splitlines():
-        line = line.strip()
-        if line and not line.startswith("#"):
-            out.append(line)
-    return out
-
-
-def _runnable(readme: Path) -> list[tuple[str, str]]:
-    """(kind, text) of the blocks to run, in order: kind 'sh' or 'python'."""
-    out = []
-    for lang, body in _FENCE.findall(readme.read_text()):
-        if lang in ("sh", "bash", "shell"):
-            out.append(("sh", body))
-        elif lang == "python" and body.startswith("# runs as is"):
-            out.append(("python", body))
-    return out
-
-
-def _as_run_here(line: str) -> str | None:
-    """The line to run, or None for one CI runs instead (the README's install + test)."""
-    if "python -m pytest" in line:
-        return None
-    return re.sub(r"^pip install -e \S+\s*&&\s*", "", line)
-
-
-RUNNABLE = [r for r in READMES if _runnable(r)]
+RUNNABLE = [r for r in READMES if runnable(r)]
 
 
 @pytest.mark.parametrize("readme", [
     pytest.param(r, id=_rel(r), marks=[pytest.mark.slow] if _rel(r) in SLOW else [])
     for r in RUNNABLE])
-def test_readme_blocks_run_as_written(readme: Path, tmp_path: Path):
-    for k, (kind, body) in enumerate(_runnable(readme)):
-        if kind == "python":
-            script = tmp_path / f"block{k}.py"
-            script.write_text(body)
-            cmd = [sys.executable, str(script)]
-        else:
-            lines = [x for x in (_as_run_here(ln) for ln in _lines(body)) if x]
-            if not lines:
-                continue
-            cmd = ["bash", "-euo", "pipefail", "-c", "\n".join(lines)]
-        out = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
-        assert out.returncode == 0, (f"{_rel(readme)} block {k} failed (exit {out.returncode}):\n{body}\n"
-                                     f"stderr: {out.stderr[-2000:]}")
+def test_readme_blocks_run_as_written(readme: Path, readme_runs):
+    """Every block succeeds (run once per session by the ``readme_runs`` fixture, which other
+    tests read too; see tests/readme_blocks.py for what is run and how)."""
+    runs = readme_runs(readme)
+    assert runs, f"{_rel(readme)}: no block ran"
+    for run in runs:
+        assert run.returncode == 0, (f"{_rel(readme)} block {run.index} failed (exit {run.returncode}):\n"
+                                     f"{run.body}\nstderr: {run.stderr[-2000:]}")
 
 
 def _shown_commands() -> list[tuple[str, str]]:

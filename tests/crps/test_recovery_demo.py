@@ -1,7 +1,9 @@
 """``skyfix demo`` end to end: a drone loses GNSS, the helpers' cameras bring it home, the files open.
 
 One seeded run of the whole flow (three services on the simulator, MAVLink over UDP, the swarm bus,
-WorldCamera frames); the figures are checked against the issue's goals, the logs are replayed.
+WorldCamera frames); the figures are checked against the issue's goals, the logs are replayed. The run is
+the top README's own ``skyfix demo --seed 11`` (fixture ``readme_demo`` in tests/conftest.py: the command
+runs once per session, as tests/test_readme_commands.py runs it).
 """
 
 from __future__ import annotations
@@ -16,9 +18,9 @@ from skyfix.cli import main
 
 
 @pytest.mark.slow
-def test_demo_brings_the_lost_drone_home_and_writes_its_files(tmp_path, capsys):
-    assert main(["-q", "demo", "-o", str(tmp_path), "--seed", "11", "--speed", "2"]) == 0
-    out = capsys.readouterr().out
+def test_demo_brings_the_lost_drone_home_and_writes_its_files(readme_demo):
+    assert readme_demo.returncode == 0, readme_demo.stderr[-2000:]
+    tmp_path, out = readme_demo.folder / "skyfix-demo", readme_demo.stdout
     assert "d2 landed home" in out and "open next:" in out and "A consistent estimate averages 3" in out
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["outcome"] == "home"
