@@ -99,6 +99,7 @@ class HelperEye:
         self._fresh = False
         self._sighting: tuple[str, GeoFix] | None = None  # (target, where this eye last saw it)
         self.last_searched = False  # whether observe_frame's last frame was searched for the target
+        self.busy_since_s: float | None = None  # clock() when the frame being processed was grabbed (None: idle)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True, name=f"skyfix-eye-{drone_id}")
         if run:
@@ -166,6 +167,7 @@ class HelperEye:
 
     def _process(self, target: tuple[str, GeoFix]) -> None:
         """Grab the newest frame, observe the target in it, queue the observation."""
+        self.busy_since_s = self.clock()
         try:
             frame = self.camera()
             if frame is None:
@@ -186,6 +188,8 @@ class HelperEye:
             log.warning("helper %s camera: %s", self.drone_id, exc)
         except Exception:  # noqa: BLE001 - a camera thread must outlive a bug in one frame
             log.exception("helper %s camera frame failed", self.drone_id)
+        finally:
+            self.busy_since_s = None
 
     def _sight(self, target_id: str, obs: RelativeObservation) -> None:
         """Keep where this eye saw the target: the gimbal follows its own track, not only the requester's fix

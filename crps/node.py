@@ -23,6 +23,8 @@ import threading
 from collections.abc import Callable
 from typing import Protocol
 
+import numpy as np
+
 from skyfix.crps.arrival_lag import ArrivalLag
 from skyfix.errors import NotAvailableError, SkyfixError
 from skyfix.fusion.config import FusionConfig
@@ -32,6 +34,11 @@ from skyfix.types import GeoFix, RelativeObservation
 
 log = logging.getLogger(__name__)
 
+#: A drone's acceleration, 1-sigma per axis (m/s^2), when :meth:`Node.fix` moves an estimate on with its velocity:
+#: ArduPilot's default waypoint acceleration (WPNAV_ACCEL 250 cm/s^2): a drone braking to a stop (RTL over home)
+#: leaves a held 5 m/s velocity 5 m wrong after 2 s. Taken as zero, a MAVLink drop's stale velocity (no autopilot
+#: velocity for seconds) moved the fix 13 m past home with a 2.4 m sigma (two fault tests at once under load).
+EXTRAPOLATION_ACCEL_MPS2 = 2.5
 #: Velocity 1-sigma of GLOBAL_POSITION_INT's velocity, m/s (an EKF's output, not raw Doppler).
 TELEMETRY_VELOCITY_SIGMA_MPS = 0.2
 #: While the autopilot flies on the position skyfix injects, an EKF that takes no other velocity source
@@ -192,7 +199,8 @@ class Node:
         dt = max(0.0, now_s - est.time_s)
         enu = est.enu_m + est.vel_enu_mps * dt
         lat, lon, alt = (float(c) for c in self.frame.to_geodetic(*enu))
-        cov = est.cov_enu_m2 + est.vel_cov_enu_m2ps2 * dt * dt
+        # the velocity is held over dt, but the drone may accelerate: + (a dt^2 / 2)^2 per axis
+        cov = est.cov_enu_m2 + est.vel_cov_enu_m2ps2 * dt * dt + np.eye(3) * (0.5 * EXTRAPOLATION_ACCEL_MPS2 * dt * dt) ** 2
         return GeoFix(lat, lon, alt, cov, now_s if time_stamp_s is None else time_stamp_s, "skyfix.fusion")
 
     def close(self) -> None:

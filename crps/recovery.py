@@ -47,6 +47,12 @@ TAKEOFF_STALL_S = 20.0   # a drone not at cruise height this long after its take
 # requester's window then costs up to that many times the CPU; an observation later than ~10 s is rare even with
 # two test suites on two cores, 5.6 s p90 seen)
 MAX_LAG_FACTOR = 4.0
+# one process renders and processes both helpers' cameras and runs three services: on a shared machine a frame can
+# take seconds of CPU, which a drone's own companion computer would not lose to its neighbours. While a helper's
+# frame older than this (simulated s) is still in its pipeline, the simulated world runs at real time at most
+# (RecoveryConfig.pace; not below: the autopilots' 1 Hz heartbeats must reach their services within 2 s)
+PACE_BEHIND_S = 1.5
+PACE_SPEED = 1.0
 
 
 GNSS_MODELS = {
@@ -82,6 +88,7 @@ class RecoveryConfig:
     camera_px: tuple[int, int] = (960, 720)
     camera_hfov_deg: float = 50.0
     frame_hz: float = 4.0
+    pace: bool = True                     # the simulator slows to real time while a helper's camera is behind
 
     def __post_init__(self) -> None:
         validate.positive_scalar("speed", self.speed)
@@ -292,6 +299,16 @@ class _Run:
             thread.start()
             self.threads.append(thread)
 
+    def _cameras_behind(self) -> bool:
+        """Whether a helper's camera pipeline holds a frame grabbed more than PACE_BEHIND_S (simulated) ago."""
+        now = self.sim.time_s
+        for s in self.services:
+            eye = s.help.eye if s.help is not None else None
+            since = None if eye is None else eye.busy_since_s
+            if since is not None and now - since > PACE_BEHIND_S:
+                return True
+        return False
+
     def wait(self, what: str, until: Callable[[], bool], sim_timeout_s: float) -> None:
         """Wait (recording) until ``until()``; SkyfixTimeout-like InputError after ``sim_timeout_s`` simulated."""
         t_end = self.sim.time_s + sim_timeout_s
@@ -361,6 +378,8 @@ class _Run:
     def fly(self) -> RecoveryResult:
         cfg = self.cfg
         self.progress("starting services", 0.0)
+        if cfg.pace and not self.external:  # firmware in the loop (SITL) keeps its own clock
+            self.sim.pace = (self._cameras_behind, min(cfg.speed, PACE_SPEED))
         if self.sitl_gnss is not None:
             e, n, u = self.sitl_gnss.applied_enu_m
             self.note(f"SITL's receiver carries the area's common GNSS error, ENU ({e:.2f}, {n:.2f}, {u:.2f}) m")
@@ -429,6 +448,7 @@ class _Run:
             figures.update({f"mav_outage_{k}": v for k, v in around.items()})
         eyes = [s.help.eye for s in self.services if s.help is not None and s.help.eye is not None]
         figures["helper_frames_dropped"] = float(sum(e.frames_dropped for e in eyes))  # skipped, never queued
+        figures["sim_paced_s"] = self.sim.paced_s  # simulated s run slower while a helper's camera was behind
         latency = [x for e in eyes for x in e.latency_s]  # exposure -> observation ready, simulated s
         figures["helper_obs_latency_p90_s"] = float(np.percentile(latency, 90)) if latency else math.nan
         return RecoveryResult(landing_m, rec.first_fused_fix_s(), rec.max_recovery_error_m(), rec.min_separation_m(),

@@ -14,7 +14,7 @@ import select
 import socket
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -105,6 +105,10 @@ class Simulator:
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self.overruns = 0
+        # (behind, speed): while ``behind()`` is True (a consumer of the simulation, e.g. a camera pipeline
+        # sharing the CPU, has fallen behind) the clock runs at that speed instead of ``config.speed``
+        self.pace: tuple[Callable[[], bool], float] | None = None
+        self.paced_s = 0.0  # simulated seconds run at the slower pace
 
     # ------------------------------------------------------------------ API
     @property
@@ -192,17 +196,20 @@ class Simulator:
 
     def _run(self) -> None:
         cfg = self.config
-        wall_dt = cfg.dt_s / cfg.speed
         socks = {s.sock: s for s in self.servers}
         next_step = time.monotonic()
         while not self._stop.is_set():
             now = time.monotonic()
             steps = 0
+            pace = self.pace
+            slow = pace is not None and pace[1] < cfg.speed and pace[0]()
+            wall_dt = cfg.dt_s / (pace[1] if slow else cfg.speed)
             with self.lock:
                 while now >= next_step and steps < 20:
                     self._step()
                     next_step += wall_dt
                     steps += 1
+            self.paced_s += slow * steps * cfg.dt_s
             if now - next_step > 0.5:  # starved of CPU: slow down instead of racing to catch up
                 self.overruns += 1
                 next_step = now
