@@ -170,24 +170,46 @@ class ThermalScene:
             centre = (lo + hi) / 2.0
             east = centre[0] + (np.arange(ncol) - (ncol - 1) / 2.0) * mpp
             north = centre[1] - (np.arange(nrow) - (nrow - 1) / 2.0) * mpp
-            ee, nn = np.meshgrid(east, north)
             excess = np.zeros((nrow, ncol), np.float32)
             opacity = np.zeros((nrow, ncol), np.float32)
             edge_m = max(0.15, 2.0 * mpp)
             for f, r in active:
-                de, dn = ee - f.east_m, nn - f.north_m
+                # each term on the texels where it can be non-zero, a box of rows x columns (a layer is up to
+                # 4096 x 4096 texels; the same values as over the whole layer, zero outside the box)
+                de_col, dn_row = east - f.east_m, north - f.north_m
+                rows, cols = np.flatnonzero(np.abs(dn_row) < r + edge_m), np.flatnonzero(np.abs(de_col) < r + edge_m)
+                box = np.ix_(rows, cols)  # cover > 0 only where dist < r + edge / 2
+                de, dn = np.meshgrid(de_col[cols], dn_row[rows])
                 dist = np.hypot(de, dn)
                 cover = np.clip((r - dist) / edge_m + 0.5, 0.0, 1.0)
                 core = 1.0 - 0.3 * np.clip(dist / r, 0.0, 1.0) ** 2
-                excess = np.maximum(excess, ((f.peak_c - self.ambient_c) * cover * core).astype(np.float32))
+                excess[box] = np.maximum(excess[box], ((f.peak_c - self.ambient_c) * cover * core).astype(np.float32))
                 if f.smoke_opacity > 0:
                     w = np.radians(f.wind_to_deg)
-                    along = de * np.sin(w) + dn * np.cos(w)
-                    across = -de * np.cos(w) + dn * np.sin(w)
-                    width = r + 0.3 * np.clip(along, 0.0, None)
-                    env = np.clip(along / r + 1.0, 0.0, 1.0) * np.exp(-np.clip(along, 0, None) / f.smoke_length_m)
-                    a = f.smoke_opacity * env * np.exp(-0.5 * (across / width) ** 2)
-                    opacity = np.maximum(opacity, a.astype(np.float32))
+                    # the plume is 0 up-wind of along = -r; along = east part + north part, so its largest value on a
+                    # column (row) is at the row (column) where that part is largest (1 m margin for rounding)
+                    a_col, a_row = de_col * np.sin(w), dn_row * np.cos(w)
+                    rows, cols = np.flatnonzero(a_row + a_col.max() > -r - 1.0), np.flatnonzero(a_col + a_row.max() > -r - 1.0)
+                    box = np.ix_(rows, cols)
+                    # opacity * clip(along / r + 1, 0, 1) * exp(-max(along, 0) / length) * exp(-(across / width)^2 / 2),
+                    # width = r + 0.3 max(along, 0), evaluated in place (the same operations in the same order)
+                    along = np.add.outer(a_row[rows], a_col[cols])
+                    across = np.add.outer(dn_row[rows] * np.sin(w), -de_col[cols] * np.cos(w))
+                    ahead = np.clip(along, 0.0, None)
+                    width = 0.3 * ahead
+                    width += r
+                    env = along / r
+                    env += 1.0
+                    np.clip(env, 0.0, 1.0, out=env)
+                    np.negative(ahead, out=ahead)
+                    ahead /= f.smoke_length_m
+                    env *= np.exp(ahead, out=ahead)
+                    across /= width
+                    across **= 2
+                    across *= -0.5
+                    a = f.smoke_opacity * env
+                    a *= np.exp(across, out=across)
+                    opacity[box] = np.maximum(opacity[box], a.astype(np.float32))
             tex = GroundTexture(np.dstack((excess, opacity)), mpp, self.frame, (float(centre[0]), float(centre[1])))
         self._fire_cache = (radii, tex)
         return tex
