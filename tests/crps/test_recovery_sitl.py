@@ -32,8 +32,8 @@ SPEED = 1.0
     "issue 18 open: 4 of 5 runs home. Since SITL's receiver carries the area's common GNSS error the simulated "
     "receivers share (datasets.sitl_gnss, its home too, as a real drone's would; 2026-11-28 17:14-17:35 UTC, speed 1, "
     "each alone under the heavy-job lock, load 1.1-5.6): landed 1.81, 1.91, 2.25 and 1.58 m from home; one run "
-    "touched down 2.91 m off after 'land (helper fix lost over home)' at 108 s but was still armed when the run "
-    "ended 52 s later (outcome holding). Before (perfect SITL receiver, 15:12-16:14): 2.38-3.09 m, 5 of 6. What is "
+    "was still armed 52 s after 'land (helper fix lost over home)' at 108 s, 2.91 m from home (outcome holding; "
+    "its height was not printed then). Before (perfect SITL receiver, 15:12-16:14): 2.38-3.09 m, 5 of 6. What is "
     "left of the error is the drift of the last ~2 m of descent, under the helpers' horizon"))
 def test_sitl_lost_drone_returns_home_on_the_helpers_cameras():
     from skyfix.crps.recovery import RecoveryConfig, run_recovery
