@@ -69,10 +69,20 @@ def read_xmp(data: bytes) -> dict[str, float]:
     return out
 
 
+#: The focal-plane resolution is trusted when the sensor width it implies for the image
+#: (its width over the pixel density) is within this share of the sensor table's width.
+#: Sensors of one type differ by about 2 %; a photo resized without updating the tag, or
+#: with the tag scaled by another factor than the image, is off by far more (the Seneca
+#: photos, 4000 px downscaled to 1200 with the density divided by 3: a 5.58 mm sensor for
+#: the 6.17 mm 1/2.3-inch type, which made the focal length 11 % long).
+_FOCAL_PLANE_TOLERANCE = 0.05
+
+
 @dataclass(frozen=True)
 class FocalEstimate:
     """Focal length in pixels and where it came from (``source``), most trusted first:
-    ``xmp-calibrated`` (DJI factory calibration), ``focal-plane`` (EXIF sensor pixel density),
+    ``xmp-calibrated`` (DJI factory calibration), ``focal-plane`` (EXIF sensor pixel density,
+    unless the sensor width it implies disagrees with the table's by over 5 %),
     ``sensor-table`` (known sensor width), ``35mm-equivalent`` (an approximation: 4-5 %
     off on frames cropped from the sensor when the sensor's shape is not known)."""
 
@@ -116,9 +126,11 @@ class PhotoMetadata:
             # Calibrated on the full-resolution frame: scale by the width its optical centre implies.
             scale = width / (2.0 * centre_x) if centre_x and centre_x > 0 else 1.0
             return FocalEstimate(calibrated * scale, "xmp-calibrated")
-        if self.focal_length_mm and self.focal_plane_px_per_mm:
-            return FocalEstimate(self.focal_length_mm * self.focal_plane_px_per_mm, "focal-plane")
         sensor_mm = sensor_width_mm(self.make, self.model)
+        if self.focal_length_mm and self.focal_plane_px_per_mm and (
+                sensor_mm is None or abs(max(width, height) / self.focal_plane_px_per_mm / sensor_mm - 1.0)
+                <= _FOCAL_PLANE_TOLERANCE):
+            return FocalEstimate(self.focal_length_mm * self.focal_plane_px_per_mm, "focal-plane")
         if self.focal_length_mm and sensor_mm:
             # A cropped frame (16:9 from a 4:3 or 3:2 sensor) keeps the sensor's full width.
             return FocalEstimate(self.focal_length_mm * max(width, height) / sensor_mm, "sensor-table")

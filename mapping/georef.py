@@ -250,19 +250,29 @@ def _pair_refusal(pair: PairModel, new_p: Photo | None, partner_p: Photo | None,
     return ""
 
 
-def _vertical_limit_m(main_georef: ModelGeoref, max_vertical_m: float) -> float:
-    """3x the vertical RMS of the host model's photos against their GPS (this flight's GPS
-    height noise), within [1 m, ``max_vertical_m``]; ``max_vertical_m`` with < 3 photos."""
+def _vertical_limit_m(main_georef: ModelGeoref, max_vertical_m: float,
+                      prior_sigma_m: float | None = None) -> tuple[float, str]:
+    """The vertical limit and what it is. With GPS priors in the bundle adjustment
+    (``prior_sigma_m``, their vertical standard deviation): 3x that sigma, at most
+    ``max_vertical_m``. The host's photos were held to their GPS heights there, so their
+    residuals measure that pull, not the GPS noise (Seneca: 0.6 m RMS for a GPS the
+    adjustment takes as 4 m). Without priors: 3x the vertical RMS of the host model's
+    photos against their GPS (this flight's GPS height noise), within [1 m,
+    ``max_vertical_m``]; ``max_vertical_m`` with < 3 photos."""
+    if prior_sigma_m:
+        return min(3.0 * prior_sigma_m, max_vertical_m), "3x the vertical GPS sigma of the bundle adjustment"
+    what = f"3x the vertical GPS RMS of model {main_georef.model_index}'s photos"
     host_z = np.array([main_georef.residuals_enu_m[n][2] for n in main_georef.inliers
                        if n in main_georef.residuals_enu_m])
     if len(host_z) < 3:
-        return max_vertical_m
-    return float(np.clip(3.0 * np.sqrt(np.mean(host_z ** 2)), 1.0, max_vertical_m))
+        return max_vertical_m, "the vertical limit"
+    return float(np.clip(3.0 * np.sqrt(np.mean(host_z ** 2)), 1.0, max_vertical_m)), what
 
 
 def attach_pair(pair_rec, main_rec, main_georef: ModelGeoref, pair: PairModel, photos: list[Photo],
                 frame: LocalFrame, model_index: int, *, max_offset_m: float = 5.0, max_vertical_m: float = 12.0,
-                min_inliers: int = 30, gps_shift_enu: dict[str, np.ndarray] | None = None) -> ModelGeoref:
+                min_inliers: int = 30, gps_shift_enu: dict[str, np.ndarray] | None = None,
+                prior_sigma_vertical_m: float | None = None) -> ModelGeoref:
     """Place ``pair.photo`` from its two-photo model ``pair_rec`` on the partner's ground.
 
     The partner's pose and its ground come from the georeferenced ``main_rec``: a plane
@@ -275,7 +285,9 @@ def attach_pair(pair_rec, main_rec, main_georef: ModelGeoref, pair: PairModel, p
     inlier of the main model and the photo's centre within ``max_offset_m`` of its GPS
     horizontally and vertically within 3x the vertical RMS of the main model's photos
     against their own GPS (this flight's GPS height noise; at most ``max_vertical_m``, at
-    least 1 m), the GPS moved by ``gps_shift_enu`` (the GPS lag correction) when given.
+    least 1 m), or, when the main model was adjusted with GPS priors of vertical sigma
+    ``prior_sigma_vertical_m``, within 3x that sigma (see :func:`_vertical_limit_m`); the
+    GPS moved by ``gps_shift_enu`` (the GPS lag correction) when given.
     ``pair_rec`` is moved in place by the similarity that gives the photo that pose (its
     scale from the baseline) and the partner is deregistered from it, leaving one photo.
     """
@@ -313,7 +325,7 @@ def attach_pair(pair_rec, main_rec, main_georef: ModelGeoref, pair: PairModel, p
                          centre_new - scale * rotation @ pair_new.projection_center())
     offset = centre_new - gps_new
     horizontal_m, vertical_m = float(np.linalg.norm(offset[:2])), float(abs(offset[2]))
-    max_vertical_m = _vertical_limit_m(main_georef, max_vertical_m)
+    max_vertical_m, limit_what = _vertical_limit_m(main_georef, max_vertical_m, prior_sigma_vertical_m)
     result.two_view.update({"baseline_m": float(np.linalg.norm(centre_new - main_partner.projection_center())),
                             "baseline_gps_m": float(np.linalg.norm(gps_new - gps_partner)),
                             "offset_m": float(np.linalg.norm(offset)), "offset_horizontal_m": horizontal_m,
@@ -321,8 +333,7 @@ def attach_pair(pair_rec, main_rec, main_georef: ModelGeoref, pair: PairModel, p
     if horizontal_m > max_offset_m or vertical_m > max_vertical_m:
         result.reason = (f"{pair.photo}: placed from {pair.partner} {horizontal_m:.1f} m horizontally and "
                          f"{vertical_m:.1f} m vertically from its GPS (limits {max_offset_m:g} m, "
-                         f"{max_vertical_m:.1f} m: 3x the vertical GPS RMS of model {main_georef.model_index}'s "
-                         "photos); not placed")
+                         f"{max_vertical_m:.1f} m: {limit_what}); not placed")
         log.warning("model %d: %s", model_index, result.reason)
         return result
     pair_rec.transform(sim)

@@ -63,13 +63,19 @@ def _attach_pairs(config: PipelineConfig, project: Project, state: RunState, res
         shift = {n: lag["lag_s"] * v for n, v in state.velocities.items()} if lag.get("applied") else None
         found = attach_pair(pair_rec, models[host], results[host], pair, state.photos, frame, len(results),
                             max_offset_m=config.two_view_max_offset_m,
-                            max_vertical_m=config.two_view_max_vertical_m, gps_shift_enu=shift)
+                            max_vertical_m=config.two_view_max_vertical_m, gps_shift_enu=shift,
+                            prior_sigma_vertical_m=config.gps_sigma_m[1] if _priors_used(config, state) else None)
         if not found.georeferenced:
             rejected.append(found.reason)
             continue
         results.append(found)
         pair_rec.write(str(project.georef_model(found.model_index)))
     return rejected
+
+
+def _priors_used(config: PipelineConfig, state: RunState) -> bool:
+    """Whether mapping adjusted with GPS pose priors (the condition of sfm_stages.mapping_run)."""
+    return bool(config.gps_sigma_m) and sum(p.has_gps for p in state.photos) >= 3
 
 
 def georef_load(config: PipelineConfig, project: Project, state: RunState, report: Report, marker: dict) -> None:

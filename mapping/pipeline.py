@@ -62,7 +62,7 @@ class PipelineConfig:
     max_agl_m: float = 120.0              # upper bound of height above ground for the overlap check
     georef_max_error_m: float = 10.0      # RANSAC inlier distance camera centre <-> GPS
     two_view_max_offset_m: float = 5.0    # a photo placed by a two-view model: this close to its GPS horizontally
-    two_view_max_vertical_m: float = 12.0  # ... and vertically within 3x the host model's vertical GPS RMS, at most this
+    two_view_max_vertical_m: float = 12.0  # ... and vertically within 3x the GPS vertical sigma (no priors: host RMS), at most this
     ortho_seams: bool = True              # one photo per pixel, graph-cut seams, gains (False: feathered mean)
     seam_band_px: float = 6.0             # blending band across a seam, orthophoto pixels
     blend_power: float = 2.0              # feathered mean only: exponent of the edge-distance weight

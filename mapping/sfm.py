@@ -21,6 +21,7 @@ from skyfix.camera import Camera
 from skyfix.distortion import BrownConrady, Fisheye
 from skyfix.errors import ConfigurationError
 from skyfix.geo import LocalFrame
+from skyfix.mapping import sfm_refine
 from skyfix.mapping.photos import Photo, camera_groups
 
 __all__ = ["ColmapCamera", "PairModel", "colmap_camera", "extract", "load_models", "match", "pair_models",
@@ -241,7 +242,11 @@ def reconstruct(database: Path, image_dir: Path, out_dir: Path, *, calibrated: b
     nadir survey photos at 1-2 Mpx over fields share few features across flight lines
     (on the Seneca photos this joins two partial models into one); every registration
     still passes RANSAC and bundle adjustment with the 4 px reprojection filter. Models
-    are written under ``out_dir/<i>``.
+    that share photos with the largest are then joined into it (one triangulation over
+    all their photos and one adjustment with the GPS priors,
+    :func:`skyfix.mapping.sfm_refine.join_models`), and a radial distortion term the
+    photos do not support is dropped (:func:`~skyfix.mapping.sfm_refine.without_unsupported_distortion`).
+    Models are written under ``out_dir/<i>``.
 
     ``refine_focal=False`` holds the focal length at its prior (a nadir grid at constant
     height cannot tell focal length from depth: both scale the image of the ground alike);
@@ -272,50 +277,21 @@ def reconstruct(database: Path, image_dir: Path, out_dir: Path, *, calibrated: b
         options.mapper.abs_pose_refine_extra_params = False
     models = pycolmap.incremental_mapping(database, image_dir, out_dir, options=options)
     ordered = sorted(models.values(), key=lambda r: r.num_reg_images(), reverse=True)
+    priors = sfm_refine.pose_priors(database) if pose_priors else []
+    refine_focal, refine_extra = options.ba_refine_focal_length, options.ba_refine_extra_params
+    ordered = sfm_refine.join_models(ordered, database, image_dir, out_dir / "join", priors,
+                                     refine_focal=refine_focal, refine_extra=refine_extra)
     if not calibrated:
-        ordered = [_without_unsupported_distortion(rec) for rec in ordered]
+        ordered = [sfm_refine.without_unsupported_distortion(rec, priors) for rec in ordered]
+    shutil.rmtree(out_dir / "join", ignore_errors=True)
+    for path in out_dir.iterdir():  # pycolmap's own numbering; the joined, ordered models replace it
+        if path.is_dir() and path.name.isdigit():
+            shutil.rmtree(path)
     for i, rec in enumerate(ordered):
         path = out_dir / str(i)
         path.mkdir(exist_ok=True)
         rec.write(str(path))
     return ordered
-
-
-def _without_unsupported_distortion(rec, min_gain: float = 0.05):
-    """``rec``, or a copy re-adjusted with the radial distortion at 0 when the refined
-    distortion lowers the mean reprojection error by less than ``min_gain`` (5 %).
-
-    Over a nadir grid flown at constant height the radial term trades off against depth
-    (the "doming" of parallel-axis surveys): on a rendered pinhole survey pycolmap settled
-    at k = 0.0056 with no better fit than k = 0, and every height came out 1.2 % of the
-    flying height too high. A real lens shows its distortion as a clear gain and keeps it.
-    """
-    pycolmap = _colmap_logging()
-
-    radial = {"SIMPLE_RADIAL": (3,), "RADIAL": (3, 4)}
-    cams = [c for c in rec.cameras.values() if c.model.name in radial and any(
-        c.params[i] != 0.0 for i in radial[c.model.name])]
-    if not cams or rec.num_reg_images() < 3:
-        return rec
-    with_k = rec.compute_mean_reprojection_error()
-    trial = pycolmap.Reconstruction(rec)
-    for cam in trial.cameras.values():
-        if cam.model.name in radial:
-            params = cam.params
-            for i in radial[cam.model.name]:
-                params[i] = 0.0
-            cam.params = params
-    options = pycolmap.BundleAdjustmentOptions()
-    options.print_summary = False  # Ceres's report goes to stdout, past the logging levels
-    options.refine_focal_length = options.refine_extra_params = options.refine_principal_point = False
-    with _native_stderr_quiet():
-        pycolmap.bundle_adjustment(trial, options)
-    _colmap_logging()  # bundle_adjustment left glog at INFO
-    without_k = trial.compute_mean_reprojection_error()
-    keep = with_k < (1.0 - min_gain) * without_k
-    log.info("radial distortion %s: reprojection %.4f px with it, %.4f px without", "kept" if keep else
-             "dropped (not supported by the photos)", with_k, without_k)
-    return rec if keep else trial
 
 
 @dataclass(frozen=True)

@@ -39,8 +39,11 @@ def test_metadata_of_real_photo():
     meta = read_metadata((DATA / "IMG_0459.jpg").read_bytes(), "IMG_0459")
     assert meta.make == "Canon" and meta.orientation == 1
     assert meta.gps_lat_deg == pytest.approx(41.0, abs=0.1) and meta.gps_lon_deg == pytest.approx(-83.3, abs=0.1)
-    # 4.3 mm x (4000000 / 732 px per inch / 25.4 mm per inch), the README's downscaled sensor.
-    assert meta.focal_length_px(1200, 900) == pytest.approx(4.3 * 4000000 / 732 / 25.4, rel=1e-9)
+    # FocalPlaneXResolution 4000000 / 732 px per inch: a 1200 px wide image on a 5.58 mm
+    # sensor, 9.6 % off the 1/2.3-inch type's 6.17 mm (the tag was divided by 3 for a
+    # 4000 -> 1200 px downscale), so the sensor table gives the focal length: 4.3 mm x 1200 / 6.17 mm.
+    assert meta.focal_plane_px_per_mm == pytest.approx(4000000 / 732 / 25.4, rel=1e-9)
+    assert meta.focal_length_px(1200, 900) == pytest.approx(4.3 * 1200 / 6.17, rel=1e-9)
 
 
 def test_missing_and_corrupt_inputs_raise_data_errors(tmp_path):

@@ -40,7 +40,7 @@ def test_lens_correct_writes_photos_report_and_camera(tmp_path, capsys):
     report = json.loads((out / "correction_report.json").read_text())
     assert report["written"] == 1 and report["skipped"][0]["photo"].endswith("bad.jpg")
     cam = json.loads((out / "camera.json").read_text())
-    assert cam["width"] == 1200 and cam["fx_px"] == pytest.approx(925.089 / 1.22, rel=1e-4)
+    assert cam["width"] == 1200 and cam["fx_px"] == pytest.approx(4.3 * 1200 / 6.17 / 1.22, rel=1e-4)  # sensor table (EXIF focal plane off)
     assert "skipped" in capsys.readouterr().out
     assert main(["-q", "lens", "correct", str(src), str(out), "--barrel", "0.1 -0.32"]) == 2  # bad coefficients: input error
 

@@ -79,7 +79,7 @@ def test_non_overlapping_photos_explained(tmp_path):
     ends = sorted(DATA.glob("*.jpg"))
     for p in (ends[0], ends[-1]):  # 151 m apart along the line
         shutil.copy(p, photos / p.name)
-    # At most 60 m above ground the footprint diagonal is 60 * 1500 / 925 = 97 m < 151 m.
+    # At most 60 m above ground the footprint diagonal is 60 * 1500 / 836 = 108 m < 151 m.
     with pytest.raises(DataError, match="reconstructed nothing"):
         run_pipeline(PipelineConfig(photos, tmp_path / "project", max_agl_m=60.0, **FAST))
     import json
@@ -116,9 +116,9 @@ def test_changed_option_reruns_the_stages_it_affects(tmp_path, monkeypatch):
     out = tmp_path / "project"
     first = run_pipeline(PipelineConfig(photos, out, **FAST))
     # Without --resolution-cm the orthophoto's pixel is the photos' GSD: flying height
-    # 64.8 +- 7 m over the 925 px focal length (see test_mapping_pipeline.py).
+    # 62.5 +- 7 m over the 836 px focal length (see test_mapping_pipeline.py).
     assert first.resolution_cm == pytest.approx(first.gsd_cm)
-    assert 57.8 / 925.09 < first.gsd_cm / 100.0 < 71.8 / 925.09
+    assert 55.5 / 836.30 < first.gsd_cm / 100.0 < 69.5 / 836.30
 
     calls = _spy_on_extract_and_match(monkeypatch)
     coarse = run_pipeline(PipelineConfig(photos, out, resolution_cm=30.0, **FAST))

@@ -78,6 +78,23 @@ def test_focal_prior_from_sensor_geometry(scene, tmp_path):
     assert (estimate.source, estimate.focal_px) == ("focal-plane", pytest.approx(true_f, rel=1e-3))
 
 
+def test_focal_plane_resolution_checked_against_the_sensor_table():
+    # The real Seneca photos (Canon ELPH 300 HS, 1/2.3-inch: 6.17 mm) were downscaled
+    # 4000 -> 1200 px with FocalPlaneXResolution divided by 3 instead of 3.33: it implies a
+    # 1200 px / (5464.48 px/in) = 5.58 mm sensor, 9.6 % off the table, so the table decides.
+    # Sensors of one type differ by ~2 %; the tolerance is 5 %.
+    data = (Path(__file__).parents[1] / "data" / "seneca" / "IMG_0474.jpg").read_bytes()
+    meta = read_metadata(data)
+    assert 1200 / meta.focal_plane_px_per_mm == pytest.approx(5.578, abs=0.002)
+    estimate = meta.focal_estimate(1200, 900)
+    assert (estimate.source, estimate.focal_px) == ("sensor-table", pytest.approx(4.3 * 1200 / 6.17, rel=1e-6))
+    # A density consistent with the table (the same photo at its original 4000 px width) is trusted.
+    from dataclasses import replace
+
+    at_4000 = replace(meta, focal_plane_px_per_mm=4000 / 6.2)
+    assert at_4000.focal_estimate(4000, 3000).source == "focal-plane"
+
+
 @pytest.mark.slow
 def test_ground_heights_match_truth(run, scene, survey):
     report, out = run
