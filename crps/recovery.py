@@ -309,11 +309,14 @@ class _Run:
                 return True
         return False
 
-    def wait(self, what: str, until: Callable[[], bool], sim_timeout_s: float) -> None:
-        """Wait (recording) until ``until()``; SkyfixTimeout-like InputError after ``sim_timeout_s`` simulated."""
+    def wait(self, what: str, until: Callable[[], bool], sim_timeout_s: float, *, required: bool = True) -> None:
+        """Wait (recording) until ``until()``; after ``sim_timeout_s`` simulated a SkyfixError, or (not
+        ``required``) a plain return."""
         t_end = self.sim.time_s + sim_timeout_s
         while not until():
             if self.sim.time_s > t_end:
+                if not required:
+                    return
                 raise SkyfixError(f"recovery run: timed out waiting for {what}")
             self.tick()
             time.sleep(0.05)
@@ -415,10 +418,8 @@ class _Run:
         """After the landing, give the release a moment to reach the helpers (a few swarm messages): the run
         ends once none is still helping, or after ``sim_timeout_s`` simulated (then the timeline shows it)."""
         helpers = [s for i, s in enumerate(self.services) if i != LOST and s.help is not None]
-        t_end = self.sim.time_s + sim_timeout_s
-        while any(s.help.helping is not None for s in helpers) and self.sim.time_s < t_end:
-            self.tick()
-            time.sleep(0.05)
+        self.wait("the helpers' release", lambda: all(s.help.helping is None for s in helpers), sim_timeout_s,
+                  required=False)
 
     def result(self) -> RecoveryResult:
         rec = self.recorder
