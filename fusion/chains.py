@@ -226,7 +226,9 @@ class StateChains:
 
 
     def latest_cov(self, drone: DroneState) -> tuple[int, np.ndarray] | None:
-        """Joint covariance (9, 9) of [p, b, n] at the settled (else newest optimised) step, cached per update."""
+        """Joint covariance (9, 9) of [p, b, n] at the settled (else newest optimised) step, cached per update
+        (the engine takes it right after each update, from the tail it solved for: gating does not depend on
+        when answers are asked)."""
         if drone.cov_cache is None:
             window = self.window
             for k in range(self.settled_step(drone), drone.first_k - 1, -1):

@@ -353,8 +353,8 @@ class FusionEngine:
             return
         if self._log is not None:
             self._log.record("update")
-        # Joint covariance for every drone's settled step: what gates and answers read (a 27 x 27
-        # inverse for 3 drones; older steps, asked for rarely, go through gtsam's Marginals).
+        # Joint covariance (27 x 27 for 3 drones) of every drone's settled step, kept per drone below: gates
+        # read it until the next update, however often answers are asked (older steps: gtsam's Marginals).
         tail = [self._window.key(drone.index, kind, self._chains.settled_step(drone))
                 for drone in self._drones.values() if drone.anchored for kind in range(3)]
         self._window.update(tail)
@@ -366,6 +366,7 @@ class FusionEngine:
                 drone.first_k = drone.last_k = None
             elif drone.anchored:
                 drone.first_k = max(drone.first_k, oldest)
+                self._chains.latest_cov(drone)
 
     def estimate(self, drone_id: str, time_s: float | None = None) -> Estimate:
         """Fused state of ``drone_id`` at ``time_s`` (default: its newest measurement time).
