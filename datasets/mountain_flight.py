@@ -17,11 +17,8 @@ the truth (true log, fire positions, the error realisation) is kept apart for sc
 from __future__ import annotations
 
 import math
-from collections import deque
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from itertools import islice
 from pathlib import Path
 
 import cv2
@@ -30,7 +27,7 @@ import numpy as np
 from skyfix import validate
 from skyfix.camera import Camera
 from skyfix.datasets.pose_errors import PoseErrorModel
-from skyfix.datasets.render import _pixel_rays
+from skyfix.datasets.render import _pixel_rays, rendered_in_order
 from skyfix.datasets.terrain import Terrain
 from skyfix.datasets.thermal_scene import FireSpec, ThermalSensor, forest_texture
 from skyfix.errors import GeometryError, InputError
@@ -282,16 +279,8 @@ class MountainFlight:
         releases the GIL); the sensor noise is drawn in frame order, so the frames are the
         same for any ``threads``."""
         rng = np.random.default_rng(self.seed + 17)
-        ks = iter(range(len(self.stamps_s))[start:stop])
-        with ThreadPoolExecutor(validate.integer_in("threads", threads, 1, 64)) as pool:
-            ahead = deque((k, pool.submit(self.render, k)) for k in islice(ks, threads))
-            while ahead:
-                k, rendered = ahead.popleft()
-                nxt = next(ks, None)
-                if nxt is not None:
-                    ahead.append((nxt, pool.submit(self.render, nxt)))
-                celsius = rendered.result()
-                yield float(self.stamps_s[k]), self.sensor.to_counts(self.sensor.observe(celsius, rng))
+        for k, celsius in rendered_in_order(self.render, range(len(self.stamps_s))[start:stop], threads=threads):
+            yield float(self.stamps_s[k]), self.sensor.to_counts(self.sensor.observe(celsius, rng))
 
 
 def projected_hotspots(flight: MountainFlight, rng: np.random.Generator, *, pixel_sigma_px: float = 0.3

@@ -13,7 +13,13 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from itertools import islice
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -49,6 +55,7 @@ class GroundTexture:
     frame: LocalFrame
     center_en_m: tuple[float, float] = (0.0, 0.0)
     _pyramid: list = field(default_factory=list, init=False, repr=False)
+    _pyramid_lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False)
 
     def __post_init__(self) -> None:
         img = np.asarray(self.image)
@@ -85,12 +92,14 @@ class GroundTexture:
         return np.stack((e, n, np.zeros_like(e)), axis=1)
 
     def level(self, index: int) -> np.ndarray:
-        """Mip level ``index`` (0 = full resolution) as float32, built on first use."""
-        if not self._pyramid:
-            self._pyramid.append(np.ascontiguousarray(self.image, dtype=np.float32))
-        while len(self._pyramid) <= index and min(self._pyramid[-1].shape[:2]) >= 4:
-            self._pyramid.append(cv2.pyrDown(self._pyramid[-1]))
-        return self._pyramid[min(index, len(self._pyramid) - 1)]
+        """Mip level ``index`` (0 = full resolution) as float32, built on first use (one thread
+        builds it while frames are rendered ahead, :func:`rendered_in_order`)."""
+        with self._pyramid_lock:
+            if not self._pyramid:
+                self._pyramid.append(np.ascontiguousarray(self.image, dtype=np.float32))
+            while len(self._pyramid) <= index and min(self._pyramid[-1].shape[:2]) >= 4:
+                self._pyramid.append(cv2.pyrDown(self._pyramid[-1]))
+            return self._pyramid[min(index, len(self._pyramid) - 1)]
 
 
 @dataclass(frozen=True)
@@ -102,6 +111,35 @@ class Rendered:
     image: np.ndarray
     mask: np.ndarray
     ground_enu_m: np.ndarray | None = None
+
+
+_Item = TypeVar("_Item")
+_Result = TypeVar("_Result")
+
+
+def rendered_in_order(render: Callable[[_Item], _Result], items: Iterable[_Item], *, threads: int = 2
+                      ) -> Iterator[tuple[_Item, _Result]]:
+    """``(item, render(item))`` for each of ``items``, in their order, with ``threads`` renders
+    running ahead at once (the renderers' numpy and OpenCV work releases the GIL). A caller
+    that draws sensor noise as it consumes them draws it in frame order: the frames do not
+    depend on ``threads``.
+
+    Example:
+        >>> list(rendered_in_order(lambda k: k * k, range(4), threads=2))
+        [(0, 0), (1, 1), (2, 4), (3, 9)]
+    """
+    todo = iter(items)
+    with ThreadPoolExecutor(validate.integer_in("threads", threads, 1, 64)) as pool:
+        ahead = deque((item, pool.submit(render, item)) for item in islice(todo, threads))
+        while ahead:
+            item, rendered = ahead.popleft()
+            nxt = next(todo, _DONE)
+            if nxt is not _DONE:
+                ahead.append((nxt, pool.submit(render, nxt)))
+            yield item, rendered.result()
+
+
+_DONE = object()
 
 
 @functools.lru_cache(maxsize=8)

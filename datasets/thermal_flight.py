@@ -20,6 +20,7 @@ import numpy as np
 from skyfix import validate
 from skyfix.camera import Camera, CameraPose
 from skyfix.camera_io import save_camera
+from skyfix.datasets.render import rendered_in_order
 from skyfix.datasets.thermal_scene import ThermalScene, ThermalSensor, to_display
 from skyfix.errors import GeometryError, InputError
 from skyfix.geo import LocalFrame
@@ -112,21 +113,28 @@ def prepare_flight_dir(out_dir: str | Path, *, overwrite: bool = False) -> Path:
 
 def write_flight(out_dir: str | Path, scene: ThermalScene, camera: Camera, flight: list[FlightFrame],
                  sensor: ThermalSensor, *, output: str = "counts", palette: str = "white-hot",
-                 span_c: tuple[float, float] | None = (0.0, 150.0), seed: int = 0, progress=iter) -> Path:
+                 span_c: tuple[float, float] | None = (0.0, 150.0), seed: int = 0, progress=iter,
+                 threads: int = 2) -> Path:
     """Render ``flight`` and write it (see module docstring). ``output``: "counts" (16-bit
     PNG, radiometric) or "display" (8-bit ``palette``, fixed ``span_c`` or automatic
-    gain when None). Dropped frames are written as blank (constant) frames."""
+    gain when None). Dropped frames are written as blank (constant) frames. ``threads``
+    frames are rendered ahead at once; the files are the same for any ``threads``."""
     out = Path(out_dir)
     (out / "frames").mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     rows = []
-    for k in progress(range(len(flight))):
+
+    def render(k: int) -> np.ndarray | None:
+        ff = flight[k]
+        return None if ff.dropped else scene.render(camera, ff.pose, ff.time_s)
+
+    for k, rendered in rendered_in_order(render, progress(range(len(flight))), threads=threads):
         ff = flight[k]
         name = f"frames/{k:05d}.png"
-        if ff.dropped:
+        if rendered is None:
             img = np.zeros((camera.height, camera.width), np.uint16 if output == "counts" else np.uint8)
         else:
-            celsius = sensor.observe(scene.render(camera, ff.pose, ff.time_s), rng)
+            celsius = sensor.observe(rendered, rng)
             img = sensor.to_counts(celsius) if output == "counts" else to_display(celsius, palette=palette, span_c=span_c)
         if img.ndim == 3:
             img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)

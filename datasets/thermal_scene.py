@@ -149,8 +149,9 @@ class ThermalScene:
 
     def _fire_layer(self, time_s: float) -> GroundTexture | None:
         radii = tuple(f.radius_at(time_s) for f in self.fires)
-        if self._fire_cache is not None and self._fire_cache[0] == radii:
-            return self._fire_cache[1]
+        cached = self._fire_cache  # one read: frames may be rendered in two threads (rendered_in_order)
+        if cached is not None and cached[0] == radii:
+            return cached[1]
         active = [(f, r) for f, r in zip(self.fires, radii, strict=True) if r > 0]
         tex = None
         if active:
