@@ -111,6 +111,7 @@ class _Problem:
         self.dh_sigma = np.maximum(ground.sigma_at(lat, lon), 0.05)
         self.rows = self.bind(s.time_s, s.fire_index)
         self._own_poses = self._poses_at(s.time_s)
+        self._own_cameras: tuple[float, tuple[np.ndarray, np.ndarray]] | None = None  # (dt_s, cameras)
         self.fixed_boresight = None if boresight_deg is None else np.radians(
             validate.finite_array("boresight_deg", boresight_deg).reshape(3))
         # Prior of boresight (rad) and time offset (s): nominal zero, or an earlier calibration.
@@ -146,10 +147,18 @@ class _Problem:
 
     def _cameras(self, rows: tuple, dt_s: float, own: bool) -> tuple[np.ndarray, np.ndarray]:
         """Cameras at stamp + ``dt_s``: the logged pose at the stamp moved by the smoothed
-        log's motion over ``dt_s`` (the log's per-sample noise is not motion)."""
+        log's motion over ``dt_s`` (the log's per-sample noise is not motion). The sightings' own
+        are kept for the last ``dt_s`` (a Jacobian's other columns and the whitening reuse them)."""
+        if own and self._own_cameras is not None and self._own_cameras[0] == dt_s:
+            return self._own_cameras[1]
         cam0, r0, s_cam0, s_r0 = self._own_poses if own else self._poses_at(rows[0])
         s_cam1, s_r1 = self.smooth.camera_in_frame(self.frame, np.clip(rows[0] + dt_s, *self.log.span_s))
-        return cam0 + (s_cam1 - s_cam0), s_r1 @ np.transpose(s_r0, (0, 2, 1)) @ r0
+        out = cam0 + (s_cam1 - s_cam0), s_r1 @ np.transpose(s_r0, (0, 2, 1)) @ r0
+        if own:
+            for a in out:
+                a.setflags(write=False)
+            self._own_cameras = (dt_s, out)
+        return out
 
     def fire_points(self, x: np.ndarray) -> np.ndarray:
         """Fire points ``(F, 3)`` in the frame: (east, north) and the ground height + dh."""
