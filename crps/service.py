@@ -341,7 +341,10 @@ class Service:
         it for INJECT_HOLD_AFTER_S and its autopilot's velocity echoes the injected fix, the position injected
         stays where the last measured fix put it (the covariance still grows): dead-reckoning on that echo only
         integrates its bias estimate, the autopilot follows the injected fix, and a hold becomes a drift (SITL:
-        4.6 m in the last 4 m of a landing below the helpers' horizon)."""
+        4.6 m in the last 4 m of a landing below the helpers' horizon). While it lands, the held fix also keeps the
+        accuracy it was held with: the position is a constant the drone is to come down on, and a stated accuracy
+        growing by the second let ArduPilot's EKF walk ~0.5 m/s on the ground (SITL: 4.6 m in 20 s, the position
+        controller tilting 20-27 deg), so it never reached LAND_COMPLETE and never disarmed."""
         now = self.clock()
         fix = self.node.fix(self.cfg.drone_id, now, time_stamp_s=time.time())
         mode = self.help.mode.value if self.help is not None else None
@@ -352,7 +355,8 @@ class Service:
         if self._held_fix is None:
             self._held_fix = fix
         held = self._held_fix
-        return GeoFix(held.lat_deg, held.lon_deg, held.alt_m, fix.cov_enu_m2, fix.time_s, fix.source_id)
+        cov = held.cov_enu_m2 if mode == "land" else fix.cov_enu_m2
+        return GeoFix(held.lat_deg, held.lon_deg, held.alt_m, cov, fix.time_s, fix.source_id)
 
     def _stop_injection(self, vehicle, injector) -> None:
         injector.stop()

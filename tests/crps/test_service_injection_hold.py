@@ -1,0 +1,61 @@
+"""Service._injected_fix: what the requester injects while no camera sees it (an autopilot echoing the fix).
+
+Holding, the position injected stays where the last measured fix put it and its stated accuracy grows with the
+fused covariance (the drone may drift: the truth is less certain by the second). Landing, the held fix also keeps
+the accuracy it was held with: the position is a constant the drone comes down on, and on ArduPilot SITL a stated
+accuracy growing on the ground let the EKF walk ~0.5 m/s, so the copter never reached LAND_COMPLETE and never
+disarmed. The node is the real one, fed 10 s of GNSS and velocity, then nothing (the receiver lost, no observation).
+"""
+
+from types import SimpleNamespace
+
+import numpy as np
+from helpnet import ALT0, LAT0, LON0
+
+from skyfix.crps.node import Node
+from skyfix.crps.service import INJECT_HOLD_AFTER_S, Service, fusion_config
+from skyfix.drivers.state import GnssFix, VehicleState, Velocity
+from skyfix.geo import LocalFrame
+
+FRAME = LocalFrame(LAT0, LON0, ALT0)
+LAG_S = 3.0
+
+
+def _node() -> tuple[Node, float]:
+    rng = np.random.default_rng(4)
+    node = Node("a", (LAT0, LON0, ALT0), lag_s=LAG_S, config=fusion_config(("a",), LAG_S))
+    for k in range(50):  # hovering, GNSS and velocity at 5 Hz
+        t = round(0.2 * k, 6)
+        lat, lon, alt = FRAME.to_geodetic(*(np.array([0.0, 0.0, 10.0]) + rng.normal(0, 0.3, 3)))
+        gps = GnssFix(fix_type=3, satellites=12, h_acc_m=0.5, v_acc_m=0.8, hdop=0.9, vdop=1.2, lat_deg=float(lat),
+                      lon_deg=float(lon), alt_amsl_m=float(alt), alt_ellipsoid_m=float(alt),
+                      alt_ellipsoid_source="autopilot", time_s=t)
+        node.add_telemetry("a", VehicleState(1, velocity=Velocity(0.0, 0.0, 0.0, t), gps=gps), lambda m: m.time_s)
+        node.update(("a",))
+    return node, node.latest["a"].time_s
+
+
+def _injected(mode: str) -> list:
+    """The fixes injected 3, 6 and 9 s after the last input, the drone in help mode ``mode``."""
+    node, t_last = _node()
+    clock = [t_last]
+    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None,
+                              help=SimpleNamespace(mode=SimpleNamespace(value=mode)),
+                              cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
+    out = []
+    for dt in (INJECT_HOLD_AFTER_S + 1.0, 6.0, 9.0):
+        clock[0] = t_last + dt
+        out.append(Service._injected_fix(service))
+    node.close()
+    return out
+
+
+def test_held_fix_keeps_its_position_and_while_landing_its_accuracy():
+    holding, landing = _injected("hold"), _injected("land")
+    for fixes in (holding, landing):  # the position injected is held in both
+        assert all(f.lat_deg == fixes[0].lat_deg and f.lon_deg == fixes[0].lon_deg for f in fixes)
+    sigma_hold = [f.sigma_horizontal_m for f in holding]
+    sigma_land = [f.sigma_horizontal_m for f in landing]
+    assert sigma_hold[2] > sigma_hold[0] + 1.0  # holding: the stated accuracy grows with the fused covariance
+    assert sigma_land[0] == sigma_land[1] == sigma_land[2]  # landing: the accuracy it was held with
+    assert sigma_land[0] == sigma_hold[0]
