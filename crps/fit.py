@@ -40,7 +40,8 @@ from scipy.optimize import least_squares
 from skyfix import validate
 from skyfix.camera import Camera, CameraPose
 from skyfix.crps.detection import Detection, to_gray
-from skyfix.crps.model import DroneModel, rasterize_convex_parts
+from skyfix.crps.model import DroneModel, rasterize_convex_parts, shape_table
+from skyfix.crps.observation import angular_jacobian
 from skyfix.errors import InputError
 from skyfix.rotation import R_ENU_FROM_NED, r_ned_from_frd
 
@@ -155,6 +156,25 @@ class SilhouetteFit:
         if not self.applies(detection, slack):
             return detection
         return self._fit(image, detection, helper_pose, start) or detection
+
+    def moments_z(self, fitted: Detection, silhouette: Detection, helper_pose: CameraPose) -> float:
+        """How far the fitted size lies from the size the silhouette's moments give, in sigmas.
+
+        The moments' span (major-axis RMS through the model's shape table at the view elevation)
+        is off by the yaw/tilt spread of that table (``ratio_std``, a few per cent) plus its
+        noise, but never by tens of per cent; a warm-started fit that follows a wrong local
+        minimum from frame to frame can drift that far. ``|log(fitted / moments)|`` over the
+        combined sigma of both sizes.
+        """
+        ray, _, jac = angular_jacobian(self.camera, silhouette.centroid_uv)
+        bearing = helper_pose.r_enu_from_cam() @ ray
+        elevation_deg = math.degrees(math.asin(float(np.clip(-bearing[2] / np.linalg.norm(bearing), -1.0, 1.0))))
+        rms_rad = math.sqrt(max(float(np.linalg.eigvalsh(jac @ silhouette.moments_px2 @ jac.T)[-1]), 1e-18))
+        k_mean, k_std = (float(x) for x in shape_table(self.model).ratio(abs(elevation_deg)))
+        span_px = self._focal * rms_rad / k_mean
+        fit_rel = fitted.size_sigma_px / fitted.size_px
+        sigma = math.sqrt(silhouette.moments_sigma_rel ** 2 + (k_std / k_mean) ** 2 + fit_rel ** 2)
+        return abs(math.log(fitted.size_px / span_px)) / sigma
 
     # -- rendering --------------------------------------------------------------------
     def _setup(self, detection: Detection, helper_pose: CameraPose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

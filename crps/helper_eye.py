@@ -27,7 +27,7 @@ import numpy as np
 from skyfix import geo
 from skyfix.camera import Camera, CameraPose
 from skyfix.crps.detection import Detection
-from skyfix.crps.fit import SilhouetteFit
+from skyfix.crps.fit import SilhouetteFit, SilhouetteFitConfig
 from skyfix.crps.model import DroneModel, shape_table
 from skyfix.crps.observation import locate, observe, shape_consistent
 from skyfix.crps.prior import PriorWindow, prior_gate, prior_window
@@ -54,6 +54,11 @@ class EyeConfig:
     prior_sigma_m: float = 2.0         # added to the prior's sigma: the target moves, the fix lags
     min_elevation_deg: float = 1.5     # look only above the horizon: the silhouette detector wants sky behind
     sighting_fresh_s: float = 2.0      # the gimbal follows this eye's own last sighting while it is this recent
+    # the model fit (SilhouetteFit) measures silhouettes up to this extent (4 x major RMS, px); larger ones keep
+    # their moments. A helper sees the target 10-60 m away, 15-50 px with a 1000 px focal: there the moments'
+    # size follows the target's yaw (a bias of +-3 % fixed along a track, which fusion cannot average away) and
+    # the fit, which fits the yaw, does not (benchmarks/helper_ranging.py)
+    fit_max_extent_px: float = 64.0
 
 
 class _GatedDetector:
@@ -223,7 +228,8 @@ class HelperEye:
         tracker = self._tracker  # only this (worker) thread replaces it
         if tracker is None or self._fresh or self._tracker_camera is not camera:
             self._fresh = False
-            tracker = self._tracker = Tracker(self._detector, fit=SilhouetteFit(camera, self.model))
+            fit = SilhouetteFit(camera, self.model, SilhouetteFitConfig(max_extent_px=self.cfg.fit_max_extent_px))
+            tracker = self._tracker = Tracker(self._detector, fit=fit)
             self._tracker_camera = camera
         floor = np.eye(3) * self.cfg.prior_sigma_m ** 2
         widened = GeoFix(prior.lat_deg, prior.lon_deg, prior.alt_m, prior.cov_enu_m2 + floor,

@@ -55,12 +55,19 @@ class TrackerConfig:
     # check finds on the ground is dropped at once. 1 checks every frame.
     ground_confirm_frames: int = 3
     ground_recheck_frames: int = 10
+    # A fit warm-started from the last frame whose size lies more than this many sigmas from the
+    # moments' size (SilhouetteFit.moments_z) is redone from the yaw search, and the size filter
+    # restarts from it: a tracked fit can follow a wrong solution from frame to frame (e.g. a target that
+    # turns: benchmarks/helper_ranging.py's "fit, no guard" line; tests/crps/test_crps_track_refit.py)
+    refit_z: float = 2.5
 
     def __post_init__(self) -> None:
         for name in ("gate_px", "roi_scale"):
             validate.positive_scalar(f"TrackerConfig.{name}", getattr(self, name))
         validate.positive_scalar("TrackerConfig.size_accel_sigma", self.size_accel_sigma)
         validate.positive_scalar("TrackerConfig.size_rate_sigma", self.size_rate_sigma)
+        if not self.refit_z > 0:  # inf: never refit
+            raise InputError(f"TrackerConfig.refit_z must be > 0, got {self.refit_z}")
         for name in ("alpha", "beta"):
             value = validate.finite_scalar(f"TrackerConfig.{name}", getattr(self, name))
             if not 0.0 < value <= 1.0:
@@ -113,6 +120,7 @@ class Tracker:
         self.config = config if config is not None else TrackerConfig()
         self.fit = fit
         self.ground_checked = False  # whether the last update ran the ground check
+        self.refits = 0  # warm-started fits redone from the yaw search (TrackerConfig.refit_z)
         self.reset()
 
     def reset(self) -> None:
@@ -249,7 +257,12 @@ class Tracker:
         slack = 1.25 if self._kind == "model" else 1.0
         if self.fit is None or helper_pose is None or not self.fit.applies(det, slack):
             return det
-        out = self.fit(image, det, helper_pose, start=self._fit_state, slack=slack)
+        warm = self._fit_state
+        out = self.fit(image, det, helper_pose, start=warm, slack=slack)
+        if warm is not None and out.kind == "model" and self.fit.moments_z(out, det, helper_pose) > self.config.refit_z:
+            out = self.fit(image, det, helper_pose, slack=slack)
+            self._kind = ""  # the size filter restarts from the fresh fit
+            self.refits += 1
         self._fit_state = self.fit.last_state
         return out
 
