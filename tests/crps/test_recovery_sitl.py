@@ -11,6 +11,11 @@ fused poses and gimbal reports. Scored against SIM_STATE. Real time (simulator a
 1): at speed 2 under load the helpers' frames reached the lost drone 3-10 s late (three services, two
 renderers and the simulator share one interpreter here, where each drone has its own computer), and the
 firmware's clock does not wait for them. About 2.5 minutes; skipped with the reason where the firmware is absent.
+
+A plain test since the held injected fix keeps its accuracy while landing (crps.service): six runs
+(2026-11-28 21:01-21:35 UTC, speed 1, each alone under the heavy-job lock; two on 3eab040, the change before its
+rebase, four on d37f077) landed home and disarmed, 0.63-1.36 m from home. Before it, 5 of 7: twice the copter
+stood on the ground still armed (its EKF walked ~0.5 m/s on the held fix whose stated accuracy kept growing).
 """
 
 from __future__ import annotations
@@ -28,15 +33,6 @@ HOME = (46.52, 6.63, 372.0, 0.0)  # the SITL drone's home: lat, lon (deg), alt A
 SPEED = 1.0
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "issue 18 open: 5 of 7 runs home. Since SITL's receiver carries the area's common GNSS error the simulated "
-    "receivers share (datasets.sitl_gnss, its home too, as a real drone's would; 2026-11-28 17:14-18:48 UTC, speed 1, "
-    "each alone under the heavy-job lock, load 1.1-5.6): landed 1.81, 1.91, 2.25, 1.58 and 1.29 m from home; twice "
-    "the drone stood on the ground still armed to the end (2.91 m; 2.25 m from home at 0.1 m, 18:43). Its dataflash "
-    "log (18:43): touchdown ('SIM Hit ground') 1.4 s after LAND, LAND_COMPLETE_MAYBE, never LAND_COMPLETE: on the "
-    "held injected fix, whose accuracy keeps growing, the EKF's position walked at ~0.5 m/s (4.6 m in 20 s) and the "
-    "position controller asked 20-27 deg of tilt, so the throttle never reached its landed minimum and it never "
-    "disarmed. Before (perfect SITL receiver, 15:12-16:14): 2.38-3.09 m, 5 of 6"))
 def test_sitl_lost_drone_returns_home_on_the_helpers_cameras():
     from skyfix.crps.recovery import RecoveryConfig, run_recovery
     from skyfix.drivers.injection import ARDUPILOT_INJECTED_GPS2_PARAMS
