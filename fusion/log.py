@@ -91,7 +91,11 @@ class MeasurementLog:
                      "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")})
 
     def _write(self, obj: dict) -> None:
-        self._file.write(json.dumps(json_safe(obj), separators=(",", ":"), allow_nan=False) + "\n")
+        try:  # nearly every record is finite: json_safe's copy only when one is not (1.6 s of 60 000 records)
+            text = json.dumps(obj, separators=(",", ":"), allow_nan=False)
+        except ValueError:
+            text = json.dumps(json_safe(obj), separators=(",", ":"), allow_nan=False)
+        self._file.write(text + "\n")
         self._file.flush()
         now = time.monotonic()
         if now - self._last_sync >= self._fsync_s:
