@@ -3,11 +3,17 @@
 Each registered photo is paired with up to ``neighbours`` (6) others of the same model that
 see at least one of its 3x3 footprint lattice points, with a useful baseline (0.08-1.5 of
 the flying height: along the line and across to the next; on Seneca 1.2-1.5 adds nine
-cross-line pairs, the only pairs over some ground only two photos see). A pair is rectified with one
+cross-line pairs, the only pairs over some ground only two photos see), and then any
+pair whose footprints overlap on ground no chosen pair covers (at least 0.5 % of a
+footprint: corners of photos on neighbouring lines, which the lattice misses; see
+:mod:`skyfix.mapping.dense_pairs`). A pair is rectified with one
 common rotation whose x axis is the baseline (both views turned to look alike, so epipolar
 lines are image rows and the left camera is the first), undistorted through its lens
 model, matched by ``cv2.StereoSGBM`` (left-right consistency, uniqueness and speckle
-filters on) within the disparity range the sparse points allow, and triangulated:
+filters on) within the disparity range the sparse points both photos see allow (the left
+photo's canvas starts that range's minimum to the right of the right photo's, so SGBM
+searches from 0 and a wide-baseline corner overlap is not lost in its minimum-disparity
+band), and triangulated:
 depth = f * baseline / disparity. Photos are matched at ``scale`` of their size, so a
 disparity pixel is 1/scale photo pixels.
 
@@ -28,6 +34,8 @@ import cv2
 import numpy as np
 
 from skyfix.errors import DataError
+from skyfix.mapping.dense_pairs import camera_centre as _centre
+from skyfix.mapping.dense_pairs import stereo_pairs
 from skyfix.mapping.dsm import Dsm, cell_median, cell_medians
 from skyfix.mapping.grid import EnuToUtm, Grid
 from skyfix.mapping.ortho import View
@@ -80,54 +88,6 @@ class DenseCloud:
     fills: tuple[dict, ...] = ()
 
 
-def _centre(view: View) -> np.ndarray:
-    return -view.cam_from_enu[:, :3].T @ view.cam_from_enu[:, 3]
-
-
-def _footprint_samples(view: View, depth_m: float) -> np.ndarray:
-    """ENU ground points (3x3 lattice at 1/4, 1/2, 3/4 of the photo) ``depth_m`` below its camera."""
-    cam = view.camera
-    uu, vv = np.meshgrid(np.array([0.25, 0.5, 0.75]) * cam.width, np.array([0.25, 0.5, 0.75]) * cam.height)
-    rays_cam = np.hstack((np.asarray(cam.cam_from_img(np.stack((uu.ravel(), vv.ravel()), axis=1))),
-                          np.ones((9, 1))))
-    rays = rays_cam @ view.cam_from_enu[:, :3]  # rows: R^T d, camera rays in ENU
-    return _centre(view) + rays * (depth_m / np.maximum(-rays[:, 2:3], 1e-6))
-
-
-def stereo_pairs(views: list[View], depth_m: float, neighbours: int = 4, min_ratio: float = 0.08,
-                 max_ratio: float = 1.2, min_shared: int = 3) -> list[tuple[int, int]]:
-    """Index pairs (i < j) of overlapping views: for each view its ``neighbours`` nearest
-    others whose baseline is ``min_ratio``-``max_ratio`` of ``depth_m`` (the flying height)
-    and which see at least ``min_shared`` of its 9 footprint lattice points (a third of it).
-    Both views come from the same model, or one is alone in its model (a photo placed on
-    its partner's ground, in the partner's model's frame): two models are georeferenced by
-    separate similarity fits, metres apart in height, which stereo would turn into heights
-    off by tens of metres."""
-    centres = np.array([_centre(v) for v in views])
-    per_model = np.bincount([v.model for v in views])
-    pairs: set[tuple[int, int]] = set()
-    for i, view in enumerate(views):
-        ground = _footprint_samples(view, depth_m)
-        found = []
-        for j in np.argsort(np.linalg.norm(centres - centres[i], axis=1)):
-            baseline = float(np.linalg.norm(centres[j] - centres[i]))
-            if j == i or not min_ratio * depth_m <= baseline <= max_ratio * depth_m:
-                continue
-            if views[j].model != view.model and min(per_model[view.model], per_model[views[j].model]) > 1:
-                continue
-            other = views[j]
-            p = ground @ other.cam_from_enu[:, :3].T + other.cam_from_enu[:, 3]
-            uv = np.asarray(other.camera.img_from_cam(p, check_cheirality=False))
-            seen = (p[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < other.camera.width) & (uv[:, 1] >= 0) \
-                & (uv[:, 1] < other.camera.height)
-            if seen.sum() >= min_shared:
-                found.append(int(j))
-            if len(found) == neighbours:
-                break
-        pairs.update((min(i, j), max(i, j)) for j in found)
-    return sorted(pairs)
-
-
 def _rectification(left: View, right: View) -> tuple[np.ndarray, float]:
     """World(ENU)->rectified rotation with x along the baseline, and the baseline (m)."""
     base = _centre(right) - _centre(left)
@@ -167,6 +127,11 @@ def _match_pair(left: View, right: View, images: dict, sparse_enu: np.ndarray, s
         (v < left_box[:, 1].max())
     if inside.sum() < 20:
         return None
+    right_box = corners[1]  # the right camera sits baseline metres along the rectified x axis
+    u_right = u - f * baseline / pts[:, 2]
+    in_both = inside & (u_right > right_box[:, 0].min()) & (u_right < right_box[:, 0].max())
+    if in_both.sum() >= 20:  # the overlap's own depths: a corner overlap needs no range for the whole photo
+        inside = in_both
     # Robust depth bounds: the 2-98 % of the sparse points in view, widened by 10 % (and
     # never beyond 0.6-1.6x their median: a stray sparse point must not open the range).
     near_m, far_m = np.percentile(pts[inside, 2], [2, 98])
@@ -179,28 +144,30 @@ def _match_pair(left: View, right: View, images: dict, sparse_enu: np.ndarray, s
         return None
     x0, y0 = np.floor(xy.min(axis=0)).astype(int)
     x1, y1 = np.ceil(xy.max(axis=0)).astype(int)
-    size = (int(x1 - x0), int(y1 - y0))
-    if min_disp < 0 or min_disp + num_disp + block_px >= size[0] or size[0] * size[1] > 16 * len(images[left.name][0]) \
+    # The left photo's canvas starts min_disp columns right of the right photo's (its columns
+    # before that have no match at any disparity in range), so SGBM searches 0..num_disp.
+    size = (int(x1 - x0 - min_disp), int(y1 - y0))
+    if min_disp < 0 or num_disp + block_px >= size[0] or size[0] * size[1] > 16 * len(images[left.name][0]) \
             * images[left.name][0].shape[1]:
         return None  # overlap too small for the disparities, or a degenerate rectification
-    k_new = np.array([[f, 0.0, -x0], [0.0, f, -y0], [0.0, 0.0, 1.0]])
     rectified, maps = [], []
-    for view, (k, dist) in ((left, lens_l), (right, lens_r)):
+    for view, (k, dist), start in ((left, lens_l, x0 + min_disp), (right, lens_r, x0)):
+        k_new = np.array([[f, 0.0, -start], [0.0, f, -y0], [0.0, 0.0, 1.0]])
         rot = r_rect @ view.cam_from_enu[:, :3].T  # camera -> rectified
         maps.append(cv2.initUndistortRectifyMap(k, dist, rot, k_new, size, cv2.CV_32FC1))
         rectified.append(cv2.remap(images[view.name][0], *maps[-1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT))
-    sgbm = cv2.StereoSGBM_create(minDisparity=min_disp, numDisparities=num_disp, blockSize=block_px,
+    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=num_disp, blockSize=block_px,
                                  P1=8 * 3 * block_px ** 2, P2=32 * 3 * block_px ** 2, disp12MaxDiff=1,
                                  uniquenessRatio=10, speckleWindowSize=100, speckleRange=2,
                                  mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
     disparity = sgbm.compute(rectified[0], rectified[1]).astype(np.float32) / 16.0
     seen = cv2.cvtColor(rectified[0], cv2.COLOR_BGR2GRAY) > 0
     # Disparities at the ends of the searched range are matches that wanted to go further: dropped.
-    valid = (disparity > min_disp + 0.5) & (disparity < min_disp + num_disp - 1.5) & seen
+    valid = (disparity > 0.5) & (disparity < num_disp - 1.5) & seen
     rows, cols = np.nonzero(valid)
-    d = disparity[rows, cols]
+    d = disparity[rows, cols] + min_disp
     z = f * baseline / d
-    rect = np.stack(((cols + x0) * z / f, (rows + y0) * z / f, z), axis=1)
+    rect = np.stack(((cols + x0 + min_disp) * z / f, (rows + y0) * z / f, z), axis=1)
     colours = cv2.remap(images[left.name][1], *maps[0], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     return rect @ r_rect + _centre(left), colours[rows, cols]
 
@@ -406,13 +373,16 @@ def _fill(surface: np.ndarray, filler: np.ndarray, spike_m: float, max_range_m: 
 def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.ndarray, to_utm: EnuToUtm,
               grid: Grid, *, scale: float = 0.5, fill_scales: tuple[float, ...] = (0.4, 0.3, 0.2), neighbours: int = 6,
               max_ratio: float = 1.5, block_px: int = 5, min_pairs: int = 1, min_shared: int = 1,
+              min_new_share: float | None = 0.005,
               spike_m: float = 2.0, max_pair_offset_m: float = 1.0, fill_max_range_m: float = 0.5,
               max_points: int = 5_000_000, seed: int = 0) -> tuple[Dsm, DenseCloud]:
     """Dense DSM on ``grid`` (every matched pixel) and the dense point cloud (at most
     ``max_points``: each pair contributes an equal seeded subset) from ``views`` (ENU poses) and the sparse points'
     ENU positions ``sparse_enu`` (disparity ranges). A pair whose heights sit more than
     ``max_pair_offset_m`` off the other pairs' (:func:`pair_offsets_m`) is dropped: its
-    relative pose is wrong (stereo noise at survey scale is centimetres).
+    relative pose is wrong (stereo noise at survey scale is centimetres). ``min_new_share``:
+    pairs are added whose footprints overlap on at least that share of a footprint that no
+    other pair covers (:func:`stereo_pairs`; None: the lattice rule alone).
 
     ``fill_scales``: coarser passes (fractions of the photos' size) that measure only the
     cells every finer pass left empty, each pair judged (offset from the other pairs) and
@@ -431,7 +401,8 @@ def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.nda
     if len(views) < 2:
         raise DataError("a dense surface needs at least two registered photos")
     depth_m = float(np.median([_centre(v)[2] for v in views]) - np.median(sparse_enu[:, 2]))
-    pairs = stereo_pairs(views, depth_m, neighbours, max_ratio=max_ratio, min_shared=min_shared)
+    pairs = stereo_pairs(views, depth_m, neighbours, max_ratio=max_ratio, min_shared=min_shared,
+                         min_new_share=min_new_share)
     if not pairs:
         raise DataError("no pair of registered photos overlaps with a usable baseline for dense matching")
     matched = _match_pairs(views, pairs, image_paths, sparse_enu, to_utm, grid, scale, block_px, neighbours,

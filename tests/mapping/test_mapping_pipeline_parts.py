@@ -180,6 +180,32 @@ def test_stereo_pairs_stay_inside_one_model():
     assert any(5 in p for p in pairs)
 
 
+def test_stereo_pairs_cover_corner_overlaps():
+    # Nadir photos at 65 m (footprints 84.3 m x 63.2 m). B, 70 m east and 50 m north of A
+    # (baseline 86 m = 1.32x the height), overlaps A in a 14 m x 13.2 m corner (3.5 % of a
+    # footprint) that neither photo's 3x3 lattice (1/4-3/4 of the frame) reaches: only the
+    # footprint-overlap rule pairs them. With C between them, A and B's corner lies inside
+    # C's overlaps with each, already covered, so A/B is not added.
+    import pycolmap
+
+    from skyfix.mapping.dense import stereo_pairs
+    from skyfix.mapping.ortho import View
+
+    camera = pycolmap.Camera(model="SIMPLE_PINHOLE", width=1200, height=900, params=[925.0, 600.0, 450.0])
+    rot = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+
+    def view(name, east_m, north_m):
+        centre = np.array([east_m, north_m, 65.0])
+        return View(name, "", np.hstack((rot, (-rot @ centre)[:, None])), camera, 0)
+
+    a, b, c = view("a", 0.0, 0.0), view("b", 70.0, 50.0), view("c", 35.0, 25.0)
+    assert stereo_pairs([a, b], 65.0, 6, max_ratio=1.5, min_shared=1) == []
+    assert stereo_pairs([a, b], 65.0, 6, max_ratio=1.5, min_shared=1, min_new_share=0.01) == [(0, 1)]
+    assert stereo_pairs([a, b], 65.0, 6, max_ratio=1.5, min_shared=1, min_new_share=0.05) == []
+    assert stereo_pairs([a, b], 65.0, 6, max_ratio=1.2, min_shared=1, min_new_share=0.01) == []  # baseline
+    assert stereo_pairs([a, b, c], 65.0, 6, max_ratio=1.5, min_shared=1, min_new_share=0.01) == [(0, 2), (1, 2)]
+
+
 def test_stereo_area_of_the_tried_pairs():
     # Three nadir photos 25 m apart along x at 65 m over flat ground at 0 (footprints
     # 2 x 600/925 x 65 = 84.3 m along x, 63.2 m along y; photo k spans 25 k -+ 42.16 m).
