@@ -16,8 +16,8 @@ camera pointing jittered 1 deg per frame. The same frames go through three track
 * ``moments``: ``Tracker(SilhouetteDetector(), fit=SilhouetteFit(camera, model))``, the fit's default
   extent limit (what the helpers ran before);
 * ``fit, no guard``: the fit up to ``EyeConfig.fit_max_extent_px``, ``TrackerConfig(refit_z=inf)``;
-* ``skyfix (helper eye)``: the fit up to ``EyeConfig.fit_max_extent_px`` with the tracker's default
-  guard (a warm-started fit that strays from the moments' size is redone from the yaw search).
+* ``skyfix (helper eye)``: the fit up to ``EyeConfig.fit_max_extent_px`` with the eye's guard
+  (``EyeConfig.refit_z``: a warm-started fit that strays from the moments' size is redone from the yaw search).
 
 Printed per range band: the tracked range error (last ``SCORED`` frames of each track) median, p95 of
 |error|, the RMS over tracks of each track's mean error (the bias fusion cannot average), and CPU ms per
@@ -73,7 +73,8 @@ def pipelines(camera: Camera, model: DroneModel) -> dict[str, Tracker]:
     return {"moments": Tracker(SilhouetteDetector(), fit=SilhouetteFit(camera, model)),
             "fit, no guard": Tracker(SilhouetteDetector(), TrackerConfig(refit_z=math.inf),
                                      fit=SilhouetteFit(camera, model, wide)),
-            "skyfix (helper eye)": Tracker(SilhouetteDetector(), fit=SilhouetteFit(camera, model, wide))}
+            "skyfix (helper eye)": Tracker(SilhouetteDetector(), TrackerConfig(refit_z=EyeConfig().refit_z),
+                                           fit=SilhouetteFit(camera, model, wide))}
 
 
 def track(rng: np.random.Generator, camera: Camera, model: DroneModel, band: tuple[float, float]

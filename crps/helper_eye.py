@@ -32,7 +32,7 @@ from skyfix.crps.model import DroneModel, shape_table
 from skyfix.crps.observation import locate, observe, shape_consistent
 from skyfix.crps.prior import PriorWindow, prior_gate, prior_window
 from skyfix.crps.silhouette import SilhouetteDetector
-from skyfix.crps.track import Tracker
+from skyfix.crps.track import Tracker, TrackerConfig
 from skyfix.errors import SkyfixError
 from skyfix.types import GeoFix, RelativeObservation
 
@@ -59,6 +59,7 @@ class EyeConfig:
     # size follows the target's yaw (a bias of +-3 % fixed along a track, which fusion cannot average away) and
     # the fit, which fits the yaw, does not (benchmarks/helper_ranging.py)
     fit_max_extent_px: float = 64.0
+    refit_z: float = 2.5  # a tracked fit this many sigmas from the moments' size is redone (TrackerConfig.refit_z)
 
 
 class _GatedDetector:
@@ -229,7 +230,7 @@ class HelperEye:
         if tracker is None or self._fresh or self._tracker_camera is not camera:
             self._fresh = False
             fit = SilhouetteFit(camera, self.model, SilhouetteFitConfig(max_extent_px=self.cfg.fit_max_extent_px))
-            tracker = self._tracker = Tracker(self._detector, fit=fit)
+            tracker = self._tracker = Tracker(self._detector, TrackerConfig(refit_z=self.cfg.refit_z), fit=fit)
             self._tracker_camera = camera
         floor = np.eye(3) * self.cfg.prior_sigma_m ** 2
         widened = GeoFix(prior.lat_deg, prior.lon_deg, prior.alt_m, prior.cov_enu_m2 + floor,

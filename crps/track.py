@@ -58,8 +58,10 @@ class TrackerConfig:
     # A fit warm-started from the last frame whose size lies more than this many sigmas from the
     # moments' size (SilhouetteFit.moments_z) is redone from the yaw search, and the size filter
     # restarts from it: a tracked fit can follow a wrong solution from frame to frame (e.g. a target that
-    # turns: benchmarks/helper_ranging.py's "fit, no guard" line; tests/crps/test_crps_track_refit.py)
-    refit_z: float = 2.5
+    # turns: benchmarks/helper_ranging.py's "fit, no guard" line; tests/crps/test_crps_track_refit.py).
+    # inf (default): no check. The helper eye sets 2.5 (EyeConfig.refit_z); the check costs ~10 % of a
+    # tracked frame at 100 m (benchmarks/ranging.py --quick: 28.5 frames/s with it, 31.2 without; goal 30)
+    refit_z: float = math.inf
 
     def __post_init__(self) -> None:
         for name in ("gate_px", "roi_scale"):
@@ -259,7 +261,8 @@ class Tracker:
             return det
         warm = self._fit_state
         out = self.fit(image, det, helper_pose, start=warm, slack=slack)
-        if warm is not None and out.kind == "model" and self.fit.moments_z(out, det, helper_pose) > self.config.refit_z:
+        if (warm is not None and out.kind == "model" and math.isfinite(self.config.refit_z)
+                and self.fit.moments_z(out, det, helper_pose) > self.config.refit_z):
             out = self.fit(image, det, helper_pose, slack=slack)
             self._kind = ""  # the size filter restarts from the fresh fit
             self.refits += 1

@@ -23,6 +23,7 @@ from skyfix.crps import (
     observe,
 )
 from skyfix.crps.fit import FitState
+from skyfix.crps.helper_eye import EyeConfig
 from skyfix.crps.track import TrackerConfig
 from skyfix.datasets.drone_view import TargetPose, render_drone_view
 from skyfix.errors import InputError
@@ -65,7 +66,7 @@ def test_a_tracked_fit_gone_wrong_is_redone_from_the_yaw_search():
     assert refits == 0
     assert abs(unguarded[0]) < 0.03  # the first frame's fresh fit is right
     assert min(unguarded[1:]) > 0.08  # then the carried wrong solution stays wrong
-    guarded, refits = _track(TrackerConfig().refit_z)
+    guarded, refits = _track(EyeConfig().refit_z)  # the helper eye's guard (the Tracker's default: none)
     assert refits >= 1
     assert max(abs(e) for e in guarded) < 0.03  # the model's stated 3 %
 
