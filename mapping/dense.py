@@ -132,11 +132,14 @@ def _match_pair(left: View, right: View, images: dict, sparse_enu: np.ndarray, s
     in_both = inside & (u_right > right_box[:, 0].min()) & (u_right < right_box[:, 0].max())
     if in_both.sum() >= 20:  # the overlap's own depths: a corner overlap needs no range for the whole photo
         inside = in_both
-    # Robust depth bounds: the 2-98 % of the sparse points in view, widened by 10 % (and
+    # Robust depth bounds: the 2-98 % of the sparse points in view, widened by 5 % (and
     # never beyond 0.6-1.6x their median: a stray sparse point must not open the range).
+    # SGBM leaves the overlap's first numDisparities columns without a disparity, so a
+    # narrower range measures more of the ground only two photos see (Seneca, 10 % -> 5 %:
+    # 92.9 -> 93.75 % in a DSM-only re-run).
     near_m, far_m = np.percentile(pts[inside, 2], [2, 98])
     median_m = float(np.median(pts[inside, 2]))
-    near_m, far_m = max(0.9 * near_m, 0.6 * median_m), min(1.1 * far_m, 1.6 * median_m)
+    near_m, far_m = max(0.95 * near_m, 0.6 * median_m), min(1.05 * far_m, 1.6 * median_m)
     d_lo, d_hi = f * baseline / far_m, f * baseline / near_m
     min_disp = int(np.floor(d_lo))
     num_disp = int(np.ceil((d_hi - min_disp) / 16.0) * 16)
