@@ -21,14 +21,19 @@ def camera_centre(view: View) -> np.ndarray:
     return -view.cam_from_enu[:, :3].T @ view.cam_from_enu[:, 3]
 
 
+def _cast_down(view: View, uv_px: np.ndarray, depth_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Image points ``uv_px`` (N, 2) cast on the level plane ``depth_m`` below the camera: ENU
+    points (N, 3) and the (N,) rays' ENU up components (a ray with up >= 0 never reaches it)."""
+    rays_cam = np.hstack((np.asarray(view.camera.cam_from_img(uv_px)), np.ones((len(uv_px), 1))))
+    rays = rays_cam @ view.cam_from_enu[:, :3]  # rows: R^T d, camera rays in ENU
+    return camera_centre(view) + rays * (depth_m / np.maximum(-rays[:, 2:3], 1e-6)), rays[:, 2]
+
+
 def _footprint_samples(view: View, depth_m: float) -> np.ndarray:
     """ENU ground points (3x3 lattice at 1/4, 1/2, 3/4 of the photo) ``depth_m`` below its camera."""
     cam = view.camera
     uu, vv = np.meshgrid(np.array([0.25, 0.5, 0.75]) * cam.width, np.array([0.25, 0.5, 0.75]) * cam.height)
-    rays_cam = np.hstack((np.asarray(cam.cam_from_img(np.stack((uu.ravel(), vv.ravel()), axis=1))),
-                          np.ones((9, 1))))
-    rays = rays_cam @ view.cam_from_enu[:, :3]  # rows: R^T d, camera rays in ENU
-    return camera_centre(view) + rays * (depth_m / np.maximum(-rays[:, 2:3], 1e-6))
+    return _cast_down(view, np.stack((uu.ravel(), vv.ravel()), axis=1), depth_m)[0]
 
 
 def _footprint_polygon(view: View, depth_m: float) -> np.ndarray | None:
@@ -36,10 +41,8 @@ def _footprint_polygon(view: View, depth_m: float) -> np.ndarray | None:
     camera (image corners cast on a level plane), or None when a corner looks up."""
     cam = view.camera
     corners = np.array([[0.0, 0.0], [cam.width, 0.0], [cam.width, cam.height], [0.0, cam.height]])
-    rays = np.hstack((np.asarray(cam.cam_from_img(corners)), np.ones((4, 1)))) @ view.cam_from_enu[:, :3]
-    if (rays[:, 2] > -1e-6).any():
-        return None
-    return (camera_centre(view) + rays * (depth_m / -rays[:, 2:3]))[:, :2]
+    ground, up = _cast_down(view, corners, depth_m)
+    return None if (up > -1e-6).any() else ground[:, :2]
 
 
 def _pairable(views: list[View], i: int, j: int, per_model: np.ndarray) -> bool:
