@@ -20,7 +20,8 @@ Per run: landing error (truth: horizontal distance from the true take-off point)
 fused fix resting on a helper's observation, the largest horizontal error of the lost drone's
 fused fix while it recovers (against the truth, the goal's figure, and against the swarm's GNSS frame:
 the truth plus the GNSS error all receivers share, which the helpers' fixes carry and no drone can
-observe; the difference is what fusion could still reduce), the closest approach between any two drones after the loss, the
+observe; the difference is what fusion could still reduce; and, as a reference only, the largest error of the
+same drone's own GNSS-based fix over its healthy RTL from the loss on), the closest approach between any two drones after the loss, the
 share of helper frames with the target in view in which it was detected.
 
 Goals (issue 18): >= 9 of 10 land <= 3 m from home; median landing error <= 1.5x the baseline's;
@@ -158,7 +159,8 @@ def print_run(r: dict) -> None:
           f"loss->first fused fix {_f(rec['loss_to_first_fused_fix_s'], '.1f')} s, "
           f"max recovery error {_f(rec['max_recovery_error_h_m'])} m "
           f"({_f(rec['figures'].get('max_recovery_error_gnss_frame_h_m'))} m vs the swarm's GNSS frame, common GNSS "
-          f"error up to {_f(rec['figures'].get('common_gnss_error_max_h_m'))} m), "
+          f"error up to {_f(rec['figures'].get('common_gnss_error_max_h_m'))} m; the healthy RTL's own GNSS-based fix "
+          f"up to {_f(base['figures'].get('fix_error_after_loss_max_h_m'))} m), "
           f"closest approach {_f(rec['min_separation_m'], '.1f')} m, "
           f"target detected in {_f(None if rec['detection_share'] is None else 100 * rec['detection_share'], '.0f')} % "
           f"of helper frames searched with it in view, fused-fix NEES {_f(rec['figures'].get('recovery_mean_nees_3dof'))} "
@@ -184,6 +186,10 @@ def judge(records: list[dict], runs_wanted: int) -> tuple[list[tuple[str, bool, 
     err_frame = np.array([np.nan if r["figures"].get("max_recovery_error_gnss_frame_h_m") is None
                           else r["figures"]["max_recovery_error_gnss_frame_h_m"] for r in rec], float)
     worst_frame = np.nanmax(err_frame) if np.isfinite(err_frame).any() else math.nan
+    # the reference, not a goal: the same drone's fix on its own healthy receiver over its return in the same runs
+    err_healthy = np.array([np.nan if r["baseline"]["figures"].get("fix_error_after_loss_max_h_m") is None
+                            else r["baseline"]["figures"]["fix_error_after_loss_max_h_m"] for r in records], float)
+    worst_healthy = np.nanmax(err_healthy) if np.isfinite(err_healthy).any() else math.nan
     # a missing score (NaN: no fused fix at all, nothing recorded) counts as a miss
     goals = [
         (f">= {GOAL_HOME_SHARE:.0%} of runs land <= {GOAL_HOME_M:.0f} m from home",
@@ -199,7 +205,9 @@ def judge(records: list[dict], runs_wanted: int) -> tuple[list[tuple[str, bool, 
          f"worst {np.nanmax(err) if np.isfinite(err).any() else math.nan:.2f} m, "
          f"{int(np.sum(err <= GOAL_RECOVERY_ERR_M))} of {n}; against the swarm's GNSS frame (truth + the GNSS "
          f"error every receiver shares, which no drone can observe): worst {worst_frame:.2f} m, "
-         f"{int(np.sum(err_frame <= GOAL_RECOVERY_ERR_M))} of {n}"),
+         f"{int(np.sum(err_frame <= GOAL_RECOVERY_ERR_M))} of {n}; for reference, the same drone's own GNSS-based fix "
+         f"on its healthy RTL of the same runs (from the loss to its landing): worst {worst_healthy:.2f} m, "
+         f"{int(np.sum(err_healthy <= GOAL_RECOVERY_ERR_M))} of {int(np.sum(np.isfinite(err_healthy)))}"),
         (f"closest approach between drones >= {GOAL_SEPARATION_M:.0f} m in every run",
          bool(np.all(sep >= GOAL_SEPARATION_M)),
          f"closest {np.nanmin(sep) if np.isfinite(sep).any() else math.nan:.1f} m, "
@@ -213,7 +221,7 @@ def judge(records: list[dict], runs_wanted: int) -> tuple[list[tuple[str, bool, 
                 f"= {ratio:.2f}x healthy RTL ({med_h:.2f} m), worst first fix "
                 f"{np.nanmax(first) if np.isfinite(first).any() else math.nan:.1f} s, worst recovery error "
                 f"{np.nanmax(err) if np.isfinite(err).any() else math.nan:.2f} m ({worst_frame:.2f} m vs the swarm's "
-                f"GNSS frame), closest approach "
+                f"GNSS frame; healthy RTL's own fix up to {worst_healthy:.2f} m), closest approach "
                 f"{np.nanmin(sep) if np.isfinite(sep).any() else math.nan:.1f} m, median detection "
                 f"{100 * np.nanmedian(det) if np.isfinite(det).any() else math.nan:.0f} %: {verdict}")
     return goals, headline

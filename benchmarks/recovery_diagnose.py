@@ -10,7 +10,13 @@ Scoring only: the truth is read here, never by the run. Per run folder (``RUN/tr
   a bias that fusion cannot average away), and the helper's own position error against the swarm's GNSS
   frame (the observer position it sent minus its truth minus the shared GNSS error: its own receiver's part);
 * the lost drone's fused error at touchdown against the truth and against the swarm's GNSS frame, and where
-  it landed from home (a drone landing on its fix lands off by that error, less its home's own GNSS error).
+  it landed from home (a drone landing on its fix lands off by that error, less its home's own GNSS error);
+* where the home error comes from (``--frames``): the lost drone's fused error before take-off (its home: the
+  autopilot records it on its own receiver at arming), just before the loss (its own receiver's frame then) and
+  over the first 10 s of helper-based fixes (the helpers' frame), each also less the shared GNSS error (its own
+  receiver's part), and what an oracle "home carried into the helpers' frame" would have landed: the landing
+  less the true offset between the two frames at the loss (the best any estimate of that offset could do). A
+  healthy-GNSS baseline folder next to the run (``seed_<n>/baseline``) gets the same home and touchdown lines.
 
 Positions are in the simulator's world ENU (origin: ``--origin``, the simulator's default home unless the
 run used another). No goal: prints figures, exit 0 (2: no run found).
@@ -37,6 +43,82 @@ LOST = "d2"
 
 def _columns(rows: list[dict], names: tuple[str, ...]) -> np.ndarray:
     return np.array([[float(r[k]) if r.get(k) not in (None, "") else np.nan for k in names] for r in rows])
+
+
+def _fused_error(rows: list[dict], truth: np.ndarray) -> np.ndarray:
+    """(N, 2) fused - true horizontal error per row (NaN where the row has no fix)."""
+    return _columns(rows, ("fused_east_m", "fused_north_m")) - truth[:, :2]
+
+
+def home_frames(run: Path) -> tuple[list[str], dict[str, np.ndarray]]:
+    """The home error and the own-receiver / helpers' frame offset of one run folder (recovery or baseline):
+    printable lines and the vectors (ENU m, horizontal) for the summary."""
+    rows = list(csv.DictReader(open(run / "trajectory.csv")))
+    t = _columns(rows, ("t_s",))[:, 0]
+    truth = _columns(rows, (f"{LOST}_east_m", f"{LOST}_north_m", f"{LOST}_up_m"))
+    common = np.nan_to_num(_columns(rows, ("common_east_m", "common_north_m")))
+    err = _fused_error(rows, truth)
+    alt = _columns(rows, (f"{LOST}_alt_rel_m",))[:, 0]
+    up = np.flatnonzero(alt > 0.3)
+    report = json.loads((run / "report.json").read_text()) if (run / "report.json").exists() else {}
+    t_loss = (report.get("figures") or {}).get("loss_time_s")
+    if not up.size or t_loss is None:
+        return [f"  {run.name}: no take-off or no loss time recorded"], {}
+    lift, td = int(up[0]), min(int(up[-1]) + 1, len(rows) - 1)
+
+    def mean_over(mask: np.ndarray) -> np.ndarray:
+        ok = mask & np.isfinite(err[:, 0])
+        return err[ok].mean(axis=0) if ok.any() else np.full(2, np.nan)
+
+    # the autopilot's home is its own fix at arming, just before the lift-off; the recorder may have no fused
+    # fix on the ground, then the first second of fixes (its own receiver's part decorrelates over 20 s)
+    home = mean_over((t >= t[lift] - 1.0) & (t < t[lift]))
+    if not np.isfinite(home[0]):
+        t_fix = t[np.flatnonzero(np.isfinite(err[:, 0]))[0]]
+        home = mean_over((t >= t_fix) & (t < t_fix + 1.0))
+    landed = truth[td, :2] - truth[0, :2]
+    last = max(i for i in range(td + 1) if np.isfinite(err[i, 0]))
+    out = {"home": home, "home_own": home - common[lift], "landed": landed, "touchdown": err[last]}
+    lines = [f"  {run.name}: home error (fused fix at take-off, t={t[lift]:.0f} s) {_vec(home)}, its own "
+             f"receiver's part {_vec(out['home_own'])}; at touchdown fused error {_vec(err[last])}; landed "
+             f"{_vec(landed)} from home; landed - (home error - touchdown error) {_vec(landed - home + err[last])} "
+             f"(where it landed off its own fix)"]
+    relative = np.array(["relative:" in r.get("sources", "") for r in rows])
+    first = np.flatnonzero(relative & (t >= t_loss))
+    if first.size:
+        i_loss = int(np.searchsorted(t, t_loss))
+        pre = mean_over((t >= t_loss - 1.0) & (t < t_loss))
+        helpers = mean_over(relative & (t >= t[first[0]]) & (t < t[first[0]] + 10.0))
+        offset = pre - helpers
+        j = int(first[0]) - 1  # the last dead-reckoned fix before the first helper-based one
+        drift, sigma = err[j] - pre, _columns(rows[j:j + 1], ("fused_sigma_h_m",))[0, 0]
+        out.update({"pre_own": pre - common[i_loss], "oracle": landed - offset})
+        lines.append(f"  {run.name}: dead reckoning from the loss to the first helper-based fix ({t[first[0]] - t_loss:.1f}"
+                     f" s): its error moved {_vec(drift)}, stated sigma_h {sigma:.2f} m (what an estimate of the frame "
+                     f"offset from that overlap would carry)")
+        lines.append(f"  {run.name}: before the loss (t={t_loss:.0f} s, {t_loss - t[lift]:.0f} s after take-off) "
+                     f"fused error {_vec(pre)}, own part {_vec(out['pre_own'])}; first 10 s of helper fixes "
+                     f"{_vec(helpers)}; own frame - helpers' frame {_vec(offset)}; with the home carried into the "
+                     f"helpers' frame by that (true) offset it would have landed {_vec(out['oracle'])} from home")
+    return lines, out
+
+
+def _vec(v: np.ndarray) -> str:
+    return f"E {v[0]:+.2f} N {v[1]:+.2f} ({math.hypot(*v[:2]):.2f} m)"
+
+
+def summary(found: list[dict[str, np.ndarray]], baselines: list[dict[str, np.ndarray]]) -> list[str]:
+    """Medians over the runs: the landing as flown, with the oracle frame offset, and the baselines'."""
+    def med(items: list[dict], key: str) -> str:
+        v = [float(np.hypot(*d[key][:2])) for d in items if key in d]
+        return f"{np.median(v):.2f} m over {len(v)}" if v else "n/a"
+
+    own = np.array([np.r_[d["home_own"], d["pre_own"]] for d in found if "pre_own" in d]).reshape(-1, 4)
+    corr = float(np.corrcoef(own[:, :2].ravel(), own[:, 2:].ravel())[0, 1]) if len(own) > 2 else math.nan
+    return [f"median landing from home: recovery {med(found, 'landed')}; with the home carried into the helpers' "
+            f"frame by the true offset {med(found, 'oracle')}; healthy-GNSS baseline {med(baselines, 'landed')}",
+            f"the lost receiver's own error (less the shared part) at take-off vs just before the loss: correlation "
+            f"{corr:+.2f} over {2 * len(own)} axis pairs (the home offset carries over only as far as these agree)"]
 
 
 def diagnose(run: Path, world: LocalFrame) -> str:
@@ -87,10 +169,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("runs", type=Path, nargs="+", help="run folders, or benchmark output folders (seed_<n>/recovery)")
     ap.add_argument("--origin", default=None, help="lat,lon,alt_amsl_m of the world origin (default: the "
                     "simulator's default ArduPilot home, what run_recovery flies without SITL)")
+    ap.add_argument("--frames", action="store_true", help="also the home error and the frame offset lines, and "
+                    "the oracle landing with the home carried into the helpers' frame (with the baselines')")
     args = ap.parse_args(argv)
     lat, lon, alt = (float(v) for v in args.origin.split(",")) if args.origin else DEFAULT_HOME["ardupilot"]
     world = LocalFrame(lat, lon, alt + geoid_undulation_m(lat, lon))
     found = 0
+    frames: list[dict[str, np.ndarray]] = []
+    baselines: list[dict[str, np.ndarray]] = []
     for root in args.runs:
         runs = [root] if (root / "trajectory.csv").exists() else sorted(
             (p for p in root.glob("seed_*/recovery") if (p / "trajectory.csv").exists()),
@@ -98,6 +184,17 @@ def main(argv: list[str] | None = None) -> int:
         for run in runs:
             found += 1
             print(f"{run}:\n{diagnose(run, world)}", flush=True)
+            if args.frames:
+                lines, vecs = home_frames(run)
+                frames.append(vecs)
+                base = run.parent / "baseline"
+                if (base / "trajectory.csv").exists():
+                    more, bvecs = home_frames(base)
+                    lines += more
+                    baselines.append(bvecs)
+                print("\n".join(lines), flush=True)
+    if args.frames and frames:
+        print("\n".join(summary(frames, baselines)))
     return 0 if found else 2
 
 

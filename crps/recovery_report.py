@@ -116,6 +116,14 @@ class Recorder:
         return np.array([[r.get(f"common_{k}_m", 0.0) for k in ("east", "north", "up")] for r in self._recovering()]
                         ).reshape(-1, 3)
 
+    def max_fix_error_after_loss_m(self) -> float:
+        """The largest horizontal error of the lost drone's fused fix from the loss on while airborne (> 1 m above
+        home), whatever it rests on: in a healthy-GNSS baseline, what its own receiver allowed over its return."""
+        d = self.ids[self.lost]
+        err = [math.hypot(r["fused_east_m"] - r[f"{d}_east_m"], r["fused_north_m"] - r[f"{d}_north_m"])
+               for r in self._after_loss() if "fused_east_m" in r and r[f"{d}_alt_rel_m"] > 1.0]
+        return max(err) if err else math.nan
+
     def max_recovery_error_gnss_frame_m(self) -> float:
         """The largest horizontal error while recovering against the swarm's GNSS frame (truth + common error)."""
         err, _ = self._errors()
@@ -165,6 +173,7 @@ class Recorder:
         common_h = np.hypot(*self.common_errors()[:, :2].T)
         return {**final, "max_recovery_error_gnss_frame_h_m": self.max_recovery_error_gnss_frame_m(),
                 "common_gnss_error_max_h_m": float(common_h.max()) if len(common_h) else math.nan,
+                "fix_error_after_loss_max_h_m": self.max_fix_error_after_loss_m(),
                 "recovery_error_rms_h_m": float(np.sqrt(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2)))
                 if len(err) else math.nan,
                 "recovery_mean_nees_3dof": float(np.mean(nees)) if nees else math.nan,

@@ -35,6 +35,8 @@ def test_demo_brings_the_lost_drone_home_and_writes_its_files(readme_demo):
     # (realistic receivers: 1.4 m per axis common), which the recorder must have seen
     common_m, frame_m = (report["figures"][k] for k in ("common_gnss_error_max_h_m", "max_recovery_error_gnss_frame_h_m"))
     assert 0.0 < common_m < 10.0 and abs(frame_m - report["max_recovery_error_h_m"]) <= common_m + 1e-9
+    # the fix's largest error from the loss on counts every airborne sample, the recovering ones among them
+    assert report["figures"]["fix_error_after_loss_max_h_m"] >= report["max_recovery_error_h_m"] - 1e-9
     events = [what for _, what in report["timeline"]]
     assert any("hold" in e for e in events) and any("return_home (positioned by helpers)" in e for e in events)
     assert any(e.startswith("d1: helping d2") or e.startswith("d3: helping d2") for e in events)
