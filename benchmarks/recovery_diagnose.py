@@ -11,6 +11,8 @@ Scoring only: the truth is read here, never by the run. Per run folder (``RUN/tr
   frame (the observer position it sent minus its truth minus the shared GNSS error: its own receiver's part);
 * the lost drone's fused error at touchdown against the truth and against the swarm's GNSS frame, and where
   it landed from home (a drone landing on its fix lands off by that error, less its home's own GNSS error);
+* with ``--frames``, where the simulated autopilot records them (``ap_*`` columns): its home error, its own
+  estimate's error at touchdown and how far from its home it landed on that estimate;
 * where the home error comes from (``--frames``): the lost drone's fused error before take-off (its home: the
   autopilot records it on its own receiver at arming), just before the loss (its own receiver's frame then) and
   over the first 10 s of helper-based fixes (the helpers' frame), each also less the shared GNSS error (its own
@@ -83,6 +85,14 @@ def home_frames(run: Path) -> tuple[list[str], dict[str, np.ndarray]]:
              f"receiver's part {_vec(out['home_own'])}; at touchdown fused error {_vec(err[last])}; landed "
              f"{_vec(landed)} from home; landed - (home error - touchdown error) {_vec(landed - home + err[last])} "
              f"(where it landed off its own fix)"]
+    if rows[td].get("ap_est_east_m") not in (None, ""):  # the simulated autopilot's own estimate and home
+        ap_est, ap_home = (_columns(rows[td:td + 1], (f"ap_{k}_east_m", f"ap_{k}_north_m"))[0] for k in ("est", "home"))
+        est_err = ap_est - truth[td, :2]
+        out.update({"ap_home": ap_home - truth[0, :2], "ap_est": est_err, "ap_off": ap_est - ap_home})
+        lines.append(f"  {run.name}: its autopilot: home error {_vec(out['ap_home'])}, estimate error at touchdown "
+                     f"{_vec(est_err)} (that less the fused fix's: {_vec(est_err - err[last])}), landed "
+                     f"{_vec(out['ap_off'])} from its home on its own estimate (landed = home error - estimate error "
+                     f"+ that)")
     relative = np.array(["relative:" in r.get("sources", "") for r in rows])
     first = np.flatnonzero(relative & (t >= t_loss))
     if first.size:

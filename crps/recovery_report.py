@@ -51,13 +51,17 @@ class Recorder:
         return score
 
     def sample(self, services) -> None:
-        """One row: every drone's truth, the lost drone's fused fix and mode."""
+        """One row: every drone's truth, the lost drone's fused fix and mode (and its simulated autopilot's
+        estimate and home, ``ap_*``: where the autopilot believes it is and lands; absent for SITL)."""
         t = self.sim.time_s
         truth = [self.truth(i) for i in range(len(self.ids))]
         row = {"t_s": round(t, 3)}
         for drone_id, tr in zip(self.ids, truth, strict=True):
             row.update({f"{drone_id}_east_m": tr["east_m"], f"{drone_id}_north_m": tr["north_m"],
                         f"{drone_id}_up_m": tr["up_m"], f"{drone_id}_alt_rel_m": tr["alt_rel_m"]})
+        lost = truth[self.lost]
+        if "est_east_m" in lost:  # the simulated autopilot's own estimate and home (scoring: where it lands)
+            row.update({f"ap_{k}": lost[k] for k in ("est_east_m", "est_north_m", "home_east_m", "home_north_m")})
         svc = services[self.lost]
         fix = svc.node.fix(svc.cfg.drone_id, t) if svc.node is not None else None
         est = svc.node.latest.get(svc.cfg.drone_id) if svc.node is not None else None

@@ -66,10 +66,14 @@ class RequesterConfig:
     fused_sigma_h_keep_m: float = 4.0
     fix_max_age_s: float = 2.0       # an older fused estimate does not count
     hold_timeout_s: float = 90.0     # no usable fix for this long while holding: land
-    # returning home when the helper fix goes, the drone lands where it is if it is this close to home (fused,
-    # horizontal) and either low (the helpers lose a landing drone under their horizon: nothing better comes)
-    # or sure of it (the fix's land_sigma_k-sigma circle inside that radius); else it holds for the helpers
+    # returning home when the helper fix goes, the drone lands where it is if it is low (the helpers lose a
+    # landing drone under their horizon: nothing better comes) and this close to home (fused, horizontal), or
+    # high and sure of home (the fix's land_sigma_k-sigma circle inside land_sure_within_m: where it lands then
+    # is where it is, so no further from home than a landing that counts as home); else it holds for the helpers,
+    # who see it again at height (benchmarks/recovery.py seed 8 on 14cd873: the helpers lost it for 4 s at 15 m on
+    # its way in at 5 m/s, 5 m from home by a 1.1 m-sigma fix, and under the 6 m radius it landed there, 5.24 m off)
     land_near_home_m: float = 6.0
+    land_sure_within_m: float = 3.0
     # "low", m above home: the helpers (never under 1.5 m) keep a landing drone above their horizon down to
     # ~2-3 m; holding unobserved drifts (an autopilot flying on a held injected position: up to 2 m/s on SITL)
     land_below_m: float = 5.0
@@ -161,8 +165,9 @@ class RequesterRole:
 
     def _near_home(self, fused: Estimate | None, alt_rel_m: float | None, now_s: float) -> bool:
         """Whether a drone returning home that lost its helper fix should land where ``fused`` puts it: near
-        home and low, or near home counting the fix's sigma (a fix that grew loose in a link drop, 4-6 m off,
-        is not landed on at height: the helpers see it again once the link is back)."""
+        home and low, or high and within ``land_sure_within_m`` of home counting the fix's sigma (a fix that
+        grew loose in a link drop, 4-6 m off, or a fast drone still metres out is not landed on at height: the
+        helpers see it again)."""
         if fused is None:
             return False
         _, dist_m = geo.inverse(fused.lat_deg, fused.lon_deg, self.home[0], self.home[1])
@@ -172,7 +177,7 @@ class RequesterRole:
             return float(dist_m) <= cfg.land_near_home_m
         # a stale estimate's sigma is not its present uncertainty (a MAVLink drop stops the estimates): not sure
         fresh = now_s - fused.time_s <= cfg.fix_max_age_s
-        return fresh and float(dist_m) + cfg.land_sigma_k * fused.sigma_horizontal_m <= cfg.land_near_home_m
+        return fresh and float(dist_m) + cfg.land_sigma_k * fused.sigma_horizontal_m <= cfg.land_sure_within_m
 
     def _setpoint(self, fused: Estimate | None) -> tuple[float, float, float] | None:
         if self.mode is Mode.HOLD and self.last_good is not None:

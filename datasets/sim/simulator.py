@@ -140,7 +140,8 @@ class Simulator:
     def truth(self, index: int = 0) -> dict[str, float]:
         """Ground truth of vehicle ``index``: lat/lon, ``alt_m`` above the WGS84 ellipsoid and
         ``alt_amsl_m`` (= alt_m - geoid_m, what the autopilot reports), world ENU
-        position and velocity, attitude (degrees), and the autopilot's horizontal estimate error."""
+        position and velocity, attitude (degrees), the autopilot's horizontal estimate error, and its horizontal
+        estimate and home in world ENU (``est_east_m`` ..., ``home_east_m`` ...: scoring where it lands)."""
         with self.lock:
             v = self.vehicle(index)
             lat, lon, alt = v.geodetic(v.pos_enu_m)
@@ -149,6 +150,8 @@ class Simulator:
             return {"lat_deg": lat, "lon_deg": lon, "alt_m": alt, "alt_amsl_m": alt - self.geoid_m, "east_m": e, "north_m": n, "up_m": u,
                     "alt_rel_m": u - float(v.home_enu_m[2]), "time_s": v.t_s,
                     "est_error_m": float(np.hypot(*(est[:2] - v.pos_enu_m[:2]))),
+                    "est_east_m": float(est[0]), "est_north_m": float(est[1]),
+                    "home_east_m": float(v.home_enu_m[0]), "home_north_m": float(v.home_enu_m[1]),
                     "speed_mps": float(np.linalg.norm(v.vel_enu_mps)),
                     "vel_east_mps": float(v.vel_enu_mps[0]), "vel_north_mps": float(v.vel_enu_mps[1]),
                     "vel_up_mps": float(v.vel_enu_mps[2]), "roll_deg": v.roll_deg,

@@ -160,8 +160,10 @@ def _estimate(east_m, north_m, t, sources, sigma_m=1.0, up_m=10.0):
 @pytest.mark.parametrize("east_m, up_m, sigma_m, expected", [
     (4.0, 2.0, 5.0, Mode.LAND),    # low over home: going under the helpers' horizon, holding would drift, land
     (20.0, 2.0, 1.0, Mode.HOLD),   # low but not over home: hold
-    (1.0, 10.0, 2.0, Mode.LAND),   # high, over home and sure of it (1 m + 2 sigma <= 6 m)
-    (4.0, 10.0, 1.5, Mode.HOLD),   # high, near home but not sure (4 m + 2 sigma > 6 m): hold for the helpers
+    (1.0, 10.0, 0.9, Mode.LAND),   # high, over home and sure of it (1 m + 2 sigma <= 3 m)
+    (1.0, 10.0, 2.0, Mode.HOLD),   # high, over home but not sure (1 m + 2 sigma > 3 m): hold for the helpers
+    (4.0, 10.0, 1.5, Mode.HOLD),   # high, near home but not sure (4 m + 2 sigma > 3 m)
+    (2.5, 10.0, 1.0, Mode.HOLD),   # high, on its way in: landing where it is would land it 2.5-4.5 m off
     (20.0, 10.0, 1.0, Mode.HOLD)])
 def test_a_drone_returning_home_that_loses_its_helper_fix_lands_only_low_or_sure_over_home(east_m, up_m, sigma_m,
                                                                                             expected):
@@ -207,14 +209,14 @@ def test_low_over_home_is_judged_on_the_autopilots_height_when_given():
         role.step(0.0, ok, _estimate(4.0, 0.0, 0.0, ("gnss",)), [])
         role.step(1.0, lost, _estimate(4.0, 0.0, 1.0, ("velocity",)), [], alt_rel_m)
         assert role.step(2.0, lost, _estimate(4.0, 0.0, 2.0, ("relative:h1",)), [], alt_rel_m)[0].mode is Mode.RETURN_HOME
-        # fused altitude 10 m above home, sigma 1.5 m: 4 m + 2 sigma > 6 m, so only "low" can land it
+        # fused altitude 10 m above home, sigma 1.5 m: 4 m + 2 sigma > 3 m, so only "low" can land it
         decision, _ = role.step(3.0, lost, _estimate(4.0, 0.0, 3.0, ("velocity",), 1.5), [], alt_rel_m)
         assert decision.mode is expected
 
 
 def test_a_stale_fix_near_home_is_not_sure_enough_to_land_on_at_height():
     """High over home, a fix that went stale (no estimate for > fix_max_age_s: a MAVLink drop) holds, though its
-    last sigma would have passed distance + 2 sigma <= 6 m; a fresh one with that sigma lands."""
+    last sigma would have passed distance + 2 sigma <= 3 m; a fresh one with that sigma lands."""
     from skyfix.fusion.health import HealthState, SourceHealth
 
     ok, lost = SourceHealth(HealthState.OK, "", 0.0), SourceHealth(HealthState.LOST, "no fix", 1.0)
