@@ -80,7 +80,8 @@ def home_frames(run: Path) -> tuple[list[str], dict[str, np.ndarray]]:
         home = mean_over((t >= t_fix) & (t < t_fix + 1.0))
     landed = truth[td, :2] - truth[0, :2]
     last = max(i for i in range(td + 1) if np.isfinite(err[i, 0]))
-    out = {"home": home, "home_own": home - common[lift], "landed": landed, "touchdown": err[last]}
+    out = {"home": home, "home_own": home - common[lift], "landed": landed, "touchdown": err[last],
+           "touchdown_own": err[last] - common[last], "off_fix": landed - home + err[last]}
     lines = [f"  {run.name}: home error (fused fix at take-off, t={t[lift]:.0f} s) {_vec(home)}, its own "
              f"receiver's part {_vec(out['home_own'])}; at touchdown fused error {_vec(err[last])}; landed "
              f"{_vec(landed)} from home; landed - (home error - touchdown error) {_vec(landed - home + err[last])} "
@@ -127,6 +128,10 @@ def summary(found: list[dict[str, np.ndarray]], baselines: list[dict[str, np.nda
     corr = float(np.corrcoef(own[:, :2].ravel(), own[:, 2:].ravel())[0, 1]) if len(own) > 2 else math.nan
     return [f"median landing from home: recovery {med(found, 'landed')}; with the home carried into the helpers' "
             f"frame by the true offset {med(found, 'oracle')}; healthy-GNSS baseline {med(baselines, 'landed')}",
+            f"median parts: the fused fix at touchdown against the swarm's GNSS frame: recovery "
+            f"{med(found, 'touchdown_own')}, baseline {med(baselines, 'touchdown_own')}; home's own receiver part "
+            f"{med(found, 'home_own')}; landed off its own fix (landed - (home error - touchdown error)): recovery "
+            f"{med(found, 'off_fix')}, baseline {med(baselines, 'off_fix')}",
             f"the lost receiver's own error (less the shared part) at take-off vs just before the loss: correlation "
             f"{corr:+.2f} over {2 * len(own)} axis pairs (the home offset carries over only as far as these agree)"]
 
