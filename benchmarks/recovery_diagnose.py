@@ -78,11 +78,14 @@ def home_frames(run: Path) -> tuple[list[str], dict[str, np.ndarray]]:
     if not np.isfinite(home[0]):
         t_fix = t[np.flatnonzero(np.isfinite(err[:, 0]))[0]]
         home = mean_over((t >= t_fix) & (t < t_fix + 1.0))
+    if rows[lift].get("ap_home_east_m") not in (None, ""):  # the simulated autopilot's own home: exact
+        home = _columns(rows[lift:lift + 1], ("ap_home_east_m", "ap_home_north_m"))[0] - truth[0, :2]
     landed = truth[td, :2] - truth[0, :2]
     last = max(i for i in range(td + 1) if np.isfinite(err[i, 0]))
     out = {"home": home, "home_own": home - common[lift], "landed": landed, "touchdown": err[last],
            "touchdown_own": err[last] - common[last], "off_fix": landed - home + err[last]}
-    lines = [f"  {run.name}: home error (fused fix at take-off, t={t[lift]:.0f} s) {_vec(home)}, its own "
+    lines = [f"  {run.name}: home error (its autopilot's, else its fused fix at take-off, t={t[lift]:.0f} s) "
+             f"{_vec(home)}, its own "
              f"receiver's part {_vec(out['home_own'])}; at touchdown fused error {_vec(err[last])}; landed "
              f"{_vec(landed)} from home; landed - (home error - touchdown error) {_vec(landed - home + err[last])} "
              f"(where it landed off its own fix)"]
