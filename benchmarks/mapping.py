@@ -194,7 +194,9 @@ def main() -> int:
           f"(sparse {sparse}); orthophoto COG {cog}, at the GSD {full_res}")
     dsm_marker = json.loads((out / "work" / "stages" / "dsm.json").read_text())
     for fill in dsm_marker.get("dense_fills", []):
-        print(f"  DSM fill pass at {fill['scale']:g} of the photos' size: +{fill['cells_added']} cells; where a "
+        kind = "mirrored band pass" if fill.get("band") else "fill pass"
+        print(f"  DSM {kind} at {fill['scale']:g} of the photos' size: +{fill['cells_added']} cells"
+              f" ({fill.get('rounds', 1)} rounds); where a "
               f"finer pass measured the same cell ({fill['cells_both']} cells): |difference| "
               f"{fill['median_abs_diff_m']:.2f} m median, {fill['p90_abs_diff_m']:.2f} m for 90 %")
     print(report["flying_height"].get("line", "no flying height check"))

@@ -15,7 +15,10 @@ photo's canvas starts that range's minimum to the right of the right photo's, so
 searches from 0 and a wide-baseline corner overlap is not lost in its minimum-disparity
 band), and triangulated:
 depth = f * baseline / disparity. Photos are matched at ``scale`` of their size, so a
-disparity pixel is 1/scale photo pixels.
+disparity pixel is 1/scale photo pixels. SGBM gives no disparity in the left canvas's
+first numDisparities columns, the start of the overlap; that band is matched again with
+the pair mirrored (the right photo, flipped, as the left one) and its cells join the
+surface only through the fill rules (:mod:`skyfix.mapping.dense_fill`).
 
 Every pair's points land in the DSM grid in metres; each cell takes the median height of
 all its points from all pairs, spikes (a cell more than ``spike_m`` off its 5x5 median)
@@ -34,6 +37,7 @@ import cv2
 import numpy as np
 
 from skyfix.errors import DataError
+from skyfix.mapping.dense_fill import fill_from, fill_holes, without_spikes
 from skyfix.mapping.dense_pairs import camera_centre as _centre
 from skyfix.mapping.dense_pairs import stereo_pairs
 from skyfix.mapping.dsm import Dsm, cell_median, cell_medians
@@ -100,10 +104,10 @@ def _rectification(left: View, right: View) -> tuple[np.ndarray, float]:
     return np.stack((x, y, z)), baseline
 
 
-def _match_pair(left: View, right: View, images: dict, sparse_enu: np.ndarray, scale: float,
-                block_px: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """(N, 3) ENU points and (N, 3) BGR colours from one pair, or None. ``images``: name ->
-    (contrast-equalised photo to match, photo for the colours), both at ``scale``."""
+def _pair_canvas(left: View, right: View, images: dict, sparse_enu: np.ndarray, scale: float,
+                 block_px: int) -> tuple | None:
+    """Rectified canvas of one pair at ``scale``: (lenses, rotation, f_px, baseline_m, x0, y0,
+    min_disp, num_disp, size), or None (lens model, disparity range or degenerate geometry)."""
     lens_l, lens_r = opencv_lens(left.camera, scale), opencv_lens(right.camera, scale)
     if lens_l is None or lens_r is None:
         return None
@@ -153,6 +157,20 @@ def _match_pair(left: View, right: View, images: dict, sparse_enu: np.ndarray, s
     if min_disp < 0 or num_disp + block_px >= size[0] or size[0] * size[1] > 16 * len(images[left.name][0]) \
             * images[left.name][0].shape[1]:
         return None  # overlap too small for the disparities, or a degenerate rectification
+    return (lens_l, lens_r), r_rect, f, baseline, x0, y0, min_disp, num_disp, size
+
+
+def _match_pair(left: View, right: View, images: dict, sparse_enu: np.ndarray, scale: float,
+                block_px: int, band: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
+    """(N, 3) ENU points and (N, 3) BGR colours from one pair, or None. ``images``: name ->
+    (contrast-equalised photo to match, photo for the colours), both at ``scale``. ``band``:
+    only the band SGBM leaves without a disparity (the left canvas's first numDisparities
+    columns: the start of the overlap), matched with the pair mirrored (the right photo,
+    flipped, as the left one: the band is then at the far end of its canvas)."""
+    canvas = _pair_canvas(left, right, images, sparse_enu, scale, block_px)
+    if canvas is None:
+        return None
+    (lens_l, lens_r), r_rect, f, baseline, x0, y0, min_disp, num_disp, size = canvas
     rectified, maps = [], []
     for view, (k, dist), start in ((left, lens_l, x0 + min_disp), (right, lens_r, x0)):
         k_new = np.array([[f, 0.0, -start], [0.0, f, -y0], [0.0, 0.0, 1.0]])
@@ -163,14 +181,22 @@ def _match_pair(left: View, right: View, images: dict, sparse_enu: np.ndarray, s
                                  P1=8 * 3 * block_px ** 2, P2=32 * 3 * block_px ** 2, disp12MaxDiff=1,
                                  uniquenessRatio=10, speckleWindowSize=100, speckleRange=2,
                                  mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
-    disparity = sgbm.compute(rectified[0], rectified[1]).astype(np.float32) / 16.0
     seen = cv2.cvtColor(rectified[0], cv2.COLOR_BGR2GRAY) > 0
+    pair = [cv2.flip(rectified[1], 1), cv2.flip(rectified[0], 1)] if band else rectified
+    disparity = sgbm.compute(pair[0], pair[1]).astype(np.float32) / 16.0
     # Disparities at the ends of the searched range are matches that wanted to go further: dropped.
-    valid = (disparity > 0.5) & (disparity < num_disp - 1.5) & seen
+    valid = (disparity > 0.5) & (disparity < num_disp - 1.5) & (cv2.cvtColor(pair[0], cv2.COLOR_BGR2GRAY) > 0)
     rows, cols = np.nonzero(valid)
-    d = disparity[rows, cols] + min_disp
+    d = disparity[rows, cols]
+    cols_px = cols.astype(np.float32)
+    if band:  # mirrored right-canvas column -> the left canvas column of the same ground
+        cols_px = size[0] - 1 - cols_px + d
+        cols = np.minimum(np.rint(cols_px).astype(np.int64), size[0] - 1)
+        keep = (cols_px < num_disp) & seen[rows, cols]
+        rows, cols, cols_px, d = rows[keep], cols[keep], cols_px[keep], d[keep]
+    d = d + min_disp
     z = f * baseline / d
-    rect = np.stack(((cols + x0 + min_disp) * z / f, (rows + y0) * z / f, z), axis=1)
+    rect = np.stack(((cols_px + x0 + min_disp) * z / f, (rows + y0) * z / f, z), axis=1)
     colours = cv2.remap(images[left.name][1], *maps[0], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     return rect @ r_rect + _centre(left), colours[rows, cols]
 
@@ -242,21 +268,6 @@ def pair_offsets_m(pair_cells: dict[int, tuple[np.ndarray, np.ndarray]], agree_m
     return offsets
 
 
-def fill_holes(surface_m: np.ndarray) -> np.ndarray:
-    """NaN cells filled from ever coarser block means (a pyramid), finite cells kept."""
-    if np.isfinite(surface_m).all() or not np.isfinite(surface_m).any():
-        return surface_m.copy()
-    h, w = surface_m.shape
-    padded = np.pad(surface_m, ((0, h % 2), (0, w % 2)), constant_values=np.nan)
-    blocks = padded.reshape(padded.shape[0] // 2, 2, padded.shape[1] // 2, 2)
-    with np.errstate(invalid="ignore"):
-        finite = np.isfinite(blocks)
-        coarse = np.where(finite, blocks, 0.0).sum(axis=(1, 3)) / finite.sum(axis=(1, 3))
-    coarse = fill_holes(coarse)
-    up = np.repeat(np.repeat(coarse, 2, axis=0), 2, axis=1)[:h, :w]
-    return np.where(np.isfinite(surface_m), surface_m, up)
-
-
 def _drop_offset_pairs(matched: dict[int, tuple], views: list[View], pairs: list[tuple[int, int]],
                        max_pair_offset_m: float) -> list[str]:
     """Remove from ``matched`` (in place) the pairs whose heights sit more than
@@ -274,8 +285,9 @@ def _drop_offset_pairs(matched: dict[int, tuple], views: list[View], pairs: list
 
 def _match_pairs(views: list[View], pairs: list[tuple[int, int]], image_paths: dict[str, str],
                  sparse_enu: np.ndarray, to_utm: EnuToUtm, grid: Grid, scale: float, block_px: int,
-                 neighbours: int, max_points: int, seed: int) -> dict[int, tuple]:
-    """Pair index -> (cells, heights_m, cloud xyz UTM, cloud rgb) of every pair SGBM matched at ``scale``."""
+                 neighbours: int, max_points: int, seed: int, band_of: set[int] | None = None) -> dict[int, tuple]:
+    """Pair index -> (cells, heights_m, cloud xyz UTM, cloud rgb) of every pair SGBM matched at
+    ``scale``; with ``band_of``, only those pairs' bands (:func:`_match_pair`)."""
     images: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     # Contrast equalised per 8x8 tile (CLAHE on lightness) before matching: the faint crop
     # rows of bright fields then pass SGBM's uniqueness test (Seneca: 86 -> 90 % of the
@@ -283,6 +295,8 @@ def _match_pairs(views: list[View], pairs: list[tuple[int, int]], image_paths: d
     clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8))
     matched: dict[int, tuple] = {}
     for n, (i, j) in enumerate(progress(pairs, desc=f"dense matching at {scale:g}", unit="pair")):
+        if band_of is not None and n not in band_of:
+            continue
         for view in (views[i], views[j]):
             if view.name not in images:
                 image = cv2.imread(image_paths[view.name], cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
@@ -293,7 +307,7 @@ def _match_pairs(views: list[View], pairs: list[tuple[int, int]], image_paths: d
                 lab[..., 0] = clahe.apply(lab[..., 0])
                 images[view.name] = (cv2.cvtColor(lab, cv2.COLOR_LAB2BGR), image)
         # Left camera: the one the baseline leaves from, so disparities are positive.
-        found = _match_pair(views[i], views[j], images, sparse_enu, scale, block_px)
+        found = _match_pair(views[i], views[j], images, sparse_enu, scale, block_px, band_of is not None)
         if found is None:
             log.info("pair %s / %s: no dense match (lens model or disparity range)", views[i].name, views[j].name)
             continue
@@ -328,57 +342,13 @@ def _fused_surface(matched: dict[int, tuple], grid: Grid, min_pairs: int) -> np.
     return surface
 
 
-def _without_spikes(surface: np.ndarray, spike_m: float) -> np.ndarray:
-    """``surface`` less spikes (cells more than ``spike_m`` off their 5x5 median) and isolated
-    cells (fewer than 6 measured in their 5x5 neighbourhood: stray matches)."""
-    from scipy.ndimage import median_filter
-
-    surface = surface.copy()
-    spikes = np.abs(surface - median_filter(fill_holes(surface), size=5, mode="nearest")) > spike_m
-    surface[spikes] = np.nan
-    neighbours_seen = cv2.boxFilter(np.isfinite(surface).astype(np.float32), -1, (5, 5), normalize=False)
-    surface[neighbours_seen < 6] = np.nan
-    return surface
-
-
-def _local_range_m(surface: np.ndarray, size: int) -> np.ndarray:
-    """(H, W) highest minus lowest measured height within ``size`` x ``size`` cells (NaN ignored)."""
-    from scipy.ndimage import maximum_filter, minimum_filter
-
-    finite = np.isfinite(surface)
-    high = maximum_filter(np.where(finite, surface, -np.inf), size=size, mode="nearest")
-    low = minimum_filter(np.where(finite, surface, np.inf), size=size, mode="nearest")
-    return high - low
-
-
-def _fill(surface: np.ndarray, filler: np.ndarray, spike_m: float, max_range_m: float) -> tuple[np.ndarray, dict]:
-    """``surface`` with its empty cells taken from a coarser pass's ``filler`` where that is
-    trustworthy (see :func:`dense_dsm`), and the pass's statistics: cells added, cells both
-    measured and their median / 90th-percentile absolute difference (m)."""
-    added = ~np.isfinite(surface) & np.isfinite(filler)
-    merged = np.where(added, filler, surface)
-    # Not a spike on the merged surface, and on smooth ground: a coarse pass smears roofs
-    # and crowns into the ground around them (on the rendered survey, metres off).
-    merged[added & ~np.isfinite(_without_spikes(merged, spike_m))] = np.nan
-    merged[added & (_local_range_m(merged, 5) > max_range_m)] = np.nan
-    merged[added & (_local_range_m(surface, 11) > 2 * max_range_m)] = np.nan
-    # Next to the finer surface and at its height: holes are filled from their rims.
-    near = cv2.boxFilter(np.isfinite(surface).astype(np.float32), -1, (7, 7), normalize=False) >= 6
-    off = np.abs(merged - fill_holes(surface)) > max_range_m
-    merged[added & (~near | off)] = np.nan
-    both = np.abs(filler - surface)[np.isfinite(filler) & np.isfinite(surface)]
-    stats = {"cells_added": int((np.isfinite(merged) & ~np.isfinite(surface)).sum()), "cells_both": int(both.size),
-             "median_abs_diff_m": float(np.median(both)) if both.size else float("nan"),
-             "p90_abs_diff_m": float(np.percentile(both, 90)) if both.size else float("nan")}
-    return merged, stats
-
-
 def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.ndarray, to_utm: EnuToUtm,
               grid: Grid, *, scale: float = 0.5, fill_scales: tuple[float, ...] = (0.4, 0.3, 0.2), neighbours: int = 6,
               max_ratio: float = 1.5, block_px: int = 5, min_pairs: int = 1, min_shared: int = 1,
               min_new_share: float | None = 0.005,
-              spike_m: float = 2.0, max_pair_offset_m: float = 1.0, fill_max_range_m: float = 0.5,
-              max_points: int = 5_000_000, seed: int = 0) -> tuple[Dsm, DenseCloud]:
+              spike_m: float = 2.0, max_pair_offset_m: float = 1.0, fill_max_range_m: float = 1.0,
+              max_points: int = 5_000_000, seed: int = 0, band_fill: bool = True,
+              fill_rounds: int = 100) -> tuple[Dsm, DenseCloud]:
     """Dense DSM on ``grid`` (every matched pixel) and the dense point cloud (at most
     ``max_points``: each pair contributes an equal seeded subset) from ``views`` (ENU poses) and the sparse points'
     ENU positions ``sparse_enu`` (disparity ranges). A pair whose heights sit more than
@@ -387,16 +357,22 @@ def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.nda
     pairs are added whose footprints overlap on at least that share of a footprint that no
     other pair covers (:func:`stereo_pairs`; None: the lattice rule alone).
 
-    ``fill_scales``: coarser passes (fractions of the photos' size) that measure only the
-    cells every finer pass left empty, each pair judged (offset from the other pairs) and
-    the fused surface filtered (spikes, isolated cells) like the first pass. A filled cell
-    is kept only on smooth ground next to the finer surface: not a spike on the merged
-    surface, its 5x5 cells within ``fill_max_range_m`` (0.5 m) of each other, no step of
-    more than twice that among the finer cells within 11x11, at least 6 finer cells within
-    7x7 and within ``fill_max_range_m`` of their interpolation. A coarse pass smears roofs
-    and crowns into the ground beside them: on the rendered survey, without the last
-    three checks, 10 % of its cells were 9-10 m off; with them its cells are 0.07 m off
-    the truth median, 0.46 m for 90 % (the first pass: 0.06 and 0.16 m). Faint, bright
+    ``band_fill``: the band SGBM leaves without a disparity at the start of each overlap is
+    matched with the pair mirrored (pairs the first pass kept), and filled into the surface
+    like a coarser pass. ``fill_scales``: coarser passes (fractions of the photos' size) that
+    measure only the cells every finer pass left empty, each pair judged (offset from the
+    other pairs) and the fused surface filtered (spikes, isolated cells) like the first
+    pass. A filled cell is kept only on smooth ground next to the surface measured so far
+    (:func:`skyfix.mapping.dense_fill.fill_from`): not a spike on the merged surface, its
+    5x5 cells within ``fill_max_range_m`` (1 m) of each other, no step of more than twice
+    that among the measured cells within 11x11, at least 6 measured cells within 7x7 and
+    within ``fill_max_range_m`` of their interpolation; repeated (at most ``fill_rounds``)
+    while it adds cells, so a hole fills inward from its rim. A coarse pass smears roofs
+    and crowns into the ground beside them, and the mirrored band matches the photos'
+    borders: on the rendered survey, without the last three checks, 10 % of the coarse
+    cells were 9-10 m off and 16 % of the band's over 1 m; with them, the band and fill
+    cells are 0.08 m off the truth median, 0.20 m for 90 %, 1.2 % over 1 m (the first
+    pass: 0.06 and 0.17 m, 4.1 %; ``benchmarks/mapping_dsm_truth.py``). Faint, bright
     fields whose crop rows are too fine for SGBM's window at ``scale`` match at a smaller
     size (Seneca: 89.9 -> 91.0 % of the stereo area). ``DenseCloud.fills`` states each
     pass's cells and its agreement with the finer passes. The point cloud holds the first
@@ -413,8 +389,16 @@ def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.nda
     if not matched:
         raise DataError("dense matching found no point in any pair")
     dropped = _drop_offset_pairs(matched, views, pairs, max_pair_offset_m)
-    surface = _without_spikes(_fused_surface(matched, grid, min_pairs), spike_m)
+    surface = without_spikes(_fused_surface(matched, grid, min_pairs), spike_m)
     fills: list[dict] = []
+    if band_fill:
+        band = _match_pairs(views, pairs, image_paths, sparse_enu, to_utm, grid, scale, block_px, neighbours, 0,
+                            seed, band_of=set(matched))
+        if band:
+            filler = without_spikes(_fused_surface(band, grid, min_pairs), spike_m)
+            surface, stats = fill_from(surface, filler, spike_m, fill_max_range_m, fill_rounds)
+            fills.append({"scale": scale, "band": True, **stats})
+            log.info("dense band at %g: %d cells added", scale, stats["cells_added"])
     for coarse_scale in fill_scales:
         coarse = _match_pairs(views, pairs, image_paths, sparse_enu, to_utm, grid, coarse_scale, block_px,
                               neighbours, 0, seed)
@@ -422,8 +406,8 @@ def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.nda
             dropped += [f"{d} at {coarse_scale:g}" for d in _drop_offset_pairs(coarse, views, pairs, max_pair_offset_m)]
         if not coarse:
             continue
-        filler = _without_spikes(_fused_surface(coarse, grid, min_pairs), spike_m)
-        surface, stats = _fill(surface, filler, spike_m, fill_max_range_m)
+        filler = without_spikes(_fused_surface(coarse, grid, min_pairs), spike_m)
+        surface, stats = fill_from(surface, filler, spike_m, fill_max_range_m, fill_rounds)
         fills.append({"scale": coarse_scale, **stats})
         log.info("dense fill at %g: %d cells added; where the finer passes measured too, %.2f m median, %.2f m "
                  "for 90 %%", coarse_scale, stats["cells_added"], stats["median_abs_diff_m"], stats["p90_abs_diff_m"])
