@@ -77,6 +77,7 @@ class PipelineConfig:
     max_dense_points: int = 5_000_000     # points.ply holds at most this many dense points (stated in the report)
     dsm_fill_max_m2: float = 4.0          # dense DSM: enclosed holes up to this area interpolated, in dsm_interpolated.tif
     threads: int = -1                     # -1: all cores
+    ba_threads: int = 1                   # bundle adjustment threads: 1 repeats exactly, more differ in the last digits
     force: tuple[str, ...] = ()           # stages to re-run even when their outputs exist
 
     def __post_init__(self) -> None:

@@ -234,7 +234,8 @@ def set_pose_priors(database: Path, photos: list[Photo], frame: LocalFrame, sigm
 
 
 def reconstruct(database: Path, image_dir: Path, out_dir: Path, *, calibrated: bool = False,
-                refine_focal: bool = True, pose_priors: bool = False, seed: int = 0, threads: int = -1) -> list:
+                refine_focal: bool = True, pose_priors: bool = False, seed: int = 0, threads: int = -1,
+                ba_threads: int = 1) -> list:
     """Incremental mapping; every model (largest first) as a ``pycolmap.Reconstruction``.
 
     Registration thresholds are lowered from COLMAP's defaults (30 -> 15 absolute-pose
@@ -253,16 +254,15 @@ def reconstruct(database: Path, image_dir: Path, out_dir: Path, *, calibrated: b
     radial distortion is still refined. ``pose_priors``: the database's pose priors (see
     :func:`set_pose_priors`) enter every global bundle adjustment as position priors, so
     the model lies in their frame and cannot drift away from GPS. ``seed`` fixes
-    pycolmap's random sampling (RANSAC, initial pair) so a run repeats.
+    pycolmap's random sampling (RANSAC, initial pair, triangulation) and ``ba_threads`` = 1
+    keeps bundle adjustment in one summation order, so a run repeats exactly
+    (:func:`~skyfix.mapping.sfm_refine.pipeline_options`).
     """
     pycolmap = _colmap_logging()
 
     out_dir.mkdir(parents=True, exist_ok=True)
     pycolmap.set_random_seed(int(seed))
-    options = pycolmap.IncrementalPipelineOptions()
-    options.random_seed = int(seed)
-    options.mapper.random_seed = int(seed)
-    options.num_threads = int(threads)
+    options = sfm_refine.pipeline_options(seed, threads, ba_threads)
     options.use_prior_position = bool(pose_priors)
     options.use_robust_loss_on_prior_position = True
     options.min_model_size = 3
@@ -280,9 +280,10 @@ def reconstruct(database: Path, image_dir: Path, out_dir: Path, *, calibrated: b
     priors = sfm_refine.pose_priors(database) if pose_priors else []
     refine_focal, refine_extra = options.ba_refine_focal_length, options.ba_refine_extra_params
     ordered = sfm_refine.join_models(ordered, database, image_dir, out_dir / "join", priors,
-                                     refine_focal=refine_focal, refine_extra=refine_extra)
+                                     refine_focal=refine_focal, refine_extra=refine_extra, seed=seed, threads=threads,
+                                     ba_threads=ba_threads)
     if not calibrated:
-        ordered = [sfm_refine.without_unsupported_distortion(rec, priors) for rec in ordered]
+        ordered = [sfm_refine.without_unsupported_distortion(rec, priors, ba_threads=ba_threads) for rec in ordered]
     shutil.rmtree(out_dir / "join", ignore_errors=True)
     for path in out_dir.iterdir():  # pycolmap's own numbering; the joined, ordered models replace it
         if path.is_dir() and path.name.isdigit():
@@ -326,7 +327,8 @@ def _best_partners(database: Path, unregistered: set[str], registered: set[str],
 
 
 def pair_models(database: Path, image_dir: Path, out_dir: Path, unregistered: set[str], main_models: list, *,
-                min_inliers: int = 30, threads: int = -1) -> list[tuple[object, PairModel]]:
+                min_inliers: int = 30, seed: int = 0, threads: int = -1,
+                ba_threads: int = 1) -> list[tuple[object, PairModel]]:
     """Two-photo models for photos incremental mapping could not place.
 
     A photo that overlaps only one registered photo has no 3-D points to be located
@@ -363,8 +365,7 @@ def pair_models(database: Path, image_dir: Path, out_dir: Path, unregistered: se
                 db.update_camera(camera)
         finally:
             db.close()
-        options = pycolmap.IncrementalPipelineOptions()
-        options.num_threads = int(threads)
+        options = sfm_refine.pipeline_options(seed, threads, ba_threads)
         options.image_names = [photo, partner]
         options.init_image_id1, options.init_image_id2 = ids[photo], ids[partner]
         options.min_model_size = 2
