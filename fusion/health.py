@@ -58,8 +58,9 @@ class SourceMonitor:
     """
 
     def __init__(self, timeout_s: float, reject_after: int, readmit_after_s: float, now_s: float,
-                 readmit_fraction: float = 0.8) -> None:
+                 readmit_fraction: float = 0.8, probation_after_silence: bool = True) -> None:
         self.timeout_s = timeout_s
+        self.probation_after_silence = probation_after_silence
         self.reject_after = reject_after
         self.readmit_after_s = readmit_after_s
         self.readmit_fraction = readmit_fraction
@@ -197,8 +198,11 @@ class SourceMonitor:
         return True
 
     def tick(self, now_s: float) -> None:
-        """Apply the time-out at the engine's current time ``now_s``."""
+        """Apply the time-out at the engine's current time ``now_s``. A source that was only silent goes on
+        probation unless ``probation_after_silence`` is False: then its next message that passes the gate is
+        fused again at once (a camera observer that lost sight of its target for a while)."""
         silent_s = now_s - self.last_heard_s
         if silent_s > self.timeout_s and self._state is not HealthState.LOST:
-            self._enter_probation()
+            if self.probation_after_silence or self._probation:  # a rejected source stays on probation
+                self._enter_probation()
             self._set(HealthState.LOST, f"silent for more than {self.timeout_s:g} s", self.last_heard_s + self.timeout_s)
