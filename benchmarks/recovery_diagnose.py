@@ -43,6 +43,12 @@ from skyfix.geoid import geoid_undulation_m
 LOST = "d2"
 
 
+def _trajectory(run: Path) -> list[dict]:
+    """The rows of ``run/trajectory.csv`` (the recorder's samples, strings)."""
+    with open(run / "trajectory.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
 def _columns(rows: list[dict], names: tuple[str, ...]) -> np.ndarray:
     return np.array([[float(r[k]) if r.get(k) not in (None, "") else np.nan for k in names] for r in rows])
 
@@ -55,7 +61,7 @@ def _fused_error(rows: list[dict], truth: np.ndarray) -> np.ndarray:
 def home_frames(run: Path) -> tuple[list[str], dict[str, np.ndarray]]:
     """The home error and the own-receiver / helpers' frame offset of one run folder (recovery or baseline):
     printable lines and the vectors (ENU m, horizontal) for the summary."""
-    rows = list(csv.DictReader(open(run / "trajectory.csv")))
+    rows = _trajectory(run)
     t = _columns(rows, ("t_s",))[:, 0]
     truth = _columns(rows, (f"{LOST}_east_m", f"{LOST}_north_m", f"{LOST}_up_m"))
     common = np.nan_to_num(_columns(rows, ("common_east_m", "common_north_m")))
@@ -141,7 +147,7 @@ def summary(found: list[dict[str, np.ndarray]], baselines: list[dict[str, np.nda
 
 def diagnose(run: Path, world: LocalFrame) -> str:
     """The figures of one run folder, as printable lines."""
-    rows = list(csv.DictReader(open(run / "trajectory.csv")))
+    rows = _trajectory(run)
     t = _columns(rows, ("t_s",))[:, 0]
     truth = {d: _columns(rows, (f"{d}_east_m", f"{d}_north_m", f"{d}_up_m")) for d in ("d1", "d2", "d3")}
     common = np.nan_to_num(_columns(rows, ("common_east_m", "common_north_m", "common_up_m")))
