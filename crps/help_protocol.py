@@ -220,8 +220,10 @@ class HelpRequester:
         self.offers[h] = Offer(h, now_s, body.lat_deg, body.lon_deg, body.alt_m, battery, body.distance_m, body.eta_s)
         return []
 
-    def tick(self, now_s: float, live_peers: Iterable[str]) -> list[Body]:
-        """Periodic work (call at a few Hz): replace lost or silent helpers, assign, repeat."""
+    def tick(self, now_s: float, live_peers: Iterable[str], recruit: bool = True) -> list[Body]:
+        """Periodic work (call at a few Hz): replace lost or silent helpers, assign, repeat. ``recruit`` False:
+        lost or silent helpers are still released, but none is assigned in their place and no request repeated
+        (a drone landing under its helpers' horizon: new helpers would only lose it against the ground too)."""
         if not self.active:
             return []
         live = set(live_peers)
@@ -236,7 +238,7 @@ class HelpRequester:
                 self._replace(now_s, h, why)
         self.offers = {h: o for h, o in self.offers.items()
                        if h in live and now_s - o.time_s <= self.cfg.offer_max_age_s}
-        need = self.cfg.helpers_wanted - len(self.assigned)
+        need = self.cfg.helpers_wanted - len(self.assigned) if recruit else 0
         fresh = False
         if need > 0 and now_s - self._started_s >= self.cfg.offer_window_s:
             free = [o for h, o in self.offers.items()

@@ -145,7 +145,7 @@ class RequesterRole:
                 out += self.protocol.cancel(now_s, "gnss back")
             else:
                 self._recover(now_s, fused, alt_rel_m)
-        out += self.protocol.tick(now_s, live_peers)
+        out += self.protocol.tick(now_s, live_peers, recruit=not self._landing_low(fused, alt_rel_m))
         return Decision(self.mode, self.reason, self.since_s, self._setpoint(fused), self.protocol.helpers()), out
 
     def _recover(self, now_s: float, fused: Estimate | None, alt_rel_m: float | None) -> None:
@@ -163,6 +163,20 @@ class RequesterRole:
             else:
                 self._set(Mode.HOLD, "helper fix lost", now_s)
 
+    def _landing_low(self, fused: Estimate | None, alt_rel_m: float | None) -> bool:
+        """Landing at or below ``land_below_m``: helpers that lose it are not replaced (new ones would lose it
+        against the ground too, and a landed drone's fix moved by their late sightings kept SITL from disarming)."""
+        if self.mode is not Mode.LAND:
+            return False
+        height_m = self._height_m(fused, alt_rel_m)
+        return height_m is not None and height_m <= self.cfg.land_below_m
+
+    def _height_m(self, fused: Estimate | None, alt_rel_m: float | None) -> float | None:
+        """Height above home (m): the autopilot's where known, else the fused altitude less home's; else None."""
+        if alt_rel_m is not None and np.isfinite(alt_rel_m):
+            return float(alt_rel_m)
+        return None if fused is None else fused.alt_m - self.home[2]
+
     def _near_home(self, fused: Estimate | None, alt_rel_m: float | None, now_s: float) -> bool:
         """Whether a drone returning home that lost its helper fix should land where ``fused`` puts it: near
         home and low, or high and within ``land_sure_within_m`` of home counting the fix's sigma (a fix that
@@ -172,8 +186,7 @@ class RequesterRole:
             return False
         _, dist_m = geo.inverse(fused.lat_deg, fused.lon_deg, self.home[0], self.home[1])
         cfg = self.cfg
-        height_m = fused.alt_m - self.home[2] if alt_rel_m is None or not np.isfinite(alt_rel_m) else alt_rel_m
-        if height_m <= cfg.land_below_m:
+        if self._height_m(fused, alt_rel_m) <= cfg.land_below_m:
             return float(dist_m) <= cfg.land_near_home_m
         # a stale estimate's sigma is not its present uncertainty (a MAVLink drop stops the estimates): not sure
         fresh = now_s - fused.time_s <= cfg.fix_max_age_s

@@ -349,6 +349,9 @@ class Service:
         fix = self.node.fix(self.cfg.drone_id, now, time_stamp_s=time.time())
         mode = self.help.mode.value if self.help is not None else None
         quiet = now - self.node.observed_s.get(self.cfg.drone_id, -math.inf) > INJECT_HOLD_AFTER_S
+        # a landing once held stays held to the ground: a late or new sighting near touchdown would move the
+        # position it comes down on (a loaded SITL run stood landed and armed while helpers came and went)
+        quiet = quiet or (mode == "land" and self._held_fix is not None)
         if fix is None or self.cfg.injected_velocity_sigma_mps is None or mode not in ("hold", "land") or not quiet:
             self._held_fix = None
             return fix

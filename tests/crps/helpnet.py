@@ -49,6 +49,7 @@ class Drone:
         self.responder = HelpResponder(drone_id, net.cfg)
         self.loss, self.quiet = loss, False
         self.observes = False  # while helping, streams an observation of its requester every step
+        self.recruit = True  # as requester: replaces helpers it loses (False: a drone landing under their horizon)
 
     def send(self, bodies) -> None:
         for body in bodies:
@@ -68,7 +69,7 @@ class Drone:
             self.send(self.responder.on_message(env, now_s, me))
         self.peers.check(now_s)
         live = self.peers.live()
-        self.send(self.requester.tick(now_s, live))
+        self.send(self.requester.tick(now_s, live, self.recruit))
         self.responder.tick(now_s, live)
         req = self.responder.request
         if self.observes and self.responder.requester_id is not None and req is not None:

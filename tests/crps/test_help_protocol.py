@@ -244,6 +244,30 @@ def test_a_helper_whose_observations_stop_is_replaced():
     assert lost.requester.excluded_until_s["h1"] == pytest.approx(t_blind + 5.1 + net.cfg.exclude_s, abs=0.15)
 
 
+def test_a_requester_that_stops_recruiting_releases_a_blind_helper_and_takes_no_other():
+    """Landing under its helpers' horizon: a helper that loses it is released as before, but no spare is
+    assigned and no request repeated (the spare would lose it against the ground too)."""
+    net = Net()
+    lost = net.add("lost", 0, 0)
+    for h, (e, n) in {"h1": (30, 0), "h2": (0, 40), "h3": (-60, -60)}.items():
+        net.add(h, e, n).observes = True
+    net.run(1.0)
+    lost.send(lost.requester.start(net.clock.t, last_fix(net.clock)))
+    net.run(8.0)
+    assert lost.requester.helpers() == ("h1", "h2")
+    lost.recruit = False
+    net.drones["h1"].observes = False
+    t_blind = net.clock.t
+    net.run(net.cfg.obs_timeout_s + 3.0 * net.cfg.retry_s + 2.0)
+    assert lost.requester.helpers() == ("h2",)  # h1 released, nobody in its place
+    assert net.drones["h1"].responder.requester_id is None
+    assert net.drones["h3"].responder.requester_id is None
+    assert not any(e[1] == "assigned" and e[0] > t_blind for e in lost.requester.events)
+    lost.recruit = True  # e.g. it climbed again: recruiting resumes
+    net.run(10.0, until=lambda: lost.requester.helpers() == ("h2", "h3"))
+    assert lost.requester.helpers() == ("h2", "h3")
+
+
 def test_a_helper_that_never_observes_is_replaced_after_its_eta_and_grace():
     net = Net(HelpConfig(obs_grace_s=2.0))
     lost = net.add("lost", 0, 0)

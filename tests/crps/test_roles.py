@@ -227,3 +227,26 @@ def test_a_stale_fix_near_home_is_not_sure_enough_to_land_on_at_height():
         assert role.step(0.5, lost, _estimate(1.0, 0.0, 0.5, ("relative:h1",)), [], 12.0)[0].mode is Mode.RETURN_HOME
         decision, _ = role.step(3.0, lost, _estimate(1.0, 0.0, fix_t, ("velocity",), 1.0), [], 12.0)
         assert decision.mode is expected
+
+
+@pytest.mark.parametrize("alt_rel_m, recruits", [(2.0, False), (12.0, True)])
+def test_a_drone_landing_low_takes_no_new_helpers(alt_rel_m, recruits):
+    """Landing at or below ``land_below_m`` (the autopilot's height), the requester assigns no helper in place of
+    one it lost and repeats no request: a loaded SITL run stood landed and armed while helpers came and went.
+    Landing high (the hold time-out) it still recruits: helpers can position it there."""
+    from skyfix.crps.help_protocol import Offer
+    from skyfix.crps.messages import HelpAssign
+    from skyfix.fusion.health import HealthState, SourceHealth
+
+    ok, lost = SourceHealth(HealthState.OK, "", 0.0), SourceHealth(HealthState.LOST, "no fix", 1.0)
+    role = RequesterRole("a", at(0.0, 0.0, 0.0), RequesterConfig(hold_timeout_s=5.0))
+    role.step(0.0, ok, _estimate(1.0, 0.0, 0.0, ("gnss",)), [])
+    role.step(1.0, lost, _estimate(1.0, 0.0, 1.0, ("velocity",)), [], alt_rel_m)
+    decision, _ = role.step(7.0, lost, _estimate(1.0, 0.0, 7.0, ("velocity",), 5.0), [], alt_rel_m)
+    assert decision.mode is Mode.LAND
+    lat, lon, alt = at(30.0, 0.0, 10.0)
+    role.protocol.offers["h3"] = Offer("h3", 7.0, lat, lon, alt, 0.9, 30.0, 6.0)
+    _, out = role.step(7.2, lost, _estimate(1.0, 0.0, 7.2, ("velocity",), 5.0), ["h3"], alt_rel_m)
+    assert any(isinstance(b, HelpAssign) for b in out) is recruits
+    assert role.protocol.helpers() == ()  # not acknowledged either way
+    assert ("h3" in role.protocol.assigned) is recruits

@@ -10,6 +10,7 @@ disarmed. The node is the real one, fed 10 s of GNSS and velocity, then nothing 
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 from helpnet import ALT0, LAT0, LON0
 
 from skyfix.crps.node import Node
@@ -59,3 +60,24 @@ def test_held_fix_keeps_its_position_and_while_landing_its_accuracy():
     assert sigma_hold[2] > sigma_hold[0] + 1.0  # holding: the stated accuracy grows with the fused covariance
     assert sigma_land[0] == sigma_land[1] == sigma_land[2]  # landing: the accuracy it was held with
     assert sigma_land[0] == sigma_hold[0]
+
+
+@pytest.mark.parametrize("mode, stays", [("hold", False), ("land", True)])
+def test_a_sighting_after_the_hold_releases_a_holding_fix_but_not_a_landing_one(mode, stays):
+    """A camera observation after the hold began: a holding drone flies on the measured fix again; a landing
+    one stays on the position it was held on down to the ground (a late or new sighting near touchdown would
+    move it; a loaded SITL run stood landed and armed while helpers came and went)."""
+    node, t_last = _node()
+    clock = [t_last + INJECT_HOLD_AFTER_S + 1.0]
+    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None,
+                              help=SimpleNamespace(mode=SimpleNamespace(value=mode)),
+                              cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
+    held = Service._injected_fix(service)
+    assert service._held_fix is not None
+    clock[0] += 1.0
+    node.observed_s["a"] = clock[0]  # a helper's camera saw it (the fix itself is unchanged here)
+    Service._injected_fix(service)
+    assert (service._held_fix is not None) is stays
+    if stays:
+        assert (service._held_fix.lat_deg, service._held_fix.lon_deg) == (held.lat_deg, held.lon_deg)
+    node.close()
