@@ -40,7 +40,7 @@ def _injected(mode: str) -> list:
     """The fixes injected 3, 6 and 9 s after the last input, the drone in help mode ``mode``."""
     node, t_last = _node()
     clock = [t_last]
-    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None,
+    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _measured=None, _seen_s=-np.inf,
                               help=SimpleNamespace(mode=SimpleNamespace(value=mode)),
                               cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
     out = []
@@ -69,7 +69,7 @@ def test_a_sighting_after_the_hold_releases_a_holding_fix_but_not_a_landing_one(
     move it; a loaded SITL run stood landed and armed while helpers came and went)."""
     node, t_last = _node()
     clock = [t_last + INJECT_HOLD_AFTER_S + 1.0]
-    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None,
+    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _measured=None, _seen_s=-np.inf,
                               help=SimpleNamespace(mode=SimpleNamespace(value=mode)),
                               cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
     held = Service._injected_fix(service)
@@ -80,4 +80,48 @@ def test_a_sighting_after_the_hold_releases_a_holding_fix_but_not_a_landing_one(
     assert (service._held_fix is not None) is stays
     if stays:
         assert (service._held_fix.lat_deg, service._held_fix.lon_deg) == (held.lat_deg, held.lon_deg)
+    node.close()
+
+
+@pytest.mark.parametrize("mode", ["land", "hold"])
+def test_a_landing_holds_the_fix_of_its_last_sighting_not_the_one_dead_reckoned_since(mode):
+    """Landing, the hold starts from the fix injected right after the newest camera observation (its position
+    and accuracy), not from the fix dead-reckoned for INJECT_HOLD_AFTER_S since; holding, from the present fix
+    (its accuracy grows anyway)."""
+    node, t_last = _node()
+    clock = [t_last]
+    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _measured=None, _seen_s=-np.inf,
+                              help=SimpleNamespace(mode=SimpleNamespace(value=mode)),
+                              cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
+    node.observed_s["a"] = t_last - 0.5  # a helper's frame 0.5 s before: fused now
+    seen = Service._injected_fix(service)
+    clock[0] = t_last + INJECT_HOLD_AFTER_S + 1.0
+    present = node.fix("a", clock[0])
+    held = Service._injected_fix(service)
+    assert present.sigma_horizontal_m > seen.sigma_horizontal_m + 0.5  # dead reckoning since grew it
+    expected = seen if mode == "land" else present
+    assert held.sigma_horizontal_m == pytest.approx(expected.sigma_horizontal_m, rel=1e-9)
+    assert (held.lat_deg, held.lon_deg) == (expected.lat_deg, expected.lon_deg)
+    node.close()
+
+
+@pytest.mark.parametrize("late_s", [0.2, INJECT_HOLD_AFTER_S + 1.5])
+def test_a_late_observation_still_ends_a_hold_when_it_arrives(late_s):
+    """An observation arriving ``late_s`` after its exposure ends the hold whatever its age: the fix now rests on
+    it. (Judged on the exposure time, a loaded machine's 2-4 s late observations never ended it, the helpers'
+    fixes were never injected and SITL flew away on the held position.)"""
+    node, t_last = _node()
+    clock = [t_last + INJECT_HOLD_AFTER_S + 1.0]
+    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _measured=None, _seen_s=-np.inf,
+                              help=SimpleNamespace(mode=SimpleNamespace(value="hold")),
+                              cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
+    Service._injected_fix(service)
+    assert service._held_fix is not None  # nothing measured it yet: held
+    clock[0] += 1.0
+    node.observed_s["a"] = clock[0] - late_s  # arrives now, exposed late_s ago
+    Service._injected_fix(service)
+    assert service._held_fix is None
+    clock[0] += INJECT_HOLD_AFTER_S + 0.5  # and nothing since: held again
+    Service._injected_fix(service)
+    assert service._held_fix is not None
     node.close()
