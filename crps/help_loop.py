@@ -141,6 +141,12 @@ class HelpLoop:
         """True while this drone flies without its own GNSS (hold, fault response, landing)."""
         return self.mode is not Mode.NORMAL
 
+    @property
+    def landing_low(self) -> bool:
+        """Landing at or below the requester's ``land_below_m`` by the autopilot's height above home."""
+        return self.mode is Mode.LAND and self._height is not None \
+            and self._height[0] <= self.agent.requester.cfg.land_below_m
+
     def close(self) -> None:
         if self.eye is not None:
             self.eye.close()

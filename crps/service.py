@@ -21,6 +21,7 @@ import math
 import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,8 +45,8 @@ LINK_LOST_RECONNECT_S = 0.5  # link marked lost (no heartbeat for 2 s) this long
 BACKOFF_S = (0.5, 5.0)      # first and longest wait between MAVLink connection attempts
 GNSS_OK_FIX_TYPE = 3
 INJECT_HOLD_AFTER_S = 2.0  # no camera observation of a holding or landing drone arrived this long: its injected position held
-# a landing's hold starts from the fix that rested on the newest camera observation when that is this recent
-# (older: the present fix): not from the position dead-reckoned since on the autopilot's echo of it
+# a landing's hold starts from the tightest fix that rested on a camera observation this recently (none: the
+# present fix): not from the position dead-reckoned since on the autopilot's echo of it
 MEASURED_FIX_MAX_AGE_S = 5.0
 
 
@@ -117,7 +118,7 @@ class Service:
         self._inject_notes: list[dict] = []  # what that job did, logged by the main loop
         self._dropped_logged: dict[str, int] = {}
         self._held_fix: GeoFix | None = None  # the injected position held while nothing measures this drone
-        self._measured: tuple[float, GeoFix] | None = None  # (clock s, the fix right after the newest observation)
+        self._sightings: deque[tuple[float, GeoFix]] = deque()  # (clock s, the fix right after an observation)
         self._seen_s = -math.inf  # the newest camera observation of this drone fused, when last looked (clock s)
         _warm_up()
         try:
@@ -349,29 +350,34 @@ class Service:
         4.6 m in the last 4 m of a landing below the helpers' horizon). While it lands, the held fix also keeps the
         accuracy it was held with: the position is a constant the drone is to come down on, and a stated accuracy
         growing by the second let ArduPilot's EKF walk ~0.5 m/s on the ground (SITL: 4.6 m in 20 s, the position
-        controller tilting 20-27 deg), so it never reached LAND_COMPLETE and never disarmed. A landing holds the fix
-        that rested on the newest observation (MEASURED_FIX_MAX_AGE_S), with its accuracy: the present one had been
-        dead-reckoned on the echo since (SITL, loaded machine: 5 m off and a 6.9 m sigma two seconds after the
-        helpers lost it at 1.7 m, and the copter stood on the ground armed)."""
+        controller tilting 20-27 deg), so it never reached LAND_COMPLETE and never disarmed. A landing holds the
+        tightest fix of its sightings of the last MEASURED_FIX_MAX_AGE_S, with its accuracy, and one low (the help
+        loop's ``landing_low``) holds at once: the helpers' fixes of a drone near the ground are the worst it gets,
+        and the present fix had been dead-reckoned on the echo (SITL, loaded machine: 5 m off and a 6.9 m sigma two
+        seconds after the helpers lost it at 1.7 m; chasing late fixes in its last 2 m, 4.5 m of drift; both times
+        the copter stood on the ground armed)."""
         now = self.clock()
         fix = self.node.fix(self.cfg.drone_id, now, time_stamp_s=time.time())
         mode = self.help.mode.value if self.help is not None else None
         seen_s = self.node.observed_s.get(self.cfg.drone_id, -math.inf)
         if seen_s > self._seen_s and fix is not None:  # a new observation fused since: this fix rests on it
-            self._seen_s, self._measured = seen_s, (now, fix)
+            self._seen_s = seen_s
+            self._sightings.append((now, fix))
+        while self._sightings and now - self._sightings[0][0] > MEASURED_FIX_MAX_AGE_S:
+            self._sightings.popleft()
         # quiet: none *arrived* for INJECT_HOLD_AFTER_S. Not judged on its exposure time: under load every
         # observation is more than that old when it arrives, and the held position was injected for good while the
         # helpers' fixes went unused (SITL, loaded machine: 2-4 s late, the copter flew away at 30 deg of tilt)
-        quiet = self._measured is None or now - self._measured[0] > INJECT_HOLD_AFTER_S
+        quiet = not self._sightings or now - self._sightings[-1][0] > INJECT_HOLD_AFTER_S
         # a landing once held stays held to the ground: a late or new sighting near touchdown would move the
         # position it comes down on (a loaded SITL run stood landed and armed while helpers came and went)
-        quiet = quiet or (mode == "land" and self._held_fix is not None)
+        quiet = quiet or (mode == "land" and (self._held_fix is not None or bool(getattr(self.help, "landing_low", 0))))
         if fix is None or self.cfg.injected_velocity_sigma_mps is None or mode not in ("hold", "land") or not quiet:
             self._held_fix = None
             return fix
         if self._held_fix is None:
-            recent = self._measured is not None and now - self._measured[0] <= MEASURED_FIX_MAX_AGE_S
-            self._held_fix = self._measured[1] if mode == "land" and recent else fix
+            tightest = min((f for _, f in self._sightings), key=lambda f: f.sigma_horizontal_m, default=None)
+            self._held_fix = tightest if mode == "land" and tightest is not None else fix
         held = self._held_fix
         cov = held.cov_enu_m2 if mode == "land" else fix.cov_enu_m2
         return GeoFix(held.lat_deg, held.lon_deg, held.alt_m, cov, fix.time_s, fix.source_id)

@@ -7,6 +7,7 @@ accuracy growing on the ground let the EKF walk ~0.5 m/s, so the copter never re
 disarmed. The node is the real one, fed 10 s of GNSS and velocity, then nothing (the receiver lost, no observation).
 """
 
+from collections import deque
 from types import SimpleNamespace
 
 import numpy as np
@@ -40,7 +41,7 @@ def _injected(mode: str) -> list:
     """The fixes injected 3, 6 and 9 s after the last input, the drone in help mode ``mode``."""
     node, t_last = _node()
     clock = [t_last]
-    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _measured=None, _seen_s=-np.inf,
+    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _sightings=deque(), _seen_s=-np.inf,
                               help=SimpleNamespace(mode=SimpleNamespace(value=mode)),
                               cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
     out = []
@@ -69,7 +70,7 @@ def test_a_sighting_after_the_hold_releases_a_holding_fix_but_not_a_landing_one(
     move it; a loaded SITL run stood landed and armed while helpers came and went)."""
     node, t_last = _node()
     clock = [t_last + INJECT_HOLD_AFTER_S + 1.0]
-    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _measured=None, _seen_s=-np.inf,
+    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _sightings=deque(), _seen_s=-np.inf,
                               help=SimpleNamespace(mode=SimpleNamespace(value=mode)),
                               cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
     held = Service._injected_fix(service)
@@ -90,7 +91,7 @@ def test_a_landing_holds_the_fix_of_its_last_sighting_not_the_one_dead_reckoned_
     (its accuracy grows anyway)."""
     node, t_last = _node()
     clock = [t_last]
-    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _measured=None, _seen_s=-np.inf,
+    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _sightings=deque(), _seen_s=-np.inf,
                               help=SimpleNamespace(mode=SimpleNamespace(value=mode)),
                               cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
     node.observed_s["a"] = t_last - 0.5  # a helper's frame 0.5 s before: fused now
@@ -112,7 +113,7 @@ def test_a_late_observation_still_ends_a_hold_when_it_arrives(late_s):
     fixes were never injected and SITL flew away on the held position.)"""
     node, t_last = _node()
     clock = [t_last + INJECT_HOLD_AFTER_S + 1.0]
-    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _measured=None, _seen_s=-np.inf,
+    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _sightings=deque(), _seen_s=-np.inf,
                               help=SimpleNamespace(mode=SimpleNamespace(value="hold")),
                               cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
     Service._injected_fix(service)
@@ -124,4 +125,29 @@ def test_a_late_observation_still_ends_a_hold_when_it_arrives(late_s):
     clock[0] += INJECT_HOLD_AFTER_S + 0.5  # and nothing since: held again
     Service._injected_fix(service)
     assert service._held_fix is not None
+    node.close()
+
+
+def test_a_low_landing_holds_at_once_on_its_tightest_recent_sighting():
+    """Landing low (the help loop's ``landing_low``), the injected fix is held at once, sightings still coming or
+    not, on the tightest fix of the sightings of the last MEASURED_FIX_MAX_AGE_S (the helpers' fixes of a drone
+    near the ground are the worst it gets)."""
+    node, t_last = _node()
+    clock = [t_last]
+    help_loop = SimpleNamespace(mode=SimpleNamespace(value="land"), landing_low=False)
+    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _sightings=deque(), _seen_s=-np.inf,
+                              help=help_loop, cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
+    node.observed_s["a"] = t_last
+    tight = Service._injected_fix(service)
+    clock[0] = t_last + 1.5
+    node.observed_s["a"] = t_last + 1.4
+    loose = Service._injected_fix(service)
+    assert loose.sigma_horizontal_m > tight.sigma_horizontal_m  # dead reckoning since the last input
+    assert service._held_fix is None  # high: the sightings are flown on
+    help_loop.landing_low = True
+    clock[0] = t_last + 1.7
+    node.observed_s["a"] = t_last + 1.6  # and they keep coming
+    held = Service._injected_fix(service)
+    assert held.sigma_horizontal_m == pytest.approx(tight.sigma_horizontal_m, rel=1e-9)
+    assert (held.lat_deg, held.lon_deg) == (tight.lat_deg, tight.lon_deg)
     node.close()
