@@ -225,7 +225,8 @@ def test_signed_but_non_physical_help_messages_are_dropped_and_the_protocol_goes
     assert "buggy" not in h1.responder.requests and h1.responder.requester_id == "lost"
 
 
-def test_a_helper_whose_observations_stop_is_replaced():
+def _three_observing_helpers():
+    """A requester that asked for help 8 s ago, three helpers that observe it while helping (h1, h2 chosen)."""
     net = Net()
     lost = net.add("lost", 0, 0)
     for h, (e, n) in {"h1": (30, 0), "h2": (0, 40), "h3": (-60, -60)}.items():
@@ -233,6 +234,11 @@ def test_a_helper_whose_observations_stop_is_replaced():
     net.run(1.0)
     lost.send(lost.requester.start(net.clock.t, last_fix(net.clock)))
     net.run(8.0)
+    return net, lost
+
+
+def test_a_helper_whose_observations_stop_is_replaced():
+    net, lost = _three_observing_helpers()
     assert lost.requester.helpers() == ("h1", "h2")  # observing: kept well past ETA + grace
     net.drones["h1"].observes = False  # the target left h1's view; h1 is still flying and talking
     t_blind = net.clock.t
@@ -247,13 +253,7 @@ def test_a_helper_whose_observations_stop_is_replaced():
 def test_a_requester_that_stops_recruiting_releases_a_blind_helper_and_takes_no_other():
     """Landing under its helpers' horizon: a helper that loses it is released as before, but no spare is
     assigned and no request repeated (the spare would lose it against the ground too)."""
-    net = Net()
-    lost = net.add("lost", 0, 0)
-    for h, (e, n) in {"h1": (30, 0), "h2": (0, 40), "h3": (-60, -60)}.items():
-        net.add(h, e, n).observes = True
-    net.run(1.0)
-    lost.send(lost.requester.start(net.clock.t, last_fix(net.clock)))
-    net.run(8.0)
+    net, lost = _three_observing_helpers()
     assert lost.requester.helpers() == ("h1", "h2")
     lost.recruit = False
     net.drones["h1"].observes = False
