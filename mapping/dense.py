@@ -18,7 +18,13 @@ depth = f * baseline / disparity. Photos are matched at ``scale`` of their size,
 disparity pixel is 1/scale photo pixels. SGBM gives no disparity in the left canvas's
 first numDisparities columns, the start of the overlap; that band is matched again with
 the pair mirrored (the right photo, flipped, as the left one) and its cells join the
-surface only through the fill rules (:mod:`skyfix.mapping.dense_fill`).
+surface only through the fill rules (:mod:`skyfix.mapping.dense_fill`). Pixels SGBM leaves
+empty on the contrast-equalised photos are matched again, same matcher and filters, on
+locally normalised ones (:func:`local_contrast`: each neighbourhood less its mean, over its
+standard deviation, as normalised cross-correlation sees it): on Seneca the dark, faint soil
+of the photos' lower-texture fields matches there (first pass 93.0 -> 94.8 % of the stereo
+area in a DSM-only re-run; on the rendered survey 88.3 % either way, its first-pass cells
+0.060 m off the truth median, 0.17 m for 90 %).
 
 Every pair's points land in the DSM grid in metres; each cell takes the median height of
 all its points from all pairs, spikes (a cell more than ``spike_m`` off its 5x5 median)
@@ -160,6 +166,27 @@ def _pair_canvas(left: View, right: View, images: dict, sparse_enu: np.ndarray, 
     return (lens_l, lens_r), r_rect, f, baseline, x0, y0, min_disp, num_disp, size
 
 
+def _disparity(sgbm, pair: list[np.ndarray], num_disp: int, inside: np.ndarray) -> np.ndarray:
+    """(H, W) float32 disparity (canvas pixels) of a rectified ``pair`` by ``sgbm``, NaN where
+    none: outside the left canvas's photo (``inside`` False) and at the ends of the searched
+    range (matches that wanted to go further)."""
+    disparity = sgbm.compute(pair[0], pair[1]).astype(np.float32) / 16.0
+    disparity[~((disparity > 0.5) & (disparity < num_disp - 1.5) & inside)] = np.nan
+    return disparity
+
+
+def local_contrast(lightness: np.ndarray, window_px: int) -> np.ndarray:
+    """(H, W) uint8: ``lightness`` (uint8) less its mean over ``window_px`` x ``window_px`` and
+    divided by its standard deviation there (plus 2 grey levels, about the photos' noise,
+    so that flat ground is not amplified to pure noise), 40 grey levels per standard deviation
+    around 128: every neighbourhood gets the same contrast, as normalised cross-correlation
+    sees it, so faint texture on dark or bright ground matches like textured ground."""
+    x = lightness.astype(np.float32)
+    mean = cv2.blur(x, (window_px, window_px))
+    std = np.sqrt(np.maximum(cv2.blur(x * x, (window_px, window_px)) - mean * mean, 0.0))
+    return np.clip((x - mean) / (std + 2.0) * 40.0 + 128.0, 0, 255).astype(np.uint8)
+
+
 def _match_pair(left: View, right: View, images: dict, sparse_enu: np.ndarray, scale: float,
                 block_px: int, band: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
     """(N, 3) ENU points and (N, 3) BGR colours from one pair, or None. ``images``: name ->
@@ -183,9 +210,15 @@ def _match_pair(left: View, right: View, images: dict, sparse_enu: np.ndarray, s
                                  mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
     seen = cv2.cvtColor(rectified[0], cv2.COLOR_BGR2GRAY) > 0
     pair = [cv2.flip(rectified[1], 1), cv2.flip(rectified[0], 1)] if band else rectified
-    disparity = sgbm.compute(pair[0], pair[1]).astype(np.float32) / 16.0
-    # Disparities at the ends of the searched range are matches that wanted to go further: dropped.
-    valid = (disparity > 0.5) & (disparity < num_disp - 1.5) & (cv2.cvtColor(pair[0], cv2.COLOR_BGR2GRAY) > 0)
+    inside = cv2.cvtColor(pair[0], cv2.COLOR_BGR2GRAY) > 0
+    disparity = _disparity(sgbm, pair, num_disp, inside)
+    if len(images[left.name]) > 2:  # pixels left empty: matched again on the locally normalised photos
+        normed = [cv2.remap(images[v.name][2], *m, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+                  for v, m in ((left, maps[0]), (right, maps[1]))]
+        normed = [cv2.flip(normed[1], 1), cv2.flip(normed[0], 1)] if band else normed
+        empty = np.isnan(disparity)
+        disparity[empty] = _disparity(sgbm, normed, num_disp, inside)[empty]
+    valid = np.isfinite(disparity)
     rows, cols = np.nonzero(valid)
     d = disparity[rows, cols]
     cols_px = cols.astype(np.float32)
@@ -285,9 +318,11 @@ def _drop_offset_pairs(matched: dict[int, tuple], views: list[View], pairs: list
 
 def _match_pairs(views: list[View], pairs: list[tuple[int, int]], image_paths: dict[str, str],
                  sparse_enu: np.ndarray, to_utm: EnuToUtm, grid: Grid, scale: float, block_px: int,
-                 neighbours: int, max_points: int, seed: int, band_of: set[int] | None = None) -> dict[int, tuple]:
+                 neighbours: int, max_points: int, seed: int, band_of: set[int] | None = None,
+                 local_norm_px: int = 0) -> dict[int, tuple]:
     """Pair index -> (cells, heights_m, cloud xyz UTM, cloud rgb) of every pair SGBM matched at
-    ``scale``; with ``band_of``, only those pairs' bands (:func:`_match_pair`)."""
+    ``scale``; with ``band_of``, only those pairs' bands (:func:`_match_pair`); with
+    ``local_norm_px``, pixels left empty matched again on :func:`local_contrast` photos."""
     images: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     # Contrast equalised per 8x8 tile (CLAHE on lightness) before matching: the faint crop
     # rows of bright fields then pass SGBM's uniqueness test (Seneca: 86 -> 90 % of the
@@ -304,8 +339,12 @@ def _match_pairs(views: list[View], pairs: list[tuple[int, int]], image_paths: d
                     raise DataError(f"{image_paths[view.name]}: photo could not be decoded for dense matching")
                 image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
                 lab = cv2.cvtColor(image, cv2.COLOR_BGR2LAB)
-                lab[..., 0] = clahe.apply(lab[..., 0])
+                lightness = lab[..., 0].copy()
+                lab[..., 0] = clahe.apply(lightness)
                 images[view.name] = (cv2.cvtColor(lab, cv2.COLOR_LAB2BGR), image)
+                if local_norm_px:
+                    lab[..., 0] = local_contrast(lightness, local_norm_px)
+                    images[view.name] += (cv2.cvtColor(lab, cv2.COLOR_LAB2BGR),)
         # Left camera: the one the baseline leaves from, so disparities are positive.
         found = _match_pair(views[i], views[j], images, sparse_enu, scale, block_px, band_of is not None)
         if found is None:
@@ -348,7 +387,7 @@ def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.nda
               min_new_share: float | None = 0.005,
               spike_m: float = 2.0, max_pair_offset_m: float = 1.0, fill_max_range_m: float = 1.0,
               max_points: int = 5_000_000, seed: int = 0, band_fill: bool = True,
-              fill_rounds: int = 100) -> tuple[Dsm, DenseCloud]:
+              fill_rounds: int = 100, local_norm_px: int = 15) -> tuple[Dsm, DenseCloud]:
     """Dense DSM on ``grid`` (every matched pixel) and the dense point cloud (at most
     ``max_points``: each pair contributes an equal seeded subset) from ``views`` (ENU poses) and the sparse points'
     ENU positions ``sparse_enu`` (disparity ranges). A pair whose heights sit more than
@@ -376,7 +415,8 @@ def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.nda
     fields whose crop rows are too fine for SGBM's window at ``scale`` match at a smaller
     size (Seneca: 89.9 -> 91.0 % of the stereo area). ``DenseCloud.fills`` states each
     pass's cells and its agreement with the finer passes. The point cloud holds the first
-    pass's points only."""
+    pass's points only. ``local_norm_px``: every pass matches the pixels SGBM left empty again
+    on :func:`local_contrast` photos of that window (0: off)."""
     if len(views) < 2:
         raise DataError("a dense surface needs at least two registered photos")
     depth_m = float(np.median([_centre(v)[2] for v in views]) - np.median(sparse_enu[:, 2]))
@@ -385,7 +425,7 @@ def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.nda
     if not pairs:
         raise DataError("no pair of registered photos overlaps with a usable baseline for dense matching")
     matched = _match_pairs(views, pairs, image_paths, sparse_enu, to_utm, grid, scale, block_px, neighbours,
-                           max_points, seed)
+                           max_points, seed, local_norm_px=local_norm_px)
     if not matched:
         raise DataError("dense matching found no point in any pair")
     dropped = _drop_offset_pairs(matched, views, pairs, max_pair_offset_m)
@@ -393,7 +433,7 @@ def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.nda
     fills: list[dict] = []
     if band_fill:
         band = _match_pairs(views, pairs, image_paths, sparse_enu, to_utm, grid, scale, block_px, neighbours, 0,
-                            seed, band_of=set(matched))
+                            seed, band_of=set(matched), local_norm_px=local_norm_px)
         if band:
             filler = without_spikes(_fused_surface(band, grid, min_pairs), spike_m)
             surface, stats = fill_from(surface, filler, spike_m, fill_max_range_m, fill_rounds)
@@ -401,7 +441,7 @@ def dense_dsm(views: list[View], image_paths: dict[str, str], sparse_enu: np.nda
             log.info("dense band at %g: %d cells added", scale, stats["cells_added"])
     for coarse_scale in fill_scales:
         coarse = _match_pairs(views, pairs, image_paths, sparse_enu, to_utm, grid, coarse_scale, block_px,
-                              neighbours, 0, seed)
+                              neighbours, 0, seed, local_norm_px=local_norm_px)
         if coarse:
             dropped += [f"{d} at {coarse_scale:g}" for d in _drop_offset_pairs(coarse, views, pairs, max_pair_offset_m)]
         if not coarse:

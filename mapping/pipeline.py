@@ -74,6 +74,7 @@ class PipelineConfig:
     dense_scale: float = 0.5              # photos are matched at this fraction of their size
     dense_fill_scales: tuple[float, ...] = (0.4, 0.3, 0.2)  # coarser SGBM passes: only cells finer ones left empty
     dense_cell_px: float = 2.0            # DSM cell = this many matched pixels on the ground
+    dense_local_norm_px: int = 15         # pixels SGBM leaves empty matched again on locally normalised photos (0: off)
     max_dense_points: int = 5_000_000     # points.ply holds at most this many dense points (stated in the report)
     dsm_fill_max_m2: float = 4.0          # dense DSM: enclosed holes up to this area interpolated, in dsm_interpolated.tif
     threads: int = -1                     # -1: all cores
@@ -91,6 +92,8 @@ class PipelineConfig:
             raise InputError(f"dense_scale must be in [0.05, 1], got {self.dense_scale!r}")
         if any(not 0.05 <= f < self.dense_scale for f in self.dense_fill_scales):
             raise InputError(f"dense_fill_scales must each be in [0.05, dense_scale), got {self.dense_fill_scales!r}")
+        if not (self.dense_local_norm_px == 0 or 3 <= self.dense_local_norm_px <= 255):
+            raise InputError(f"dense_local_norm_px must be 0 (off) or in [3, 255] px, got {self.dense_local_norm_px!r}")
         for name in ("resolution_cm", "dsm_resolution_m", "max_ortho_mpx"):
             v = getattr(self, name)
             if v is not None:

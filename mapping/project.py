@@ -26,8 +26,8 @@ _STAGE_OPTIONS = {
                 "spatial_neighbours", "seed"),
     "mapping": ("calibration", "refine_focal", "gps_sigma_m", "seed", "threads", "ba_threads"),
     "georef": ("georef_max_error_m", "two_view_max_offset_m", "two_view_max_vertical_m", "estimate_gps_lag"),
-    "dsm": ("dense", "dense_scale", "dense_fill_scales", "dense_cell_px", "dsm_resolution_m", "max_dense_points",
-            "dsm_fill_max_m2", "seed"),
+    "dsm": ("dense", "dense_scale", "dense_fill_scales", "dense_local_norm_px", "dense_cell_px", "dsm_resolution_m",
+            "max_dense_points", "dsm_fill_max_m2", "seed"),
     "ortho": ("resolution_cm", "max_ortho_mpx", "ortho_seams", "seam_band_px", "blend_power"),
     "export": (),
 }

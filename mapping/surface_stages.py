@@ -110,6 +110,7 @@ def _dense(config: PipelineConfig, project: Project, state: RunState, sparse_enu
     grid = Grid.covering(epsg, *utm[:, :2].min(axis=0), *utm[:, :2].max(axis=0), res_m)
     dsm, cloud = dense_dsm(views, {v.name: v.path for v in views}, sparse_enu, to_utm, grid,
                            scale=config.dense_scale, fill_scales=tuple(config.dense_fill_scales),
+                           local_norm_px=config.dense_local_norm_px,
                            max_points=config.max_dense_points, seed=config.seed)
     np.savez(project.dense_points, xyz=cloud.xyz_utm_m, rgb=cloud.rgb)
     ground_up_m = float(np.median(sparse_enu[:, 2]))

@@ -112,6 +112,8 @@ def test_config_errors():
         PipelineConfig("a", "b", force=("nope",))
     with pytest.raises(InputError):
         PipelineConfig("a", "b", resolution_cm=-2.0)
+    with pytest.raises(InputError, match="dense_local_norm_px"):
+        PipelineConfig("a", "b", dense_local_norm_px=2)
 
 
 def test_map_command_help(capsys):
@@ -233,3 +235,24 @@ def test_stereo_area_of_the_tried_pairs():
     assert abs(rows.max() - rows.min() + 1 - 63.2 / 0.25) <= 3
     assert not (tried & ~area).any()
     assert abs(tried.sum() / area.sum() - 59.3 / 84.3) < 0.01
+
+
+def test_local_contrast_ignores_the_photos_gain_and_offset():
+    """The locally normalised photo dense matching falls back on (mapping.dense.local_contrast)
+    is the same for one ground seen darker or brighter (exposure: gain and offset), gives faint
+    texture the contrast of strong texture, and does not amplify flat ground past its noise."""
+    from skyfix.mapping.dense import local_contrast
+
+    rng = np.random.default_rng(0)
+    texture = rng.normal(0.0, 1.0, (120, 160))
+    faint = local_contrast(np.clip(30 + 3 * texture, 0, 255).astype(np.uint8), 15).astype(float)
+    bright = local_contrast(np.clip(90 + 12 * texture, 0, 255).astype(np.uint8), 15).astype(float)
+    inner = (slice(10, -10), slice(10, -10))
+    # 3 and 12 grey levels of texture (1/4 the contrast) come out with nearly one contrast:
+    # std / (std + 2 grey levels) each, 0.70 between them (10 %: rounding to grey levels).
+    expected = (3 / (3 + 2)) / (12 / (12 + 2))
+    assert faint[inner].std() / bright[inner].std() == pytest.approx(expected, rel=0.1)
+    # Rounding to grey levels aside, the faint and bright photos match pixel by pixel.
+    assert np.corrcoef(faint[inner].ravel(), bright[inner].ravel())[0, 1] > 0.9
+    flat = local_contrast(np.clip(60 + rng.normal(0.0, 0.5, (120, 160)), 0, 255).astype(np.uint8), 15)
+    assert flat[inner].astype(float).std() < 0.5 * faint[inner].std()  # noise stays below texture
