@@ -45,8 +45,8 @@ LINK_LOST_RECONNECT_S = 0.5  # link marked lost (no heartbeat for 2 s) this long
 BACKOFF_S = (0.5, 5.0)      # first and longest wait between MAVLink connection attempts
 GNSS_OK_FIX_TYPE = 3
 INJECT_HOLD_AFTER_S = 2.0  # no camera observation of a holding or landing drone arrived this long: its injected position held
-# a landing's hold starts from the tightest fix that rested on a camera observation this recently (none: the
-# present fix): not from the position dead-reckoned since on the autopilot's echo of it
+# a landing's hold takes the accuracy of the tightest fix that rested on a camera observation this recently (none:
+# the present fix's): not the accuracy dead-reckoning on the autopilot's echo has grown since
 MEASURED_FIX_MAX_AGE_S = 5.0
 
 
@@ -350,12 +350,11 @@ class Service:
         4.6 m in the last 4 m of a landing below the helpers' horizon). While it lands, the held fix also keeps the
         accuracy it was held with: the position is a constant the drone is to come down on, and a stated accuracy
         growing by the second let ArduPilot's EKF walk ~0.5 m/s on the ground (SITL: 4.6 m in 20 s, the position
-        controller tilting 20-27 deg), so it never reached LAND_COMPLETE and never disarmed. A landing holds the
-        tightest fix of its sightings of the last MEASURED_FIX_MAX_AGE_S, with its accuracy, and one low (the help
-        loop's ``landing_low``) holds at once: the helpers' fixes of a drone near the ground are the worst it gets,
-        and the present fix had been dead-reckoned on the echo (SITL, loaded machine: 5 m off and a 6.9 m sigma two
-        seconds after the helpers lost it at 1.7 m; chasing late fixes in its last 2 m, 4.5 m of drift; both times
-        the copter stood on the ground armed)."""
+        controller tilting 20-27 deg), so it never reached LAND_COMPLETE and never disarmed. A landing holds where
+        it is with the accuracy of its tightest recent sighting (:meth:`_landing_hold`), and one low (the help
+        loop's ``landing_low``) holds at once: the helpers' fixes of a drone near the ground are the worst it gets
+        (SITL, loaded machine: chasing late fixes in its last 2 m, 4.5 m of drift; held on a 6.9 m sigma, its
+        EKF walked; both times the copter stood on the ground armed)."""
         now = self.clock()
         fix = self.node.fix(self.cfg.drone_id, now, time_stamp_s=time.time())
         mode = self.help.mode.value if self.help is not None else None
@@ -376,11 +375,20 @@ class Service:
             self._held_fix = None
             return fix
         if self._held_fix is None:
-            tightest = min((f for _, f in self._sightings), key=lambda f: f.sigma_horizontal_m, default=None)
-            self._held_fix = tightest if mode == "land" and tightest is not None else fix
+            self._held_fix = self._landing_hold(fix) if mode == "land" else fix
         held = self._held_fix
         cov = held.cov_enu_m2 if mode == "land" else fix.cov_enu_m2
         return GeoFix(held.lat_deg, held.lon_deg, held.alt_m, cov, fix.time_s, fix.source_id)
+
+    def _landing_hold(self, fix: GeoFix) -> GeoFix:
+        """The fix a landing holds: where ``fix`` is now (a jump at touchdown winds up ArduPilot's position
+        controller: SITL on the ground asked 20-22 deg of tilt, the throttle mix never reached its minimum and
+        it never disarmed), with the accuracy of its tightest sighting of the last MEASURED_FIX_MAX_AGE_S where
+        that is tighter (a growing one let its EKF walk on the ground)."""
+        tightest = min((f for _, f in self._sightings), key=lambda f: f.sigma_horizontal_m, default=None)
+        if tightest is None or tightest.sigma_horizontal_m >= fix.sigma_horizontal_m:
+            return fix
+        return GeoFix(fix.lat_deg, fix.lon_deg, fix.alt_m, tightest.cov_enu_m2, fix.time_s, fix.source_id)
 
     def _stop_injection(self, vehicle, injector) -> None:
         injector.stop()

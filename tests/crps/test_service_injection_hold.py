@@ -37,13 +37,22 @@ def _node() -> tuple[Node, float]:
     return node, node.latest["a"].time_s
 
 
+def _service(node: Node, clock: list[float], mode_or_help) -> SimpleNamespace:
+    """The parts of a Service that ``_injected_fix`` reads, on ``node`` and the clock ``clock[0]``; ``mode_or_help``
+    a help mode ("hold", "land") or a help loop stand-in with ``mode`` and ``landing_low``."""
+    help_loop = SimpleNamespace(mode=SimpleNamespace(value=mode_or_help)) if isinstance(mode_or_help, str) \
+        else mode_or_help
+    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _sightings=deque(), _seen_s=-np.inf,
+                              help=help_loop, cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
+    service._landing_hold = lambda fix: Service._landing_hold(service, fix)
+    return service
+
+
 def _injected(mode: str) -> list:
     """The fixes injected 3, 6 and 9 s after the last input, the drone in help mode ``mode``."""
     node, t_last = _node()
     clock = [t_last]
-    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _sightings=deque(), _seen_s=-np.inf,
-                              help=SimpleNamespace(mode=SimpleNamespace(value=mode)),
-                              cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
+    service = _service(node, clock, mode)
     out = []
     for dt in (INJECT_HOLD_AFTER_S + 1.0, 6.0, 9.0):
         clock[0] = t_last + dt
@@ -70,9 +79,7 @@ def test_a_sighting_after_the_hold_releases_a_holding_fix_but_not_a_landing_one(
     move it; a loaded SITL run stood landed and armed while helpers came and went)."""
     node, t_last = _node()
     clock = [t_last + INJECT_HOLD_AFTER_S + 1.0]
-    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _sightings=deque(), _seen_s=-np.inf,
-                              help=SimpleNamespace(mode=SimpleNamespace(value=mode)),
-                              cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
+    service = _service(node, clock, mode)
     held = Service._injected_fix(service)
     assert service._held_fix is not None
     clock[0] += 1.0
@@ -85,24 +92,22 @@ def test_a_sighting_after_the_hold_releases_a_holding_fix_but_not_a_landing_one(
 
 
 @pytest.mark.parametrize("mode", ["land", "hold"])
-def test_a_landing_holds_the_fix_of_its_last_sighting_not_the_one_dead_reckoned_since(mode):
-    """Landing, the hold starts from the fix injected right after the newest camera observation (its position
-    and accuracy), not from the fix dead-reckoned for INJECT_HOLD_AFTER_S since; holding, from the present fix
-    (its accuracy grows anyway)."""
+def test_a_landing_holds_where_it_is_with_the_accuracy_of_its_last_sighting(mode):
+    """Landing, the hold keeps the present position (no jump at touchdown) with the accuracy of the fix injected
+    right after the newest camera observation, not the one dead-reckoning grew for INJECT_HOLD_AFTER_S since;
+    holding, the present fix as it is (its accuracy grows anyway)."""
     node, t_last = _node()
     clock = [t_last]
-    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _sightings=deque(), _seen_s=-np.inf,
-                              help=SimpleNamespace(mode=SimpleNamespace(value=mode)),
-                              cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
+    service = _service(node, clock, mode)
     node.observed_s["a"] = t_last - 0.5  # a helper's frame 0.5 s before: fused now
     seen = Service._injected_fix(service)
     clock[0] = t_last + INJECT_HOLD_AFTER_S + 1.0
     present = node.fix("a", clock[0])
     held = Service._injected_fix(service)
     assert present.sigma_horizontal_m > seen.sigma_horizontal_m + 0.5  # dead reckoning since grew it
+    assert (held.lat_deg, held.lon_deg) == (present.lat_deg, present.lon_deg)
     expected = seen if mode == "land" else present
     assert held.sigma_horizontal_m == pytest.approx(expected.sigma_horizontal_m, rel=1e-9)
-    assert (held.lat_deg, held.lon_deg) == (expected.lat_deg, expected.lon_deg)
     node.close()
 
 
@@ -113,9 +118,7 @@ def test_a_late_observation_still_ends_a_hold_when_it_arrives(late_s):
     fixes were never injected and SITL flew away on the held position.)"""
     node, t_last = _node()
     clock = [t_last + INJECT_HOLD_AFTER_S + 1.0]
-    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _sightings=deque(), _seen_s=-np.inf,
-                              help=SimpleNamespace(mode=SimpleNamespace(value="hold")),
-                              cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
+    service = _service(node, clock, "hold")
     Service._injected_fix(service)
     assert service._held_fix is not None  # nothing measured it yet: held
     clock[0] += 1.0
@@ -128,15 +131,14 @@ def test_a_late_observation_still_ends_a_hold_when_it_arrives(late_s):
     node.close()
 
 
-def test_a_low_landing_holds_at_once_on_its_tightest_recent_sighting():
+def test_a_low_landing_holds_at_once_with_its_tightest_recent_accuracy():
     """Landing low (the help loop's ``landing_low``), the injected fix is held at once, sightings still coming or
-    not, on the tightest fix of the sightings of the last MEASURED_FIX_MAX_AGE_S (the helpers' fixes of a drone
-    near the ground are the worst it gets)."""
+    not: where it is, with the accuracy of the tightest of its sightings of the last MEASURED_FIX_MAX_AGE_S (the
+    helpers' fixes of a drone near the ground are the worst it gets)."""
     node, t_last = _node()
     clock = [t_last]
     help_loop = SimpleNamespace(mode=SimpleNamespace(value="land"), landing_low=False)
-    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _sightings=deque(), _seen_s=-np.inf,
-                              help=help_loop, cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
+    service = _service(node, clock, help_loop)
     node.observed_s["a"] = t_last
     tight = Service._injected_fix(service)
     clock[0] = t_last + 1.5
@@ -147,7 +149,8 @@ def test_a_low_landing_holds_at_once_on_its_tightest_recent_sighting():
     help_loop.landing_low = True
     clock[0] = t_last + 1.7
     node.observed_s["a"] = t_last + 1.6  # and they keep coming
+    present = node.fix("a", clock[0])
     held = Service._injected_fix(service)
     assert held.sigma_horizontal_m == pytest.approx(tight.sigma_horizontal_m, rel=1e-9)
-    assert (held.lat_deg, held.lon_deg) == (tight.lat_deg, tight.lon_deg)
+    assert (held.lat_deg, held.lon_deg) == (present.lat_deg, present.lon_deg)
     node.close()
