@@ -21,10 +21,11 @@ import math
 import queue
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from skyfix.crps import messages as M
 from skyfix.crps.node import ECHO_VELOCITY_SIGMA_MPS, Node
@@ -45,9 +46,7 @@ LINK_LOST_RECONNECT_S = 0.5  # link marked lost (no heartbeat for 2 s) this long
 BACKOFF_S = (0.5, 5.0)      # first and longest wait between MAVLink connection attempts
 GNSS_OK_FIX_TYPE = 3
 INJECT_HOLD_AFTER_S = 2.0  # no camera observation of a holding or landing drone arrived this long: its injected position held
-# a landing's hold takes the accuracy of the tightest fix that rested on a camera observation this recently (none:
-# the present fix's): not the accuracy dead-reckoning on the autopilot's echo has grown since
-MEASURED_FIX_MAX_AGE_S = 5.0
+LANDING_HOLD_SIGMA_M = 0.3  # horizontal accuracy stated to the autopilot for a landing's held position (a control value)
 
 
 
@@ -118,8 +117,8 @@ class Service:
         self._inject_notes: list[dict] = []  # what that job did, logged by the main loop
         self._dropped_logged: dict[str, int] = {}
         self._held_fix: GeoFix | None = None  # the injected position held while nothing measures this drone
-        self._sightings: deque[tuple[float, GeoFix]] = deque()  # (clock s, the fix right after an observation)
-        self._seen_s = -math.inf  # the newest camera observation of this drone fused, when last looked (clock s)
+        self._seen_s = -math.inf  # exposure time of the newest camera observation of this drone fused (clock s)
+        self._seen_at_s = -math.inf  # when it was found fused (clock s)
         _warm_up()
         try:
             self.transport = transport or ZenohTransport(config.swarm, config.drone_id, config.endpoints)
@@ -351,23 +350,20 @@ class Service:
         accuracy it was held with: the position is a constant the drone is to come down on, and a stated accuracy
         growing by the second let ArduPilot's EKF walk ~0.5 m/s on the ground (SITL: 4.6 m in 20 s, the position
         controller tilting 20-27 deg), so it never reached LAND_COMPLETE and never disarmed. A landing holds where
-        it is with the accuracy of its tightest recent sighting (:meth:`_landing_hold`), and one low (the help
-        loop's ``landing_low``) holds at once: the helpers' fixes of a drone near the ground are the worst it gets
-        (SITL, loaded machine: chasing late fixes in its last 2 m, 4.5 m of drift; held on a 6.9 m sigma, its
-        EKF walked; both times the copter stood on the ground armed)."""
+        it is with a fixed accuracy (:meth:`_landing_hold`), and one low (the help loop's ``landing_low``) holds at
+        once: the helpers' fixes of a drone near the ground are the worst it gets (SITL, loaded machine: chasing
+        late fixes in its last 2 m, 4.5 m of drift; held on a 6.9 m sigma, its EKF walked; both times the copter
+        stood on the ground armed)."""
         now = self.clock()
         fix = self.node.fix(self.cfg.drone_id, now, time_stamp_s=time.time())
         mode = self.help.mode.value if self.help is not None else None
         seen_s = self.node.observed_s.get(self.cfg.drone_id, -math.inf)
-        if seen_s > self._seen_s and fix is not None:  # a new observation fused since: this fix rests on it
-            self._seen_s = seen_s
-            self._sightings.append((now, fix))
-        while self._sightings and now - self._sightings[0][0] > MEASURED_FIX_MAX_AGE_S:
-            self._sightings.popleft()
+        if seen_s > self._seen_s:  # a new observation fused since the last look
+            self._seen_s, self._seen_at_s = seen_s, now
         # quiet: none *arrived* for INJECT_HOLD_AFTER_S. Not judged on its exposure time: under load every
         # observation is more than that old when it arrives, and the held position was injected for good while the
         # helpers' fixes went unused (SITL, loaded machine: 2-4 s late, the copter flew away at 30 deg of tilt)
-        quiet = not self._sightings or now - self._sightings[-1][0] > INJECT_HOLD_AFTER_S
+        quiet = now - self._seen_at_s > INJECT_HOLD_AFTER_S
         # a landing once held stays held to the ground: a late or new sighting near touchdown would move the
         # position it comes down on (a loaded SITL run stood landed and armed while helpers came and went)
         quiet = quiet or (mode == "land" and (self._held_fix is not None or bool(getattr(self.help, "landing_low", 0))))
@@ -383,12 +379,15 @@ class Service:
     def _landing_hold(self, fix: GeoFix) -> GeoFix:
         """The fix a landing holds: where ``fix`` is now (a jump at touchdown winds up ArduPilot's position
         controller: SITL on the ground asked 20-22 deg of tilt, the throttle mix never reached its minimum and
-        it never disarmed), with the accuracy of its tightest sighting of the last MEASURED_FIX_MAX_AGE_S where
-        that is tighter (a growing one let its EKF walk on the ground)."""
-        tightest = min((f for _, f in self._sightings), key=lambda f: f.sigma_horizontal_m, default=None)
-        if tightest is None or tightest.sigma_horizontal_m >= fix.sigma_horizontal_m:
-            return fix
-        return GeoFix(fix.lat_deg, fix.lon_deg, fix.alt_m, tightest.cov_enu_m2, fix.time_s, fix.source_id)
+        it never disarmed), stated LANDING_HOLD_SIGMA_M accurate horizontally. That accuracy is a control value,
+        not an estimate (the fused fix keeps its own covariance): the held position is a constant the drone comes
+        down on and then does not leave, and on a looser one (the tightest recent sighting's, 1.5-2 m) SITL's EKF
+        walked 2.3 m on the ground after the touchdown's jolt, the controller asked 29 deg and it stayed armed."""
+        cov = np.array(fix.cov_enu_m2, dtype=float)
+        cov[:2, :] = 0.0
+        cov[:, :2] = 0.0
+        cov[0, 0] = cov[1, 1] = LANDING_HOLD_SIGMA_M ** 2
+        return GeoFix(fix.lat_deg, fix.lon_deg, fix.alt_m, cov, fix.time_s, fix.source_id)
 
     def _stop_injection(self, vehicle, injector) -> None:
         injector.stop()

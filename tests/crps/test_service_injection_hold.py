@@ -7,7 +7,6 @@ accuracy growing on the ground let the EKF walk ~0.5 m/s, so the copter never re
 disarmed. The node is the real one, fed 10 s of GNSS and velocity, then nothing (the receiver lost, no observation).
 """
 
-from collections import deque
 from types import SimpleNamespace
 
 import numpy as np
@@ -15,7 +14,7 @@ import pytest
 from helpnet import ALT0, LAT0, LON0
 
 from skyfix.crps.node import Node
-from skyfix.crps.service import INJECT_HOLD_AFTER_S, Service, fusion_config
+from skyfix.crps.service import INJECT_HOLD_AFTER_S, LANDING_HOLD_SIGMA_M, Service, fusion_config
 from skyfix.drivers.state import GnssFix, VehicleState, Velocity
 from skyfix.geo import LocalFrame
 
@@ -42,7 +41,7 @@ def _service(node: Node, clock: list[float], mode_or_help) -> SimpleNamespace:
     a help mode ("hold", "land") or a help loop stand-in with ``mode`` and ``landing_low``."""
     help_loop = SimpleNamespace(mode=SimpleNamespace(value=mode_or_help)) if isinstance(mode_or_help, str) \
         else mode_or_help
-    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _sightings=deque(), _seen_s=-np.inf,
+    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _seen_s=-np.inf, _seen_at_s=-np.inf,
                               help=help_loop, cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
     service._landing_hold = lambda fix: Service._landing_hold(service, fix)
     return service
@@ -68,8 +67,8 @@ def test_held_fix_keeps_its_position_and_while_landing_its_accuracy():
     sigma_hold = [f.sigma_horizontal_m for f in holding]
     sigma_land = [f.sigma_horizontal_m for f in landing]
     assert sigma_hold[2] > sigma_hold[0] + 1.0  # holding: the stated accuracy grows with the fused covariance
-    assert sigma_land[0] == sigma_land[1] == sigma_land[2]  # landing: the accuracy it was held with
-    assert sigma_land[0] == sigma_hold[0]
+    assert sigma_land[0] == sigma_land[1] == sigma_land[2] == pytest.approx(LANDING_HOLD_SIGMA_M)  # a constant
+    assert (landing[0].lat_deg, landing[0].lon_deg) == (holding[0].lat_deg, holding[0].lon_deg)  # held where it was
 
 
 @pytest.mark.parametrize("mode, stays", [("hold", False), ("land", True)])
@@ -88,26 +87,6 @@ def test_a_sighting_after_the_hold_releases_a_holding_fix_but_not_a_landing_one(
     assert (service._held_fix is not None) is stays
     if stays:
         assert (service._held_fix.lat_deg, service._held_fix.lon_deg) == (held.lat_deg, held.lon_deg)
-    node.close()
-
-
-@pytest.mark.parametrize("mode", ["land", "hold"])
-def test_a_landing_holds_where_it_is_with_the_accuracy_of_its_last_sighting(mode):
-    """Landing, the hold keeps the present position (no jump at touchdown) with the accuracy of the fix injected
-    right after the newest camera observation, not the one dead-reckoning grew for INJECT_HOLD_AFTER_S since;
-    holding, the present fix as it is (its accuracy grows anyway)."""
-    node, t_last = _node()
-    clock = [t_last]
-    service = _service(node, clock, mode)
-    node.observed_s["a"] = t_last - 0.5  # a helper's frame 0.5 s before: fused now
-    seen = Service._injected_fix(service)
-    clock[0] = t_last + INJECT_HOLD_AFTER_S + 1.0
-    present = node.fix("a", clock[0])
-    held = Service._injected_fix(service)
-    assert present.sigma_horizontal_m > seen.sigma_horizontal_m + 0.5  # dead reckoning since grew it
-    assert (held.lat_deg, held.lon_deg) == (present.lat_deg, present.lon_deg)
-    expected = seen if mode == "land" else present
-    assert held.sigma_horizontal_m == pytest.approx(expected.sigma_horizontal_m, rel=1e-9)
     node.close()
 
 
@@ -131,26 +110,25 @@ def test_a_late_observation_still_ends_a_hold_when_it_arrives(late_s):
     node.close()
 
 
-def test_a_low_landing_holds_at_once_with_its_tightest_recent_accuracy():
+def test_a_low_landing_holds_at_once_where_it_is():
     """Landing low (the help loop's ``landing_low``), the injected fix is held at once, sightings still coming or
-    not: where it is, with the accuracy of the tightest of its sightings of the last MEASURED_FIX_MAX_AGE_S (the
-    helpers' fixes of a drone near the ground are the worst it gets)."""
+    not: where the fix is then (no jump at touchdown), stated LANDING_HOLD_SIGMA_M accurate (a control value)."""
     node, t_last = _node()
     clock = [t_last]
     help_loop = SimpleNamespace(mode=SimpleNamespace(value="land"), landing_low=False)
     service = _service(node, clock, help_loop)
     node.observed_s["a"] = t_last
-    tight = Service._injected_fix(service)
-    clock[0] = t_last + 1.5
-    node.observed_s["a"] = t_last + 1.4
-    loose = Service._injected_fix(service)
-    assert loose.sigma_horizontal_m > tight.sigma_horizontal_m  # dead reckoning since the last input
-    assert service._held_fix is None  # high: the sightings are flown on
+    flown = Service._injected_fix(service)
+    assert service._held_fix is None and flown.sigma_horizontal_m > LANDING_HOLD_SIGMA_M  # high: flown on
     help_loop.landing_low = True
-    clock[0] = t_last + 1.7
-    node.observed_s["a"] = t_last + 1.6  # and they keep coming
+    clock[0] = t_last + 0.2
+    node.observed_s["a"] = t_last + 0.1  # sightings keep coming
     present = node.fix("a", clock[0])
     held = Service._injected_fix(service)
-    assert held.sigma_horizontal_m == pytest.approx(tight.sigma_horizontal_m, rel=1e-9)
+    assert held.sigma_horizontal_m == pytest.approx(LANDING_HOLD_SIGMA_M)
+    assert held.sigma_up_m == pytest.approx(present.sigma_up_m)
     assert (held.lat_deg, held.lon_deg) == (present.lat_deg, present.lon_deg)
+    clock[0] = t_last + 3.0
+    node.observed_s["a"] = t_last + 2.9
+    assert Service._injected_fix(service).lat_deg == held.lat_deg  # held to the ground
     node.close()
