@@ -45,6 +45,15 @@ from skyfix.types import GeoFix
 log = logging.getLogger(__name__)
 
 RECOMMAND_WALL_S = 2.0  # a wanted mode not reported by the autopilot after this long is commanded again
+# the companion's backstop for a landing the autopilot's own land detector misses: in its LAND mode, at most this high
+# above home and still (vertical speed under LANDED_STILL_MPS) for LANDED_FOR_S of the clock, the drone is on the
+# ground (LAND descends until it touches), and it is disarmed (forced: ArduPilot refuses a GCS disarm before its
+# land detector fires). Loaded SITL runs touched down, the position controller wound up to 20-30 deg of demanded
+# tilt against the ground after the touchdown's jolt, the throttle mix never reached its minimum and the copter
+# stood armed for 45 s
+LANDED_MAX_ALT_M = 1.0
+LANDED_STILL_MPS = 0.1
+LANDED_FOR_S = 5.0
 GOTO_MOVE_M = 2.0       # a vantage point that moved this far is sent again
 _ROLE_OF = {Mode.HOLD: "hold", Mode.RETURN_HOME: "rtl", Mode.LAND: "land", Mode.CONTINUE: "mission"}
 
@@ -134,6 +143,7 @@ class HelpLoop:
         self._resume: str | None = None
         self._goto_enu: np.ndarray | None = None
         self._height: tuple[float, float] | None = None  # (autopilot's height above home m, own fused ENU up m)
+        self._still_since_s: float | None = None  # landing: on the ground and still since (clock s)
         self._actions = _Actions(f"skyfix-help-{self.id}")
 
     @property
@@ -180,6 +190,7 @@ class HelpLoop:
             self.agent.stand_down(now_s, "landed")  # on the ground: nothing left to help with
             self._event(now_s, "landed: helpers released")
         self._as_requester(now_s, decisions.requester)
+        self._landed_backstop(now_s, state)
         self._as_helper(now_s, decisions.helper)
         if self.eye is not None:
             for obs in self.eye.take():
@@ -216,6 +227,26 @@ class HelpLoop:
         if dec.helpers != self.helpers:
             self.helpers = dec.helpers
             self._event(now_s, f"helpers assigned: {', '.join(dec.helpers) or 'none'}")
+
+    def _landed_backstop(self, now_s: float, state) -> None:
+        """Disarm a drone its autopilot has landed in LAND but not disarmed (LANDED_* above)."""
+        vehicle = self.svc.vehicle
+        pos, vel = (state.position, state.velocity) if state is not None else (None, None)
+        landing = self.mode is Mode.LAND and state is not None and state.armed and state.mode == self._land_mode()
+        still = landing and pos is not None and vel is not None and math.isfinite(pos.alt_rel_m) \
+            and pos.alt_rel_m <= LANDED_MAX_ALT_M and abs(vel.down_mps) < LANDED_STILL_MPS
+        if not still:
+            self._still_since_s = None
+            return
+        if self._still_since_s is None:
+            self._still_since_s = now_s
+        if now_s - self._still_since_s >= LANDED_FOR_S and vehicle is not None and not self._actions.busy:
+            self._still_since_s = None  # once per LANDED_FOR_S: the next try waits as long
+            self._event(now_s, f"still on the ground {LANDED_FOR_S:.0f} s in {state.mode}, autopilot armed: disarming")
+            self._actions.submit("disarm", f"{self.id} disarm (landed)", lambda: vehicle.disarm(force=True))
+
+    def _land_mode(self) -> str:
+        return _requester_mode(self._flavour(), _ROLE_OF[Mode.LAND])
 
     def _as_helper(self, now_s: float, dec: HelperDecision) -> None:
         vehicle = self.svc.vehicle
