@@ -366,7 +366,7 @@ class Service:
         quiet = now - self._seen_at_s > INJECT_HOLD_AFTER_S
         # a landing once held stays held to the ground: a late or new sighting near touchdown would move the
         # position it comes down on (a loaded SITL run stood landed and armed while helpers came and went)
-        quiet = quiet or (mode == "land" and (self._held_fix is not None or bool(getattr(self.help, "landing_low", 0))))
+        quiet = quiet or (mode == "land" and (self._held_fix is not None or self.help.landing_low))
         if fix is None or self.cfg.injected_velocity_sigma_mps is None or mode not in ("hold", "land") or not quiet:
             self._held_fix = None
             return fix
@@ -381,8 +381,10 @@ class Service:
         controller: SITL on the ground asked 20-22 deg of tilt, the throttle mix never reached its minimum and
         it never disarmed), stated LANDING_HOLD_SIGMA_M accurate horizontally. That accuracy is a control value,
         not an estimate (the fused fix keeps its own covariance): the held position is a constant the drone comes
-        down on and then does not leave, and on a looser one (the tightest recent sighting's, 1.5-2 m) SITL's EKF
-        walked 2.3 m on the ground after the touchdown's jolt, the controller asked 29 deg and it stayed armed."""
+        down on and then does not leave. On a looser one (the tightest recent sighting's, 1.5-2 m) SITL's EKF slid
+        2.3 m on the ground after the touchdown's jolt; on this one 1.2 m, pulled back within 6 s, but the position
+        controller's demand can still wind up against the ground, and the help loop's landed backstop disarms what
+        the land detector then misses (:mod:`skyfix.crps.help_loop`)."""
         cov = np.array(fix.cov_enu_m2, dtype=float)
         cov[:2, :] = 0.0
         cov[:, :2] = 0.0

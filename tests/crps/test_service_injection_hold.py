@@ -39,8 +39,8 @@ def _node() -> tuple[Node, float]:
 def _service(node: Node, clock: list[float], mode_or_help) -> SimpleNamespace:
     """The parts of a Service that ``_injected_fix`` reads, on ``node`` and the clock ``clock[0]``; ``mode_or_help``
     a help mode ("hold", "land") or a help loop stand-in with ``mode`` and ``landing_low``."""
-    help_loop = SimpleNamespace(mode=SimpleNamespace(value=mode_or_help)) if isinstance(mode_or_help, str) \
-        else mode_or_help
+    help_loop = SimpleNamespace(mode=SimpleNamespace(value=mode_or_help), landing_low=False) \
+        if isinstance(mode_or_help, str) else mode_or_help
     service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _seen_s=-np.inf, _seen_at_s=-np.inf,
                               help=help_loop, cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
     service._landing_hold = lambda fix: Service._landing_hold(service, fix)
