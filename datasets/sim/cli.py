@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import argparse
 import math
+import signal
 import sys
+import threading
 import time
 
 from skyfix.errors import InputError
@@ -102,13 +104,19 @@ def _serve(sim, cfg, args: argparse.Namespace) -> int:
                   f"listens on {host}:{port} (or connect udpout:{host}:{port})\n")
     out.write("Ctrl-C to stop.\n")
     out.flush()
+    # SIGINT and SIGTERM stop it cleanly however it was started: a process launched in the background by a
+    # script inherits SIGINT ignored, and Python then raises no KeyboardInterrupt (a suite started that way
+    # waited 60 s on Ctrl-C here)
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
     sim.start()
     try:
         t_end = time.monotonic() + args.duration if args.duration else math.inf
-        while time.monotonic() < t_end:
-            time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
-    except KeyboardInterrupt:
-        out.write("stopping\n")
+        while not stop.wait(min(0.2, max(0.0, t_end - time.monotonic()))) and time.monotonic() < t_end:
+            pass
+        if stop.is_set():
+            out.write("stopping\n")
     finally:
         sim.stop()
     return 0

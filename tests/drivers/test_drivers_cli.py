@@ -46,6 +46,25 @@ def test_sim_cli_serves_and_stops_on_ctrl_c(udp_port, capsys):
             proc.wait()
 
 
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_sim_cli_stops_on_a_signal_even_when_started_with_sigint_ignored(udp_port, signum):
+    """A simulator a script starts in the background inherits SIGINT ignored (no KeyboardInterrupt in Python):
+    it still stops cleanly on SIGINT or SIGTERM (it waited 60 s and was killed before)."""
+    proc = subprocess.Popen([sys.executable, "-m", "skyfix", "-q", "sim", "--base-port", str(udp_port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        assert [proc.stdout.readline() for _ in range(3)][-1].startswith("Ctrl-C to stop")
+        time.sleep(0.3)
+        proc.send_signal(signum)
+        assert proc.wait(timeout=30) == 0
+        assert "stopping" in proc.stdout.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
 def test_sim_cli_rejects_bad_fault(capsys):
     assert main(["-q", "sim", "--gps-fault", "9:loss:0", "--duration", "0.1"]) == 2
     assert main(["-q", "sim", "--gps-fault", "1:meteor:0", "--duration", "0.1"]) == 2
