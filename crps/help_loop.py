@@ -153,9 +153,9 @@ class HelpLoop:
 
     @property
     def landing_low(self) -> bool:
-        """Landing at or below the requester's ``land_below_m`` by the autopilot's height above home."""
-        return self.mode is Mode.LAND and self._height is not None \
-            and self._height[0] <= self.agent.requester.cfg.land_below_m
+        """Landing at or below the requester's ``land_below_m`` (:meth:`RequesterRole.landing_low`)."""
+        return self.agent.requester.landing_low(self.svc.node.latest.get(self.id),
+                                                None if self._height is None else self._height[0])
 
     def close(self) -> None:
         if self.eye is not None:

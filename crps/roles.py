@@ -145,7 +145,7 @@ class RequesterRole:
                 out += self.protocol.cancel(now_s, "gnss back")
             else:
                 self._recover(now_s, fused, alt_rel_m)
-        out += self.protocol.tick(now_s, live_peers, recruit=not self._landing_low(fused, alt_rel_m))
+        out += self.protocol.tick(now_s, live_peers, recruit=not self.landing_low(fused, alt_rel_m))
         return Decision(self.mode, self.reason, self.since_s, self._setpoint(fused), self.protocol.helpers()), out
 
     def _recover(self, now_s: float, fused: Estimate | None, alt_rel_m: float | None) -> None:
@@ -163,9 +163,11 @@ class RequesterRole:
             else:
                 self._set(Mode.HOLD, "helper fix lost", now_s)
 
-    def _landing_low(self, fused: Estimate | None, alt_rel_m: float | None) -> bool:
-        """Landing at or below ``land_below_m``: helpers that lose it are not replaced (new ones would lose it
-        against the ground too, and a landed drone's fix moved by their late sightings kept SITL from disarming)."""
+    def landing_low(self, fused: Estimate | None, alt_rel_m: float | None) -> bool:
+        """Landing at or below ``land_below_m`` (``alt_rel_m`` the autopilot's height above home, else the fused
+        altitude less home's): helpers that lose it are not replaced (new ones would lose it against the ground
+        too, and a landed drone's fix moved by their late sightings kept SITL from disarming), and the service
+        holds its injected fix at once (:meth:`skyfix.crps.service.Service._injected_fix`)."""
         if self.mode is not Mode.LAND:
             return False
         height_m = self._height_m(fused, alt_rel_m)

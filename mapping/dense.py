@@ -190,7 +190,8 @@ def local_contrast(lightness: np.ndarray, window_px: int) -> np.ndarray:
 def _match_pair(left: View, right: View, images: dict, sparse_enu: np.ndarray, scale: float,
                 block_px: int, band: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
     """(N, 3) ENU points and (N, 3) BGR colours from one pair, or None. ``images``: name ->
-    (contrast-equalised photo to match, photo for the colours), both at ``scale``. ``band``:
+    (contrast-equalised photo to match, photo for the colours[, locally normalised photo for the
+    pixels the first leaves empty: :func:`local_contrast`, present when that is on]), all at ``scale``. ``band``:
     only the band SGBM leaves without a disparity (the left canvas's first numDisparities
     columns: the start of the overlap), matched with the pair mirrored (the right photo,
     flipped, as the left one: the band is then at the far end of its canvas)."""
@@ -323,7 +324,7 @@ def _match_pairs(views: list[View], pairs: list[tuple[int, int]], image_paths: d
     """Pair index -> (cells, heights_m, cloud xyz UTM, cloud rgb) of every pair SGBM matched at
     ``scale``; with ``band_of``, only those pairs' bands (:func:`_match_pair`); with
     ``local_norm_px``, pixels left empty matched again on :func:`local_contrast` photos."""
-    images: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    images: dict[str, tuple[np.ndarray, ...]] = {}  # see _match_pair
     # Contrast equalised per 8x8 tile (CLAHE on lightness) before matching: the faint crop
     # rows of bright fields then pass SGBM's uniqueness test (Seneca: 86 -> 90 % of the
     # stereo area measured, fewer pairs metres off the others).
