@@ -22,9 +22,9 @@ surface only through the fill rules (:mod:`skyfix.mapping.dense_fill`). Pixels S
 empty on the contrast-equalised photos are matched again, same matcher and filters, on
 locally normalised ones (:func:`local_contrast`: each neighbourhood less its mean, over its
 standard deviation, as normalised cross-correlation sees it): on Seneca the dark, faint soil
-of the photos' lower-texture fields matches there (first pass 93.0 -> 94.8 % of the stereo
-area in a DSM-only re-run; on the rendered survey 88.3 % either way, its first-pass cells
-0.060 m off the truth median, 0.17 m for 90 %).
+of the photos' lower-texture fields matches there (``benchmarks/mapping.py``: DSM measured
+94.2 -> 95.6 % of Seneca; ``benchmarks/mapping_dsm_truth.py``: the rendered survey's first
+pass 88.3 % either way, its cells 0.060 m off the truth median, 0.17 m for 90 %).
 
 Every pair's points land in the DSM grid in metres; each cell takes the median height of
 all its points from all pairs, spikes (a cell more than ``spike_m`` off its 5x5 median)
