@@ -26,7 +26,7 @@ def _map(args: argparse.Namespace) -> int:
         resolution_cm=args.resolution_cm, dsm_resolution_m=args.dsm_resolution_m,
         max_image_size_px=args.max_image_size, max_features=args.max_features,
         exhaustive_max_photos=args.exhaustive_max, max_agl_m=args.max_agl, threads=args.threads,
-        ba_threads=args.ba_threads,
+        sfm_threads=args.sfm_threads,
         refine_focal=args.refine_focal, gps_sigma_m=tuple(args.gps_sigma) if args.gps_sigma[0] > 0 else (),
         seed=args.seed, dense=not args.sparse_dsm, dense_scale=args.dense_scale,
         ortho_seams=not args.feathered_ortho, max_ortho_mpx=args.max_ortho_mpx,
@@ -103,11 +103,12 @@ def register_map(subparsers: argparse._SubParsersAction) -> None:
                    help="GPS standard deviations (horizontal, vertical, metres) of the pose priors in bundle "
                         "adjustment; 0 0 turns the priors off")
     p.add_argument("--seed", type=int, default=0, help="random seed (the same photos and seed give the same outputs)")
-    p.add_argument("--threads", type=int, default=-1, help="worker threads (-1: all cores)")
-    p.add_argument("--ba-threads", type=int, default=1,
-                   help="threads of structure from motion's bundle adjustments; 1 (the default) gives the same "
-                        "model every run, more (-1: all cores) are faster on large surveys but Ceres then sums in "
-                        "thread order and runs differ slightly")
+    p.add_argument("--threads", type=int, default=-1,
+                   help="worker threads of feature extraction, matching and dense matching (-1: all cores)")
+    p.add_argument("--sfm-threads", type=int, default=1,
+                   help="threads of structure from motion's registration and bundle adjustments; 1 (the default) "
+                        "gives the same model every run, more (-1: all cores) are faster on large surveys but "
+                        "COLMAP's threads then race (parallel RANSAC, thread-ordered sums) and runs differ")
     p.add_argument("--force", action="append", choices=STAGES, metavar="STAGE",
                    help=f"re-run this stage and the ones after it (repeat); one of {', '.join(STAGES)}")
     from skyfix.mapping.cli_args import flags_named

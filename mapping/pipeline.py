@@ -78,7 +78,7 @@ class PipelineConfig:
     max_dense_points: int = 5_000_000     # points.ply holds at most this many dense points (stated in the report)
     dsm_fill_max_m2: float = 4.0          # dense DSM: enclosed holes up to this area interpolated, in dsm_interpolated.tif
     threads: int = -1                     # -1: all cores
-    ba_threads: int = 1                   # bundle adjustment threads: 1 repeats exactly, more differ in the last digits
+    sfm_threads: int = 1                  # structure from motion's registration and adjustment threads: 1 repeats exactly
     force: tuple[str, ...] = ()           # stages to re-run even when their outputs exist
 
     def __post_init__(self) -> None:
@@ -94,6 +94,9 @@ class PipelineConfig:
             raise InputError(f"dense_fill_scales must each be in [0.05, dense_scale), got {self.dense_fill_scales!r}")
         if not (self.dense_local_norm_px == 0 or 3 <= self.dense_local_norm_px <= 255):
             raise InputError(f"dense_local_norm_px must be 0 (off) or in [3, 255] px, got {self.dense_local_norm_px!r}")
+        for name in ("threads", "sfm_threads"):  # COLMAP aborts the process on 0 or below -1
+            if getattr(self, name) == 0 or getattr(self, name) < -1:
+                raise InputError(f"{name} must be -1 (all cores) or at least 1, got {getattr(self, name)!r}")
         for name in ("resolution_cm", "dsm_resolution_m", "max_ortho_mpx"):
             v = getattr(self, name)
             if v is not None:

@@ -9,6 +9,7 @@ the functions.
 
 from __future__ import annotations
 
+import copy
 import logging
 import shutil
 from contextlib import contextmanager
@@ -234,8 +235,8 @@ def set_pose_priors(database: Path, photos: list[Photo], frame: LocalFrame, sigm
 
 
 def reconstruct(database: Path, image_dir: Path, out_dir: Path, *, calibrated: bool = False,
-                refine_focal: bool = True, pose_priors: bool = False, seed: int = 0, threads: int = -1,
-                ba_threads: int = 1) -> list:
+                refine_focal: bool = True, pose_priors: bool = False, seed: int = 0,
+                sfm_threads: int = 1) -> list:
     """Incremental mapping; every model (largest first) as a ``pycolmap.Reconstruction``.
 
     Registration thresholds are lowered from COLMAP's defaults (30 -> 15 absolute-pose
@@ -254,15 +255,15 @@ def reconstruct(database: Path, image_dir: Path, out_dir: Path, *, calibrated: b
     radial distortion is still refined. ``pose_priors``: the database's pose priors (see
     :func:`set_pose_priors`) enter every global bundle adjustment as position priors, so
     the model lies in their frame and cannot drift away from GPS. ``seed`` fixes
-    pycolmap's random sampling (RANSAC, initial pair, triangulation) and ``ba_threads`` = 1
-    keeps bundle adjustment in one summation order, so a run repeats exactly
+    pycolmap's random sampling (RANSAC, initial pair, triangulation) and ``sfm_threads`` = 1
+    keeps registration and bundle adjustment on one thread, so a run repeats exactly
     (:func:`~skyfix.mapping.sfm_refine.pipeline_options`).
     """
     pycolmap = _colmap_logging()
 
     out_dir.mkdir(parents=True, exist_ok=True)
     pycolmap.set_random_seed(int(seed))
-    options = sfm_refine.pipeline_options(seed, threads, ba_threads)
+    options = sfm_refine.pipeline_options(seed, sfm_threads)
     options.use_prior_position = bool(pose_priors)
     options.use_robust_loss_on_prior_position = True
     options.min_model_size = 3
@@ -275,16 +276,18 @@ def reconstruct(database: Path, image_dir: Path, out_dir: Path, *, calibrated: b
     if calibrated:
         options.ba_refine_extra_params = False
         options.mapper.abs_pose_refine_extra_params = False
-    models = pycolmap.incremental_mapping(database, image_dir, out_dir, options=options)
-    ordered = sorted(models.values(), key=lambda r: r.num_reg_images(), reverse=True)
+    models = list(pycolmap.incremental_mapping(database, image_dir, out_dir, options=options).values())
+    models += _leftover_models(database, image_dir, out_dir / "leftover", options, models)
+    ordered = sorted(models, key=lambda r: r.num_reg_images(), reverse=True)
     priors = sfm_refine.pose_priors(database) if pose_priors else []
     refine_focal, refine_extra = options.ba_refine_focal_length, options.ba_refine_extra_params
     ordered = sfm_refine.join_models(ordered, database, image_dir, out_dir / "join", priors,
-                                     refine_focal=refine_focal, refine_extra=refine_extra, seed=seed, threads=threads,
-                                     ba_threads=ba_threads)
+                                     refine_focal=refine_focal, refine_extra=refine_extra, seed=seed,
+                                     sfm_threads=sfm_threads)
     if not calibrated:
-        ordered = [sfm_refine.without_unsupported_distortion(rec, priors, ba_threads=ba_threads) for rec in ordered]
+        ordered = [sfm_refine.without_unsupported_distortion(rec, priors, sfm_threads=sfm_threads) for rec in ordered]
     shutil.rmtree(out_dir / "join", ignore_errors=True)
+    shutil.rmtree(out_dir / "leftover", ignore_errors=True)
     for path in out_dir.iterdir():  # pycolmap's own numbering; the joined, ordered models replace it
         if path.is_dir() and path.name.isdigit():
             shutil.rmtree(path)
@@ -293,6 +296,49 @@ def reconstruct(database: Path, image_dir: Path, out_dir: Path, *, calibrated: b
         path.mkdir(exist_ok=True)
         rec.write(str(path))
     return ordered
+
+
+def _leftover_models(database: Path, image_dir: Path, work_dir: Path, options, models: list,
+                     max_passes: int = 3) -> list:
+    """Further models over the photos ``models`` left out, each pass mapping only those
+    photos and, for each, the registered photo it shares the most verified matches with
+    (so that :func:`~skyfix.mapping.sfm_refine.join_models` can join the result). A model
+    is kept only where it places two or more of those photos: one photo beside registered
+    ones is left to its two-view model (:func:`pair_models`, checked against GPS on its
+    own). On the Seneca survey the pass put IMG_0460 into the main model 4.8 m above its
+    neighbour and tilted 8 degrees, its dense pair with IMG_0461 failed and the DSM
+    measured 91.6 % of the stereo area instead of 95.6 %.
+
+    COLMAP's mapper stops looking for another model once all but one photo have been
+    registered in some model, counting the photos of a model it then discards as too
+    small: on the six-photo Seneca line one mapper thread built 0477-0479, tried 0474+0475
+    (no third photo, discarded) and stopped with 0474-0476 unplaced."""
+    pycolmap = _colmap_logging()
+
+    db = pycolmap.Database.open(str(database))
+    try:
+        names = {im.name for im in db.read_all_images()}
+    finally:
+        db.close()
+    found: list = []
+    for attempt in range(max_passes):
+        registered = {im.name for rec in models + found for im in rec.images.values() if im.has_pose}
+        leftover = names - registered
+        if len(leftover) < max(2, options.min_model_size - 1):
+            break
+        partners = {old for old, _ in _best_partners(database, leftover, registered, 1).values()}
+        pass_options = copy.deepcopy(options)
+        pass_options.image_names = sorted(leftover | partners)
+        out = work_dir / str(attempt)
+        out.mkdir(parents=True, exist_ok=True)
+        new = [rec for rec in pycolmap.incremental_mapping(database, image_dir, out, options=pass_options).values()
+               if sum(im.has_pose and im.name in leftover for im in rec.images.values()) >= 2]
+        if not new:
+            break
+        log.info("mapping pass %d over %d photo(s) left out: %d more model(s)", attempt + 2,
+                 len(leftover), len(new))
+        found += new
+    return found
 
 
 @dataclass(frozen=True)
@@ -327,8 +373,8 @@ def _best_partners(database: Path, unregistered: set[str], registered: set[str],
 
 
 def pair_models(database: Path, image_dir: Path, out_dir: Path, unregistered: set[str], main_models: list, *,
-                min_inliers: int = 30, seed: int = 0, threads: int = -1,
-                ba_threads: int = 1) -> list[tuple[object, PairModel]]:
+                min_inliers: int = 30, seed: int = 0,
+                sfm_threads: int = 1) -> list[tuple[object, PairModel]]:
     """Two-photo models for photos incremental mapping could not place.
 
     A photo that overlaps only one registered photo has no 3-D points to be located
@@ -365,7 +411,7 @@ def pair_models(database: Path, image_dir: Path, out_dir: Path, unregistered: se
                 db.update_camera(camera)
         finally:
             db.close()
-        options = sfm_refine.pipeline_options(seed, threads, ba_threads)
+        options = sfm_refine.pipeline_options(seed, sfm_threads)
         options.image_names = [photo, partner]
         options.init_image_id1, options.init_image_id2 = ids[photo], ids[partner]
         options.min_model_size = 2

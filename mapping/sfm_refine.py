@@ -19,16 +19,17 @@ _RADIAL = {"SIMPLE_RADIAL": (3,), "RADIAL": (3, 4)}
 _NEVER = 2**31 - 1
 
 
-def pipeline_options(seed: int, threads: int, ba_threads: int = 1):
+def pipeline_options(seed: int, sfm_threads: int = 1):
     """pycolmap incremental-pipeline options with every random seed set to ``seed`` (the
-    triangulator's own is -1, i.e. unseeded, unless set), ``threads`` mapper threads and
-    bundle adjustments on one thread unless ``ba_threads`` is not 1.
+    triangulator's own is -1, i.e. unseeded, unless set) and ``sfm_threads`` threads for
+    the mapper's registration, initial-pair search and bundle adjustments.
 
-    Ceres sums a multi-threaded bundle adjustment in thread order, so two runs on the same
-    photos can differ in the last digits and then keep or drop a different point (COLMAP
-    issue 727); one thread repeats exactly. The mapper's own thread count is kept: it
-    changes what the mapper does (on the six-photo Seneca line one thread registered 3
-    photos where two threads registered all 6), not just the order of sums."""
+    One thread repeats exactly. With more, COLMAP 4 runs each photo's absolute-pose
+    LO-RANSAC on parallel threads that share one trial counter and one best model, and
+    the initial-pair search on a thread pool that shares the set of tried pairs: which
+    model wins depends on thread timing (CI saw 5005 and 4963 sparse points on the same
+    rendered survey). Ceres also sums a multi-threaded adjustment in thread order (COLMAP
+    issue 727), so runs then differ in the last digits and keep or drop a different point."""
     from skyfix.mapping.sfm import _colmap_logging
 
     pycolmap = _colmap_logging()
@@ -36,8 +37,8 @@ def pipeline_options(seed: int, threads: int, ba_threads: int = 1):
     options.random_seed = int(seed)
     options.mapper.random_seed = int(seed)
     options.triangulation.random_seed = int(seed)
-    options.num_threads = int(threads)
-    if ba_threads == 1:  # Ceres goes multi-threaded above this many residuals
+    options.num_threads = int(sfm_threads)
+    if sfm_threads == 1:  # Ceres goes multi-threaded above this many residuals
         options.ba_min_num_residuals_for_cpu_multi_threading = _NEVER
     return options
 
@@ -61,8 +62,8 @@ def prior_rms_m(rec, priors: list) -> float:
     return float(np.sqrt(np.mean(np.sum(np.square(d), axis=1)))) if d else float("nan")
 
 
-def adjust(rec, priors: list, *, refine_focal: bool, refine_extra: bool, ba_threads: int = 1) -> None:
-    """Global bundle adjustment of ``rec`` in place, on one thread unless ``ba_threads`` is
+def adjust(rec, priors: list, *, refine_focal: bool, refine_extra: bool, sfm_threads: int = 1) -> None:
+    """Global bundle adjustment of ``rec`` in place, on one thread unless ``sfm_threads`` is
     not 1 (one repeats exactly, see :func:`pipeline_options`); with ``priors`` (three or more of its photos)
     pycolmap's pose-prior adjuster, whose camera positions are held to them, else the plain
     one. The principal point is held."""
@@ -74,7 +75,7 @@ def adjust(rec, priors: list, *, refine_focal: bool, refine_extra: bool, ba_thre
     options.refine_focal_length = bool(refine_focal)
     options.refine_extra_params = bool(refine_extra)
     options.refine_principal_point = False
-    options.ceres.solver_options.num_threads = int(ba_threads)
+    options.ceres.solver_options.num_threads = int(sfm_threads)
     reg = set(rec.reg_image_ids())
     used = [p for p in priors if p.corr_data_id.id in reg]
     with _native_stderr_quiet():
@@ -90,7 +91,7 @@ def adjust(rec, priors: list, *, refine_focal: bool, refine_extra: bool, ba_thre
     rec.update_point_3d_errors()
 
 
-def without_unsupported_distortion(rec, priors: list, min_gain: float = 0.05, *, ba_threads: int = 1):
+def without_unsupported_distortion(rec, priors: list, min_gain: float = 0.05, *, sfm_threads: int = 1):
     """``rec``, or a copy re-adjusted with the radial distortion at 0 when the refined
     term lowers neither the mean reprojection error nor the cameras' RMS distance from
     their GPS priors by ``min_gain`` (5 %).
@@ -121,7 +122,7 @@ def without_unsupported_distortion(rec, priors: list, min_gain: float = 0.05, *,
             for i in _RADIAL[cam.model.name]:
                 params[i] = 0.0
             cam.params = params
-    adjust(trial, priors, refine_focal=False, refine_extra=False, ba_threads=ba_threads)
+    adjust(trial, priors, refine_focal=False, refine_extra=False, sfm_threads=sfm_threads)
     without_k, without_k_prior = trial.compute_mean_reprojection_error(), prior_rms_m(trial, priors)
     keep = with_k < (1.0 - min_gain) * without_k or with_k_prior < (1.0 - min_gain) * without_k_prior
     log.info("radial distortion %s: reprojection %.4f px with it, %.4f px without; camera RMS from the GPS "
@@ -151,7 +152,7 @@ def _alignment(rec, joined):
 
 def join_models(models: list, database: Path, image_dir: Path, work_dir: Path, priors: list, *,
                 refine_focal: bool, refine_extra: bool, max_reproj_error_px: float = 4.0, seed: int = 0,
-                threads: int = -1, ba_threads: int = 1) -> list:
+                sfm_threads: int = 1) -> list:
     """``models`` (largest first) with every model that shares registered photos with the
     first joined into it; the others are returned as they were.
 
@@ -189,13 +190,13 @@ def join_models(models: list, database: Path, image_dir: Path, work_dir: Path, p
     if not added:
         return models
     work_dir.mkdir(parents=True, exist_ok=True)
-    options = pipeline_options(seed, threads, ba_threads)
+    options = pipeline_options(seed, sfm_threads)
     options.triangulation.ignore_two_view_tracks = False
     for _ in range(2):  # again after the adjustment: tracks split by the first alignment's error merge
         with _native_stderr_quiet():
             joined = pycolmap.triangulate_points(joined, database, image_dir, work_dir, clear_points=True,
                                                  options=options, refine_intrinsics=False)
-        adjust(joined, priors, refine_focal=refine_focal, refine_extra=refine_extra, ba_threads=ba_threads)
+        adjust(joined, priors, refine_focal=refine_focal, refine_extra=refine_extra, sfm_threads=sfm_threads)
     dropped = pycolmap.ObservationManager(joined).filter_all_points3D(max_reproj_error_px, 1.5)
     joined.update_point_3d_errors()
     log.info("joined %d photo(s) of %d model(s) into model 0 (%s): %d points, reprojection %.3f px, "

@@ -53,8 +53,7 @@ def mapping_run(config: PipelineConfig, project: Project, state: RunState, repor
         priors = sfm.set_pose_priors(project.database, state.photos, frame, config.gps_sigma_m)
     models = sfm.reconstruct(project.database, state.image_dir, project.sparse,
                              calibrated=config.calibration is not None, refine_focal=config.refine_focal,
-                             pose_priors=priors >= 3, seed=config.seed, threads=config.threads,
-                             ba_threads=config.ba_threads)
+                             pose_priors=priors >= 3, seed=config.seed, sfm_threads=config.sfm_threads)
     if not models:
         raise DataError("structure from motion reconstructed nothing: the photos share too few features "
                         "(do they overlap? are they sharp?)")
@@ -62,8 +61,7 @@ def mapping_run(config: PipelineConfig, project: Project, state: RunState, repor
     unregistered = {p.name for p in state.photos if p.has_gps} - registered
     state.models = models
     state.pairs = sfm.pair_models(project.database, state.image_dir, project.pairs, unregistered,
-                                     models, seed=config.seed, threads=config.threads,
-                             ba_threads=config.ba_threads) if unregistered else []
+                                     models, seed=config.seed, sfm_threads=config.sfm_threads) if unregistered else []
     return {"models": len(models), "pairs": [dataclasses.asdict(pair) for _, pair in state.pairs]}
 
 

@@ -134,18 +134,34 @@ def test_empty_folder(tmp_path):
     assert "no JPEG" in saved["error"] and saved["photos_found"] == 0
 
 
-def test_photo_overlapping_one_neighbour_placed_by_two_view_model(run):
-    # IMG_0474 starts the line: it overlaps only IMG_0475 (no third photo sees that ground),
-    # so incremental mapping cannot locate it; its two-view model with IMG_0475 can.
+def test_photo_overlapping_one_neighbour_joins_the_line(run, photos_dir, tmp_path):
+    # IMG_0474 starts the line: it overlaps only IMG_0475 (no third photo sees that ground).
+    # COLMAP's mapper built 0477-0479, tried 0474+0475 alone (too small, discarded) and
+    # stopped; the pass over the photos it left out starts from that pair (an initial pair
+    # needs no third photo), grows through 0476-0477 and is joined: one model of all six.
+    from skyfix.geo import LocalFrame
+    from skyfix.mapping import sfm
+    from skyfix.mapping.georef import attach_pair
+    from skyfix.mapping.photos import load_photos
+
     report, out = run
-    assert "IMG_0474.jpg" in report.registered
-    [placed] = report.registered_two_view
-    assert (placed["photo"], placed["partner"]) == ("IMG_0474.jpg", "IMG_0475.jpg")
-    assert placed["inliers"] >= 30 and placed["offset_m"] <= 5.0
-    saved = json.loads((out / "report.json").read_text())
-    assert saved["registered_two_view"][0]["photo"] == "IMG_0474.jpg"
+    assert len(report.models) == 1 and report.models[0]["registered"] == len(GOOD) == 6
+    assert sorted(report.registered) == [p.name for p in GOOD] and report.registered_two_view == []
     names = [f["properties"]["photo"] for f in json.loads((out / "cameras.geojson").read_text())["features"]]
-    assert sorted(names) == sorted(set(names))  # each photo once, even where two models share it
+    assert sorted(names) == sorted(set(names))  # each photo once, even where two models shared it
+    # Left out of the model, it is still placed by its two-view model with IMG_0475 (the
+    # fallback for a photo no mapping pass places), within the 5 m GPS check.
+    frame = LocalFrame(*json.loads((out / "work" / "stages" / "georef.json").read_text())["frame"])
+    photos, _ = load_photos(photos_dir)
+    main, main_georef = _main_model(report, out)
+    without = sfm.load_models(out / "work" / "georef")[0]
+    without.deregister_frame(next(im.frame_id for im in without.images.values() if im.name == "IMG_0474.jpg"))
+    [(pair_rec, pair)] = sfm.pair_models(out / "work" / "database.db", photos_dir, tmp_path, {"IMG_0474.jpg"},
+                                         [without])
+    assert (pair.photo, pair.partner) == ("IMG_0474.jpg", "IMG_0475.jpg") and pair.inliers >= 30
+    found = attach_pair(pair_rec, main, main_georef, pair, photos, frame, 1)
+    assert found.georeferenced, found.reason
+    assert found.two_view["offset_m"] <= 5.0
 
 
 def _main_model(report, out):
@@ -176,7 +192,7 @@ def test_two_view_pose_agrees_with_bundle_adjusted_pose(run, photos_dir, tmp_pat
     without = sfm.load_models(out / "work" / "georef")[0]
     without.deregister_frame(next(im.frame_id for im in without.images.values() if im.name == "IMG_0479.jpg"))
     [(pair_rec, pair)] = sfm.pair_models(out / "work" / "database.db", photos_dir, tmp_path, {"IMG_0479.jpg"},
-                                         [without], threads=2)
+                                         [without])
     assert (pair.photo, pair.partner) == ("IMG_0479.jpg", "IMG_0478.jpg")
     found = attach_pair(pair_rec, main, main_georef, pair, photos, frame, 1)
     assert found.georeferenced, found.reason
@@ -213,7 +229,7 @@ def test_two_view_placement_inconsistent_with_gps_is_refused(run, photos_dir, tm
     without = sfm.load_models(out / "work" / "georef")[0]
     without.deregister_frame(next(im.frame_id for im in without.images.values() if im.name == "IMG_0479.jpg"))
     [(pair_rec, pair)] = sfm.pair_models(out / "work" / "database.db", photos_dir, tmp_path, {"IMG_0479.jpg"},
-                                         [without], threads=2)
+                                         [without])
     found = attach_pair(pair_rec, main, main_georef, pair, moved, frame, 1)
     assert not found.georeferenced
     assert "from its GPS" in found.reason and found.two_view["offset_m"] > 20.0
