@@ -134,16 +134,38 @@ def test_empty_folder(tmp_path):
     assert "no JPEG" in saved["error"] and saved["photos_found"] == 0
 
 
+def _frame_and_photos(out, photos_dir):
+    from skyfix.geo import LocalFrame
+    from skyfix.mapping.photos import load_photos
+
+    frame = LocalFrame(*json.loads((out / "work" / "stages" / "georef.json").read_text())["frame"])
+    return frame, load_photos(photos_dir)[0]
+
+
+def _placed_by_two_view(run, photos_dir, tmp_path, photo: str, photos=None):
+    """``photo`` taken out of the main model and placed again by its two-view model with
+    its best registered partner: (pair model, PairModel, attach_pair's verdict, main model)."""
+    from skyfix.mapping import sfm
+    from skyfix.mapping.georef import ModelGeoref, attach_pair
+
+    report, out = run
+    frame, own_photos = _frame_and_photos(out, photos_dir)
+    m = report.models[0]
+    inliers = sorted(set(m["residuals_enu_m"]) - set(m["outliers"]))
+    main = sfm.load_models(out / "work" / "georef")[0]
+    main_georef = ModelGeoref(0, m["registered"], True, inliers=inliers, residuals_enu_m=m["residuals_enu_m"])
+    without = sfm.load_models(out / "work" / "georef")[0]
+    without.deregister_frame(next(im.frame_id for im in without.images.values() if im.name == photo))
+    [(pair_rec, pair)] = sfm.pair_models(out / "work" / "database.db", photos_dir, tmp_path, {photo}, [without])
+    found = attach_pair(pair_rec, main, main_georef, pair, photos or own_photos, frame, 1)
+    return pair_rec, pair, found, main
+
+
 def test_photo_overlapping_one_neighbour_joins_the_line(run, photos_dir, tmp_path):
     # IMG_0474 starts the line: it overlaps only IMG_0475 (no third photo sees that ground).
     # COLMAP's mapper built 0477-0479, tried 0474+0475 alone (too small, discarded) and
     # stopped; the pass over the photos it left out starts from that pair (an initial pair
     # needs no third photo), grows through 0476-0477 and is joined: one model of all six.
-    from skyfix.geo import LocalFrame
-    from skyfix.mapping import sfm
-    from skyfix.mapping.georef import attach_pair
-    from skyfix.mapping.photos import load_photos
-
     report, out = run
     assert len(report.models) == 1 and report.models[0]["registered"] == len(GOOD) == 6
     assert sorted(report.registered) == [p.name for p in GOOD] and report.registered_two_view == []
@@ -151,27 +173,10 @@ def test_photo_overlapping_one_neighbour_joins_the_line(run, photos_dir, tmp_pat
     assert sorted(names) == sorted(set(names))  # each photo once, even where two models shared it
     # Left out of the model, it is still placed by its two-view model with IMG_0475 (the
     # fallback for a photo no mapping pass places), within the 5 m GPS check.
-    frame = LocalFrame(*json.loads((out / "work" / "stages" / "georef.json").read_text())["frame"])
-    photos, _ = load_photos(photos_dir)
-    main, main_georef = _main_model(report, out)
-    without = sfm.load_models(out / "work" / "georef")[0]
-    without.deregister_frame(next(im.frame_id for im in without.images.values() if im.name == "IMG_0474.jpg"))
-    [(pair_rec, pair)] = sfm.pair_models(out / "work" / "database.db", photos_dir, tmp_path, {"IMG_0474.jpg"},
-                                         [without])
+    _, pair, found, _ = _placed_by_two_view(run, photos_dir, tmp_path, "IMG_0474.jpg")
     assert (pair.photo, pair.partner) == ("IMG_0474.jpg", "IMG_0475.jpg") and pair.inliers >= 30
-    found = attach_pair(pair_rec, main, main_georef, pair, photos, frame, 1)
     assert found.georeferenced, found.reason
     assert found.two_view["offset_m"] <= 5.0
-
-
-def _main_model(report, out):
-    from skyfix.mapping import sfm
-    from skyfix.mapping.georef import ModelGeoref
-
-    m = report.models[0]
-    inliers = sorted(set(m["residuals_enu_m"]) - set(m["outliers"]))
-    return sfm.load_models(out / "work" / "georef")[0], ModelGeoref(0, m["registered"], True, inliers=inliers,
-                                                                     residuals_enu_m=m["residuals_enu_m"])
 
 
 def test_two_view_pose_agrees_with_bundle_adjusted_pose(run, photos_dir, tmp_path):
@@ -180,21 +185,8 @@ def test_two_view_pose_agrees_with_bundle_adjusted_pose(run, photos_dir, tmp_pat
     # Centre: the two-view scale comes from the median ground depth under IMG_0478 (flat
     # fields, ~64 m), the ~56 m baseline then agrees to a few per cent -> within 3 m;
     # orientation: 776 inliers fix the relative rotation to well under a degree -> 1 deg.
-    from skyfix.geo import LocalFrame
-    from skyfix.mapping import sfm
-    from skyfix.mapping.georef import attach_pair
-    from skyfix.mapping.photos import load_photos
-
-    report, out = run
-    frame = LocalFrame(*json.loads((out / "work" / "stages" / "georef.json").read_text())["frame"])
-    photos, _ = load_photos(photos_dir)
-    main, main_georef = _main_model(report, out)
-    without = sfm.load_models(out / "work" / "georef")[0]
-    without.deregister_frame(next(im.frame_id for im in without.images.values() if im.name == "IMG_0479.jpg"))
-    [(pair_rec, pair)] = sfm.pair_models(out / "work" / "database.db", photos_dir, tmp_path, {"IMG_0479.jpg"},
-                                         [without])
+    pair_rec, pair, found, main = _placed_by_two_view(run, photos_dir, tmp_path, "IMG_0479.jpg")
     assert (pair.photo, pair.partner) == ("IMG_0479.jpg", "IMG_0478.jpg")
-    found = attach_pair(pair_rec, main, main_georef, pair, photos, frame, 1)
     assert found.georeferenced, found.reason
     [placed] = [im for im in pair_rec.images.values() if im.has_pose]
     [truth] = [im for im in main.images.values() if im.name == "IMG_0479.jpg"]
@@ -210,14 +202,7 @@ def test_two_view_placement_inconsistent_with_gps_is_refused(run, photos_dir, tm
     # 5 m limit, so it is not counted.
     import dataclasses
 
-    from skyfix.geo import LocalFrame
-    from skyfix.mapping import sfm
-    from skyfix.mapping.georef import attach_pair
-    from skyfix.mapping.photos import load_photos
-
-    report, out = run
-    frame = LocalFrame(*json.loads((out / "work" / "stages" / "georef.json").read_text())["frame"])
-    photos, _ = load_photos(photos_dir)
+    frame, photos = _frame_and_photos(run[1], photos_dir)
     moved = []
     for p in photos:
         if p.name == "IMG_0479.jpg":
@@ -225,12 +210,7 @@ def test_two_view_placement_inconsistent_with_gps_is_refused(run, photos_dir, tm
             lat, lon, _ = frame.to_geodetic_points(np.array([[e + 30.0, n, u]]))[0]
             p = dataclasses.replace(p, gps_lat_deg=float(lat), gps_lon_deg=float(lon))
         moved.append(p)
-    main, main_georef = _main_model(report, out)
-    without = sfm.load_models(out / "work" / "georef")[0]
-    without.deregister_frame(next(im.frame_id for im in without.images.values() if im.name == "IMG_0479.jpg"))
-    [(pair_rec, pair)] = sfm.pair_models(out / "work" / "database.db", photos_dir, tmp_path, {"IMG_0479.jpg"},
-                                         [without])
-    found = attach_pair(pair_rec, main, main_georef, pair, moved, frame, 1)
+    pair_rec, _, found, _ = _placed_by_two_view(run, photos_dir, tmp_path, "IMG_0479.jpg", moved)
     assert not found.georeferenced
     assert "from its GPS" in found.reason and found.two_view["offset_m"] > 20.0
     assert pair_rec.num_reg_images() == 2  # left as it was
