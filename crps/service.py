@@ -47,9 +47,6 @@ BACKOFF_S = (0.5, 5.0)      # first and longest wait between MAVLink connection 
 GNSS_OK_FIX_TYPE = 3
 INJECT_HOLD_AFTER_S = 2.0  # no camera observation of a holding or landing drone arrived this long: its injected position held
 LANDING_HOLD_SIGMA_M = 0.3  # horizontal accuracy stated to the autopilot for a landing's held position (a control value)
-# a holding drone's held position is injected at most this long with nothing measuring it; then none is (see
-# Service._injected_fix)
-INJECT_HOLD_MAX_S = 8.0
 
 
 
@@ -122,7 +119,6 @@ class Service:
         self._held_fix: GeoFix | None = None  # the injected position held while nothing measures this drone
         self._seen_s = -math.inf  # exposure time of the newest camera observation of this drone fused (clock s)
         self._seen_at_s = -math.inf  # when it was found fused (clock s)
-        self._held_since_s = -math.inf  # when the injected position was last held (clock s)
         _warm_up()
         try:
             self.transport = transport or ZenohTransport(config.swarm, config.drone_id, config.endpoints)
@@ -357,13 +353,7 @@ class Service:
         it is with a fixed accuracy (:meth:`_landing_hold`), and one low (the help loop's ``landing_low``) holds at
         once: the helpers' fixes of a drone near the ground are the worst it gets (SITL, loaded machine: chasing
         late fixes in its last 2 m, 4.5 m of drift; held on a 6.9 m sigma, its EKF walked; both times the copter
-        stood on the ground armed). A hold with nothing measuring the drone for INJECT_HOLD_MAX_S ends in no
-        injected position at all, which the autopilot treats as the GPS loss it is (ArduPilot: EKF failsafe, a
-        landing without position hold, drifting with the wind) until an observation arrives: a constant position
-        is not a hold. On SITL beside two CPU burners (load 8.9, helpers' frames 5.7 s late, the target in 7 of
-        128 frames) the copter held on one for 90 s: its EKF, told it stood still while it braked from 4.6 m/s,
-        put its speed 5 m/s south while it flew north at up to 11 m/s and 30 degrees of pitch, and it ended
-        840 m away (2026-11-29, dataflash log: GPS2 constant, its accuracy 1.5 -> 110 m, XKF1 against GPS1)."""
+        stood on the ground armed)."""
         now = self.clock()
         fix = self.node.fix(self.cfg.drone_id, now, time_stamp_s=time.time())
         mode = self.help.mode.value if self.help is not None else None
@@ -382,9 +372,6 @@ class Service:
             return fix
         if self._held_fix is None:
             self._held_fix = self._landing_hold(fix) if mode == "land" else fix
-            self._held_since_s = now
-        if mode == "hold" and now - max(self._held_since_s, self._seen_at_s) > INJECT_HOLD_MAX_S:
-            return None  # ArduPilot's own GPS-loss failsafe flies it: no position rather than a constant one
         held = self._held_fix
         cov = held.cov_enu_m2 if mode == "land" else fix.cov_enu_m2
         return GeoFix(held.lat_deg, held.lon_deg, held.alt_m, cov, fix.time_s, fix.source_id)
