@@ -97,6 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--at-once", type=int, default=2, help="flights at once in the loaded round (default 2)")
     ap.add_argument("--rounds", type=int, default=1, help="loaded rounds (default 1)")
     ap.add_argument("--keep", type=Path, default=None, help="keep every flight's outputs and SITL logs here")
+    ap.add_argument("--burners", type=int, default=0,
+                    help="processes spinning one core each beside the loaded rounds (default 0): a busier companion")
     ap.add_argument("--one", type=Path, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.one is not None:
@@ -115,8 +117,13 @@ def main(argv: list[str] | None = None) -> int:
     alone = at_once(1, root / "alone")[0]
     print(line("alone", alone))
     loaded = []
-    for r in range(args.rounds):
-        flights = at_once(args.at_once, root / f"round{r + 1}")
+    burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(max(0, args.burners))]
+    try:
+        rounds = [at_once(args.at_once, root / f"round{r + 1}") for r in range(args.rounds)]
+    finally:
+        for b in burners:
+            b.kill()
+    for r, flights in enumerate(rounds):
         for n, f in enumerate(flights):
             print(line(f"round {r + 1} flight {n + 1}", f))
         loaded += flights
@@ -124,7 +131,8 @@ def main(argv: list[str] | None = None) -> int:
     lat = [f["latency_p90_s"] for f in loaded if math.isfinite(f["latency_p90_s"])]
     ratio = (max(lat) / alone["latency_p90_s"]) if lat and alone["latency_p90_s"] > 0 else math.nan
     ok = passed == len(loaded) and not missed(alone)
-    print(f"recovery sitl loaded: {passed} of {len(loaded)} flights {args.at_once} at once passed the test's goals "
+    print(f"recovery sitl loaded: {passed} of {len(loaded)} flights {args.at_once} at once"
+          f"{f' beside {args.burners} burner(s)' if args.burners else ''} passed the test's goals "
           f"(alone: {'pass' if not missed(alone) else 'FAIL'}), helper latency p90 up to {ratio:.1f}x the alone "
           f"flight's {alone['latency_p90_s']:.2f} s, load {load0:.1f}-{os.getloadavg()[0]:.1f}"
           f"{'' if ok else ': goal missed'}")
