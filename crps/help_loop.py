@@ -88,6 +88,7 @@ class _Actions:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self.busy = False
+        self._last_failure: dict[str, str] = {}  # what -> the text of its last failure (logged once at warning level)
         self._thread = threading.Thread(target=self._run, daemon=True, name=name)
         self._thread.start()
 
@@ -114,7 +115,13 @@ class _Actions:
                 try:
                     fn()
                 except SkyfixError as exc:  # refused, timed out, link down: the loop asks again later
-                    log.warning("%s failed: %s", what, exc)
+                    # the same refusal once as a warning (e.g. ArduPilot refusing BRAKE while its EKF has no position
+                    # after a hold's injection ended: retried every RECOMMAND_WALL_S until it has one again)
+                    level = logging.DEBUG if self._last_failure.get(what) == str(exc) else logging.WARNING
+                    self._last_failure[what] = str(exc)
+                    log.log(level, "%s failed: %s", what, exc)
+                else:
+                    self._last_failure.pop(what, None)
                 finally:
                     self.busy = False
 

@@ -81,6 +81,7 @@ class RecoveryConfig:
     forged_observation: bool = False      # an impostor without the swarm key sends observations of the lost drone
     gnss_return_offset_m: float | None = None  # GNSS comes back this far off (east), 25 s after the loss
     target_leaves_fov: bool = False       # one helper's gimbal looks 90 deg away for 12 s, 10 s after it helps
+    helpers_blind_s: float | None = None  # every helper's gimbal looks 90 deg away this long from the loss: none sees it
     lost_vehicle_url: str | None = None   # an external autopilot (ArduPilot SITL) as the lost drone ...
     lost_vehicle_truth_url: str | None = None  # ... a second link to it streaming SIM_STATE (its truth)
     lost_vehicle_home: tuple[float, float, float] | None = None  # ... its home: lat, lon (deg), alt AMSL (m)

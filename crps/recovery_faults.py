@@ -116,6 +116,7 @@ class Faults:
         self.forged_sent = 0
         self.first_assigned_s: float | None = None
         self.fov_helper: str | None = None
+        self.blinded = False
 
     def mavlink_url(self, index: int, url: str) -> str:
         """The URL the service of vehicle ``index`` uses (through a relay for the lost drone's outage)."""
@@ -168,6 +169,8 @@ class Faults:
         if cfg.target_leaves_fov and self.fov_helper is None and lost.helpers \
                 and now >= self.first_assigned_s + FOV_FAULT_AFTER_S:
             self._look_away(lost.helpers[0], now)
+        if cfg.helpers_blind_s is not None and not self.blinded:
+            self._blind(run.t_loss, cfg.helpers_blind_s)
         if cfg.forged_observation and now >= self._forged_next_s:
             self._forged_next_s = now + FORGED_PERIOD_S
             self._forge(now)
@@ -179,6 +182,17 @@ class Faults:
         self.fov_helper = helper_id
         self.run.cameras[IDS.index(helper_id)].set_gimbal_fault(GimbalFault(now_s, FOV_FAULT_FOR_S, 90.0))
         self.run.note(f"{helper_id}'s gimbal looks 90 deg away for {FOV_FAULT_FOR_S:.0f} s: the target leaves its view")
+
+    def _blind(self, start_s: float, duration_s: float) -> None:
+        from skyfix.crps.recovery import LOST
+        from skyfix.datasets.sim.world_camera import GimbalFault
+
+        self.blinded = True
+        for index, camera in enumerate(self.run.cameras):
+            if index != LOST and camera is not None:
+                camera.set_gimbal_fault(GimbalFault(start_s, duration_s, 90.0))
+        self.run.note(f"every helper's gimbal looks 90 deg away for {duration_s:.0f} s from the loss: "
+                      "nobody can see the lost drone")
 
     def figures(self) -> dict[str, float]:
         """Evidence that each fault happened (counts as floats, NaN where it does not apply)."""

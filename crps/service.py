@@ -46,6 +46,8 @@ LINK_LOST_RECONNECT_S = 0.5  # link marked lost (no heartbeat for 2 s) this long
 BACKOFF_S = (0.5, 5.0)      # first and longest wait between MAVLink connection attempts
 GNSS_OK_FIX_TYPE = 3
 INJECT_HOLD_AFTER_S = 2.0  # no camera observation of a holding or landing drone arrived this long: its injected position held
+INJECT_HOLD_MAX_S = 8.0  # a hover nothing measures is injected at most this long (its own position), then nothing
+OWN_POSITION_FRESH_S = 1.0  # the autopilot's own position, injected back while it holds unobserved, at most this old
 LANDING_HOLD_SIGMA_M = 0.3  # horizontal accuracy stated to the autopilot for a landing's held position (a control value)
 
 
@@ -119,6 +121,7 @@ class Service:
         self._held_fix: GeoFix | None = None  # the injected position held while nothing measures this drone
         self._seen_s = -math.inf  # exposure time of the newest camera observation of this drone fused (clock s)
         self._seen_at_s = -math.inf  # when it was found fused (clock s)
+        self._quiet_since_s: float | None = None  # since when a hover has gone unmeasured (clock s)
         _warm_up()
         try:
             self.transport = transport or ZenohTransport(config.swarm, config.drone_id, config.endpoints)
@@ -343,10 +346,16 @@ class Service:
 
     def _injected_fix(self):
         """The fix injected now (stamped UNIX time). While the drone holds or lands with no camera observation of
-        it arriving for INJECT_HOLD_AFTER_S and its autopilot's velocity echoes the injected fix, the position injected
-        stays where the last measured fix put it (the covariance still grows): dead-reckoning on that echo only
-        integrates its bias estimate, the autopilot follows the injected fix, and a hold becomes a drift (SITL:
-        4.6 m in the last 4 m of a landing below the helpers' horizon). While it lands, the held fix also keeps the
+        it arriving for INJECT_HOLD_AFTER_S and its autopilot's velocity echoes the injected fix, dead-reckoning on
+        that echo only integrates its bias estimate, so the fix is not flown on. A hold then injects the autopilot's
+        own position (GLOBAL_POSITION_INT, :meth:`_autopilot_position`) with the fused covariance, for at most
+        INJECT_HOLD_MAX_S, then nothing: the autopilot's own GPS-loss failsafe flies it (ArduPilot: EKF failsafe,
+        LAND without position hold, drifting with the wind) until an observation arrives. A *constant* position is
+        no hold: ArduPilot SITL's EKF, told it stood still, kept its velocity near zero while its position
+        controller's integrator wound up against the injected point, and the copter flew away (helpers' cameras
+        looking away, no load: 100 m in 20 s; loaded, helpers' frames 6 s late: 840 m at 30 deg of pitch); on its
+        own position the EKF brakes on its IMU and stops, and the bound ends the slower wind-up that remains (still
+        35 m in 30 s on SITL: ``benchmarks/recovery_sitl_loaded.py --blind-s``). While it lands, the held fix keeps the
         accuracy it was held with: the position is a constant the drone is to come down on, and a stated accuracy
         growing by the second let ArduPilot's EKF walk ~0.5 m/s on the ground (SITL: 4.6 m in 20 s, the position
         controller tilting 20-27 deg), so it never reached LAND_COMPLETE and never disarmed. A landing holds where
@@ -368,13 +377,31 @@ class Service:
         # position it comes down on (a loaded SITL run stood landed and armed while helpers came and went)
         quiet = quiet or (mode == "land" and (self._held_fix is not None or self.help.landing_low))
         if fix is None or self.cfg.injected_velocity_sigma_mps is None or mode not in ("hold", "land") or not quiet:
-            self._held_fix = None
+            self._held_fix = self._quiet_since_s = None
             return fix
+        if mode == "hold":
+            if self._quiet_since_s is None:
+                self._quiet_since_s = now
+            if now - self._quiet_since_s > INJECT_HOLD_MAX_S:
+                return None  # the autopilot's own GPS-loss failsafe flies it: no position rather than a made-up one
+            own = self._autopilot_position()
+            if own is not None:
+                return GeoFix(own.lat_deg, own.lon_deg, fix.alt_m, fix.cov_enu_m2, fix.time_s, fix.source_id)
         if self._held_fix is None:
             self._held_fix = self._landing_hold(fix) if mode == "land" else fix
         held = self._held_fix
         cov = held.cov_enu_m2 if mode == "land" else fix.cov_enu_m2
         return GeoFix(held.lat_deg, held.lon_deg, held.alt_m, cov, fix.time_s, fix.source_id)
+
+    def _autopilot_position(self):
+        """The autopilot's own fused position (GLOBAL_POSITION_INT) received in the last OWN_POSITION_FRESH_S
+        (UNIX time), else None."""
+        vehicle = self.vehicle
+        state = vehicle.state if vehicle is not None else None
+        if state is None or not state.link_ok or state.position is None \
+                or not time.time() - state.position.time_s <= OWN_POSITION_FRESH_S:
+            return None
+        return state.position
 
     def _landing_hold(self, fix: GeoFix) -> GeoFix:
         """The fix a landing holds: where ``fix`` is now (a jump at touchdown winds up ArduPilot's position

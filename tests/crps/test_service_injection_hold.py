@@ -1,12 +1,16 @@
 """Service._injected_fix: what the requester injects while no camera sees it (an autopilot echoing the fix).
 
-Holding, the position injected stays where the last measured fix put it and its stated accuracy grows with the
-fused covariance (the drone may drift: the truth is less certain by the second). Landing, the held fix also keeps
-the accuracy it was held with: the position is a constant the drone comes down on, and on ArduPilot SITL a stated
-accuracy growing on the ground let the EKF walk ~0.5 m/s, so the copter never reached LAND_COMPLETE and never
-disarmed. The node is the real one, fed 10 s of GNSS and velocity, then nothing (the receiver lost, no observation).
+Holding, the position injected is the autopilot's own (GLOBAL_POSITION_INT) with the fused covariance, for at most
+INJECT_HOLD_MAX_S, then none: the autopilot's own GPS-loss failsafe flies it. A constant position (the last measured
+fix, still the fallback while no fresh telemetry position is there) made ArduPilot SITL's EKF believe it stood still
+while its position controller's integrator wound up: 840 m away under load, 100 m in 20 s unloaded with the
+helpers' cameras looking away (benchmarks/recovery_sitl_loaded.py --blind-s 40). Landing, the held fix also keeps the accuracy it
+was held with: the position is a constant the drone comes down on, and on ArduPilot SITL a stated accuracy growing
+on the ground let the EKF walk ~0.5 m/s, so the copter never reached LAND_COMPLETE and never disarmed. The node is
+the real one, fed 10 s of GNSS and velocity, then nothing (the receiver lost, no observation).
 """
 
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -14,8 +18,14 @@ import pytest
 from helpnet import ALT0, LAT0, LON0
 
 from skyfix.crps.node import Node
-from skyfix.crps.service import INJECT_HOLD_AFTER_S, LANDING_HOLD_SIGMA_M, Service, fusion_config
-from skyfix.drivers.state import GnssFix, VehicleState, Velocity
+from skyfix.crps.service import (
+    INJECT_HOLD_AFTER_S,
+    INJECT_HOLD_MAX_S,
+    LANDING_HOLD_SIGMA_M,
+    Service,
+    fusion_config,
+)
+from skyfix.drivers.state import GnssFix, Position, VehicleState, Velocity
 from skyfix.geo import LocalFrame
 
 FRAME = LocalFrame(LAT0, LON0, ALT0)
@@ -42,9 +52,18 @@ def _service(node: Node, clock: list[float], mode_or_help) -> SimpleNamespace:
     help_loop = SimpleNamespace(mode=SimpleNamespace(value=mode_or_help), landing_low=False) \
         if isinstance(mode_or_help, str) else mode_or_help
     service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _seen_s=-np.inf, _seen_at_s=-np.inf,
-                              help=help_loop, cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
+                              _quiet_since_s=None, help=help_loop, vehicle=None,
+                              cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
     service._landing_hold = lambda fix: Service._landing_hold(service, fix)
+    service._autopilot_position = lambda: Service._autopilot_position(service)
     return service
+
+
+def _telemetry_at(service, east_m: float, north_m: float, age_s: float = 0.1) -> None:
+    """The autopilot reports its own position ``east_m``, ``north_m`` (node frame), received ``age_s`` ago."""
+    lat, lon, alt = FRAME.to_geodetic(east_m, north_m, 10.0)
+    pos = Position(float(lat), float(lon), float(alt), 10.0, time.time() - age_s)
+    service.vehicle = SimpleNamespace(state=VehicleState(1, link_ok=True, position=pos))
 
 
 def _injected(mode: str) -> list:
@@ -131,4 +150,47 @@ def test_a_low_landing_holds_at_once_where_it_is():
     clock[0] = t_last + 3.0
     node.observed_s["a"] = t_last + 2.9
     assert Service._injected_fix(service).lat_deg == held.lat_deg  # held to the ground
+    node.close()
+
+
+def test_a_hover_injects_the_autopilots_own_position_with_the_fused_accuracy():
+    """Holding unobserved with fresh telemetry: the autopilot's own position (so its EKF keeps its inertial
+    velocity and its position controller has nothing to wind up against), stated with the fused covariance."""
+    node, t_last = _node()
+    clock = [t_last + INJECT_HOLD_AFTER_S + 1.0]
+    service = _service(node, clock, "hold")
+    _telemetry_at(service, 3.0, -4.0)
+    injected = Service._injected_fix(service)
+    east, north, _ = FRAME.to_enu(injected.lat_deg, injected.lon_deg, injected.alt_m)
+    assert (east, north) == pytest.approx((3.0, -4.0), abs=1e-6)
+    fused = node.fix("a", clock[0])
+    assert injected.sigma_horizontal_m == pytest.approx(fused.sigma_horizontal_m, rel=1e-6)
+    assert injected.alt_m == pytest.approx(fused.alt_m)  # heights stay the fusion's (the autopilot's baro holds it)
+    _telemetry_at(service, 3.0, -4.0, age_s=5.0)  # stale telemetry: the last measured fix, held, instead
+    held = Service._injected_fix(service)
+    assert (held.lat_deg, held.lon_deg) == (service._held_fix.lat_deg, service._held_fix.lon_deg)
+    node.close()
+
+
+def test_a_hover_nothing_measures_ends_in_no_injection_until_an_observation():
+    """After INJECT_HOLD_MAX_S unobserved the hover injects nothing (ArduPilot: EKF failsafe, a landing); an
+    observation arriving brings the fused fix back at once; a landing is never cut off."""
+    node, t_last = _node()
+    start = t_last + INJECT_HOLD_AFTER_S + 0.5
+    clock = [start]
+    service = _service(node, clock, "hold")
+    _telemetry_at(service, 0.0, 0.0)
+    assert Service._injected_fix(service) is not None
+    clock[0] = start + INJECT_HOLD_MAX_S - 0.5
+    assert Service._injected_fix(service) is not None
+    clock[0] = start + INJECT_HOLD_MAX_S + 0.5
+    assert Service._injected_fix(service) is None
+    node.observed_s["a"] = clock[0] - 3.0  # a (late) sighting arrives
+    clock[0] += 0.2
+    back = Service._injected_fix(service)
+    assert back is not None and back.lat_deg == node.fix("a", clock[0]).lat_deg
+    landing = _service(node, [start], "land")
+    for dt in (0.0, INJECT_HOLD_MAX_S + 5.0, 3 * INJECT_HOLD_MAX_S):
+        landing.clock = (lambda t: (lambda: t))(start + dt)
+        assert Service._injected_fix(landing) is not None
     node.close()
