@@ -150,8 +150,9 @@ def main(argv: list[str] | None = None) -> int:
     ratio = (max(lat) / alone["latency_p90_s"]) if lat and alone["latency_p90_s"] > 0 else math.nan
     ok = passed == len(loaded) and not missed(alone)
     blind = f", helpers blind {args.blind_s:g} s from the loss (safety goals)" if args.blind_s is not None else ""
-    print(f"recovery sitl loaded: {passed} of {len(loaded)} flights {args.at_once} at once"
-          f"{f' beside {args.burners} burner(s)' if args.burners else ''} passed the test's goals "
+    rounds_text = (f"{passed} of {len(loaded)} flights {args.at_once} at once" if loaded else "no loaded round")
+    print(f"recovery sitl loaded: {rounds_text}"
+          f"{f' beside {args.burners} burner(s)' if args.burners else ''}{' passed the goals' if loaded else ''} "
           f"(alone: {'pass' if not missed(alone) else 'FAIL'}), helper latency p90 up to {ratio:.1f}x the alone "
           f"flight's {alone['latency_p90_s']:.2f} s, load {load0:.1f}-{os.getloadavg()[0]:.1f}"
           f"{blind}{'' if ok else ': goal missed'}")

@@ -219,6 +219,10 @@ class HelpLoop:
         return HelperStatus(fix.lat_deg, fix.lon_deg, fix.alt_m, battery, localised=localised,
                             available=self.eye is not None and airborne)
 
+    def note(self, now_s: float, text: str) -> None:
+        """A help event from the service (timeline, log, the /help/event channel)."""
+        self._event(now_s, text)
+
     def _event(self, now_s: float, text: str) -> None:
         self.events.append((now_s, text))
         log.info("%s: %s", self.id, text)

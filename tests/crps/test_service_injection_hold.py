@@ -22,10 +22,11 @@ from skyfix.crps.service import (
     INJECT_HOLD_AFTER_S,
     INJECT_HOLD_MAX_S,
     LANDING_HOLD_SIGMA_M,
+    WINDUP_FOR_S,
     Service,
     fusion_config,
 )
-from skyfix.drivers.state import GnssFix, Position, VehicleState, Velocity
+from skyfix.drivers.state import Attitude, GnssFix, Position, VehicleState, Velocity
 from skyfix.geo import LocalFrame
 
 FRAME = LocalFrame(LAT0, LON0, ALT0)
@@ -48,22 +49,31 @@ def _node() -> tuple[Node, float]:
 
 def _service(node: Node, clock: list[float], mode_or_help) -> SimpleNamespace:
     """The parts of a Service that ``_injected_fix`` reads, on ``node`` and the clock ``clock[0]``; ``mode_or_help``
-    a help mode ("hold", "land") or a help loop stand-in with ``mode`` and ``landing_low``."""
-    help_loop = SimpleNamespace(mode=SimpleNamespace(value=mode_or_help), landing_low=False) \
+    a help mode ("hold", "land": landing low) or a help loop stand-in with ``mode`` and ``landing_low``."""
+    help_loop = SimpleNamespace(mode=SimpleNamespace(value=mode_or_help), landing_low=mode_or_help == "land",
+                                notes=[]) \
         if isinstance(mode_or_help, str) else mode_or_help
+    help_loop.note = lambda t, text: help_loop.notes.append(text)
     service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _seen_s=-np.inf, _seen_at_s=-np.inf,
-                              _quiet_since_s=None, help=help_loop, vehicle=None,
+                              _quiet_since_s=None, _cut=False, _hover_fix=None, help=help_loop, vehicle=None,
+                              _windup_since_s=None, injection_cut_reason=None,
                               cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
     service._landing_hold = lambda fix: Service._landing_hold(service, fix)
     service._autopilot_position = lambda: Service._autopilot_position(service)
+    service._windup_guard = lambda now_s: Service._windup_guard(service, now_s)
     return service
 
 
-def _telemetry_at(service, east_m: float, north_m: float, age_s: float = 0.1) -> None:
-    """The autopilot reports its own position ``east_m``, ``north_m`` (node frame), received ``age_s`` ago."""
+def _telemetry_at(service, east_m: float, north_m: float, age_s: float = 0.1, *, roll_deg: float = 0.0,
+                  north_mps: float = 0.0) -> None:
+    """The autopilot reports its own position ``east_m``, ``north_m`` (node frame, 10 m up), received ``age_s``
+    ago, its attitude (``roll_deg``, level otherwise) and its velocity (``north_mps``)."""
     lat, lon, alt = FRAME.to_geodetic(east_m, north_m, 10.0)
-    pos = Position(float(lat), float(lon), float(alt), 10.0, time.time() - age_s)
-    service.vehicle = SimpleNamespace(state=VehicleState(1, link_ok=True, position=pos))
+    stamp = time.time() - age_s
+    pos = Position(float(lat), float(lon), float(alt), 10.0, stamp)
+    att = Attitude(roll_deg, 0.0, 0.0, stamp)
+    service.vehicle = SimpleNamespace(state=VehicleState(1, link_ok=True, position=pos, attitude=att,
+                                                         velocity=Velocity(north_mps, 0.0, 0.0, stamp)))
 
 
 def _injected(mode: str) -> list:
@@ -99,11 +109,12 @@ def test_a_sighting_after_the_hold_releases_a_holding_fix_but_not_a_landing_one(
     clock = [t_last + INJECT_HOLD_AFTER_S + 1.0]
     service = _service(node, clock, mode)
     held = Service._injected_fix(service)
-    assert service._held_fix is not None
+    kept = "_held_fix" if mode == "land" else "_hover_fix"  # a low landing's hold; a hover's without telemetry
+    assert getattr(service, kept) is not None
     clock[0] += 1.0
     node.observed_s["a"] = clock[0]  # a helper's camera saw it (the fix itself is unchanged here)
     Service._injected_fix(service)
-    assert (service._held_fix is not None) is stays
+    assert (getattr(service, kept) is not None) is stays
     if stays:
         assert (service._held_fix.lat_deg, service._held_fix.lon_deg) == (held.lat_deg, held.lon_deg)
     node.close()
@@ -118,14 +129,14 @@ def test_a_late_observation_still_ends_a_hold_when_it_arrives(late_s):
     clock = [t_last + INJECT_HOLD_AFTER_S + 1.0]
     service = _service(node, clock, "hold")
     Service._injected_fix(service)
-    assert service._held_fix is not None  # nothing measured it yet: held
+    assert service._hover_fix is not None  # nothing measured it yet: held (no telemetry position here)
     clock[0] += 1.0
     node.observed_s["a"] = clock[0] - late_s  # arrives now, exposed late_s ago
     Service._injected_fix(service)
-    assert service._held_fix is None
+    assert service._hover_fix is None
     clock[0] += INJECT_HOLD_AFTER_S + 0.5  # and nothing since: held again
     Service._injected_fix(service)
-    assert service._held_fix is not None
+    assert service._hover_fix is not None
     node.close()
 
 
@@ -168,7 +179,7 @@ def test_a_hover_injects_the_autopilots_own_position_with_the_fused_accuracy():
     assert injected.alt_m == pytest.approx(fused.alt_m)  # heights stay the fusion's (the autopilot's baro holds it)
     _telemetry_at(service, 3.0, -4.0, age_s=5.0)  # stale telemetry: the last measured fix, held, instead
     held = Service._injected_fix(service)
-    assert (held.lat_deg, held.lon_deg) == (service._held_fix.lat_deg, service._held_fix.lon_deg)
+    assert (held.lat_deg, held.lon_deg) == (service._hover_fix.lat_deg, service._hover_fix.lon_deg)
     node.close()
 
 
@@ -189,8 +200,65 @@ def test_a_hover_nothing_measures_ends_in_no_injection_until_an_observation():
     clock[0] += 0.2
     back = Service._injected_fix(service)
     assert back is not None and back.lat_deg == node.fix("a", clock[0]).lat_deg
-    landing = _service(node, [start], "land")
+    landing = _service(node, [start], "land")  # low: held to the ground, never cut
     for dt in (0.0, INJECT_HOLD_MAX_S + 5.0, 3 * INJECT_HOLD_MAX_S):
         landing.clock = (lambda t: (lambda: t))(start + dt)
         assert Service._injected_fix(landing) is not None
+    node.close()
+
+
+def test_a_high_landing_nothing_measures_is_cut_like_a_hover_and_stays_cut_when_low():
+    """Landing still high with nothing measuring it: the autopilot's own position, then after INJECT_HOLD_MAX_S
+    nothing, also once it is low (a hold there would be a made-up point far from it: SITL, loaded, a landing held
+    from 40 m wound up to 30 deg of roll and 165 m); an observation arriving low holds it where the fix is then."""
+    node, t_last = _node()
+    start = t_last + INJECT_HOLD_AFTER_S + 0.5
+    clock = [start]
+    help_loop = SimpleNamespace(mode=SimpleNamespace(value="land"), landing_low=False)
+    service = _service(node, clock, help_loop)
+    _telemetry_at(service, 2.0, 1.0)
+    own = Service._injected_fix(service)
+    assert FRAME.to_enu(own.lat_deg, own.lon_deg, own.alt_m)[0] == pytest.approx(2.0, abs=1e-6)
+    assert service._held_fix is None
+    clock[0] = start + INJECT_HOLD_MAX_S + 0.5
+    assert Service._injected_fix(service) is None
+    help_loop.landing_low = True
+    clock[0] += 2.0
+    assert Service._injected_fix(service) is None  # low now, still nothing measures it: stays cut
+    node.observed_s["a"] = clock[0] - 1.0
+    clock[0] += 0.2
+    held = Service._injected_fix(service)
+    assert held is not None and held.sigma_horizontal_m == pytest.approx(LANDING_HOLD_SIGMA_M)
+    node.close()
+
+
+@pytest.mark.parametrize("roll_deg, north_mps, lean_s, cut", [
+    (25.0, 0.5, WINDUP_FOR_S + 0.5, True),    # leaning hard, standing still by its own account: pinned
+    (25.0, 0.5, WINDUP_FOR_S - 1.0, False),   # briefly (braking, a gust)
+    (25.0, 6.0, WINDUP_FOR_S + 3.0, False),   # leaning into a fast flight
+    (12.0, 0.5, WINDUP_FOR_S + 3.0, False),   # hovering into the wind
+])
+def test_an_autopilot_leaning_hard_while_standing_still_gets_no_more_injection(roll_deg, north_mps, lean_s, cut):
+    """The wind-up guard: WINDUP_TILT_DEG or more for WINDUP_FOR_S while its own estimate moves at most
+    WINDUP_SPEED_MPS (SITL flyaways: 6.8-16.1 s in that state; normal flights at most 0.8 s). Once cut, nothing is
+    injected in this outage, measured or not, in any mode."""
+    node, t_last = _node()
+    start = t_last + 0.5
+    clock = [start]
+    service = _service(node, clock, "hold")
+    node.observed_s["a"] = t_last  # observed: the fused fix itself is injected
+    _telemetry_at(service, 0.0, 0.0, roll_deg=roll_deg, north_mps=north_mps)
+    assert Service._injected_fix(service) is not None
+    for dt in np.arange(0.2, lean_s + 1e-9, 0.2):
+        clock[0] = start + dt
+        _telemetry_at(service, 0.0, 0.0, roll_deg=roll_deg, north_mps=north_mps)
+        last = Service._injected_fix(service)
+    assert (last is None) is cut
+    assert (service.injection_cut_reason is not None) is cut
+    assert any("injection stopped" in text for text in service.help.notes) is cut  # on the timeline
+    if cut:
+        _telemetry_at(service, 0.0, 0.0)  # level again, and a sighting arrives: still nothing
+        node.observed_s["a"] = clock[0]
+        clock[0] += 0.2
+        assert Service._injected_fix(service) is None
     node.close()
