@@ -317,6 +317,11 @@ class HelpLoop:
         """Command the wanted mode until the autopilot reports it."""
         vehicle = self.svc.vehicle
         want = self._want
+        if want is not None and getattr(self.svc, "injection_withheld", False):
+            # no position is injected (a hover nothing measured past its bound, or the wind-up guard): the autopilot's
+            # own position is no better than dead reckoning, so it lands, as its GPS-loss failsafe would (SITL: after
+            # the failsafe cleared for a second, BRAKE commanded again flew a wound-up controller on for 12 s)
+            want = self._land_mode()
         if want is None or vehicle is None or state is None or not state.link_ok:
             return
         if state.mode == want:

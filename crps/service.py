@@ -413,6 +413,12 @@ class Service:
         held = self._held_fix
         return GeoFix(held.lat_deg, held.lon_deg, held.alt_m, held.cov_enu_m2, fix.time_s, fix.source_id)
 
+    @property
+    def injection_withheld(self) -> bool:
+        """True while no position is injected on purpose (a hover past INJECT_HOLD_MAX_S unmeasured, or the wind-up
+        guard): the help loop then lands the drone."""
+        return self.injector is not None and (self._cut or self.injection_cut_reason is not None)
+
     def _windup_guard(self, now_s: float) -> bool:
         """True once the autopilot has leant WINDUP_TILT_DEG or more for WINDUP_FOR_S while its own velocity said
         WINDUP_SPEED_MPS or less: the injected positions pin its EKF and its position controller winds up against
