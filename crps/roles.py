@@ -167,7 +167,7 @@ class RequesterRole:
         """Landing at or below ``land_below_m`` (``alt_rel_m`` the autopilot's height above home, else the fused
         altitude less home's): helpers that lose it are not replaced (new ones would lose it against the ground
         too, and a landed drone's fix moved by their late sightings kept SITL from disarming), and the service
-        holds its injected fix at once (:meth:`skyfix.crps.service.Service._injected_fix`)."""
+        holds its injected fix at once (:meth:`skyfix.crps.inject_policy.InjectionPolicy.fix`)."""
         if self.mode is not Mode.LAND:
             return False
         height_m = self._height_m(fused, alt_rel_m)

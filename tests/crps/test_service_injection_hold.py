@@ -1,4 +1,4 @@
-"""Service._injected_fix: what the requester injects while no camera sees it (an autopilot echoing the fix).
+"""InjectionPolicy.fix (crps/inject_policy.py): what the requester injects while no camera sees it (an autopilot echoing the fix).
 
 Holding, the position injected is the autopilot's own (GLOBAL_POSITION_INT) with the fused covariance, for at most
 INJECT_HOLD_MAX_S, then none: the autopilot's own GPS-loss failsafe flies it. A constant position (the last measured
@@ -17,15 +17,15 @@ import numpy as np
 import pytest
 from helpnet import ALT0, LAT0, LON0
 
-from skyfix.crps.node import Node
-from skyfix.crps.service import (
+from skyfix.crps.inject_policy import (
     INJECT_HOLD_AFTER_S,
     INJECT_HOLD_MAX_S,
     LANDING_HOLD_SIGMA_M,
     WINDUP_FOR_S,
-    Service,
-    fusion_config,
+    InjectionPolicy,
 )
+from skyfix.crps.node import Node
+from skyfix.crps.service import fusion_config
 from skyfix.drivers.state import Attitude, GnssFix, Position, VehicleState, Velocity
 from skyfix.geo import LocalFrame
 
@@ -47,21 +47,17 @@ def _node() -> tuple[Node, float]:
     return node, node.latest["a"].time_s
 
 
-def _service(node: Node, clock: list[float], mode_or_help) -> SimpleNamespace:
-    """The parts of a Service that ``_injected_fix`` reads, on ``node`` and the clock ``clock[0]``; ``mode_or_help``
-    a help mode ("hold", "land": landing low) or a help loop stand-in with ``mode`` and ``landing_low``."""
+def _service(node: Node, clock: list[float], mode_or_help) -> InjectionPolicy:
+    """The injection policy of a service stand-in with the parts it reads, on ``node`` and the clock ``clock[0]``;
+    ``mode_or_help`` a help mode ("hold", "land": landing low) or a help loop stand-in with ``mode`` and
+    ``landing_low``."""
     help_loop = SimpleNamespace(mode=SimpleNamespace(value=mode_or_help), landing_low=mode_or_help == "land",
                                 notes=[]) \
         if isinstance(mode_or_help, str) else mode_or_help
     help_loop.note = lambda t, text: help_loop.notes.append(text)
-    service = SimpleNamespace(clock=lambda: clock[0], node=node, _held_fix=None, _seen_s=-np.inf, _seen_at_s=-np.inf,
-                              _quiet_since_s=None, _cut=False, _hover_fix=None, help=help_loop, vehicle=None,
-                              _windup_since_s=None, injection_cut_reason=None,
-                              cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
-    service._landing_hold = lambda fix: Service._landing_hold(service, fix)
-    service._autopilot_position = lambda: Service._autopilot_position(service)
-    service._windup_guard = lambda now_s: Service._windup_guard(service, now_s)
-    return service
+    svc = SimpleNamespace(clock=lambda: clock[0], node=node, help=help_loop, vehicle=None,
+                          cfg=SimpleNamespace(drone_id="a", injected_velocity_sigma_mps=1.5))
+    return InjectionPolicy(svc)
 
 
 def _telemetry_at(service, east_m: float, north_m: float, age_s: float = 0.1, *, roll_deg: float = 0.0,
@@ -72,7 +68,7 @@ def _telemetry_at(service, east_m: float, north_m: float, age_s: float = 0.1, *,
     stamp = time.time() - age_s
     pos = Position(float(lat), float(lon), float(alt), 10.0, stamp)
     att = Attitude(roll_deg, 0.0, 0.0, stamp)
-    service.vehicle = SimpleNamespace(state=VehicleState(1, link_ok=True, position=pos, attitude=att,
+    service.svc.vehicle = SimpleNamespace(state=VehicleState(1, link_ok=True, position=pos, attitude=att,
                                                          velocity=Velocity(north_mps, 0.0, 0.0, stamp)))
 
 
@@ -84,7 +80,7 @@ def _injected(mode: str) -> list:
     out = []
     for dt in (INJECT_HOLD_AFTER_S + 1.0, 6.0, 9.0):
         clock[0] = t_last + dt
-        out.append(Service._injected_fix(service))
+        out.append(service.fix())
     node.close()
     return out
 
@@ -108,12 +104,12 @@ def test_a_sighting_after_the_hold_releases_a_holding_fix_but_not_a_landing_one(
     node, t_last = _node()
     clock = [t_last + INJECT_HOLD_AFTER_S + 1.0]
     service = _service(node, clock, mode)
-    held = Service._injected_fix(service)
+    held = service.fix()
     kept = "_held_fix" if mode == "land" else "_hover_fix"  # a low landing's hold; a hover's without telemetry
     assert getattr(service, kept) is not None
     clock[0] += 1.0
     node.observed_s["a"] = clock[0]  # a helper's camera saw it (the fix itself is unchanged here)
-    Service._injected_fix(service)
+    service.fix()
     assert (getattr(service, kept) is not None) is stays
     if stays:
         assert (service._held_fix.lat_deg, service._held_fix.lon_deg) == (held.lat_deg, held.lon_deg)
@@ -128,14 +124,14 @@ def test_a_late_observation_still_ends_a_hold_when_it_arrives(late_s):
     node, t_last = _node()
     clock = [t_last + INJECT_HOLD_AFTER_S + 1.0]
     service = _service(node, clock, "hold")
-    Service._injected_fix(service)
+    service.fix()
     assert service._hover_fix is not None  # nothing measured it yet: held (no telemetry position here)
     clock[0] += 1.0
     node.observed_s["a"] = clock[0] - late_s  # arrives now, exposed late_s ago
-    Service._injected_fix(service)
+    service.fix()
     assert service._hover_fix is None
     clock[0] += INJECT_HOLD_AFTER_S + 0.5  # and nothing since: held again
-    Service._injected_fix(service)
+    service.fix()
     assert service._hover_fix is not None
     node.close()
 
@@ -148,19 +144,19 @@ def test_a_low_landing_holds_at_once_where_it_is():
     help_loop = SimpleNamespace(mode=SimpleNamespace(value="land"), landing_low=False)
     service = _service(node, clock, help_loop)
     node.observed_s["a"] = t_last
-    flown = Service._injected_fix(service)
+    flown = service.fix()
     assert service._held_fix is None and flown.sigma_horizontal_m > LANDING_HOLD_SIGMA_M  # high: flown on
     help_loop.landing_low = True
     clock[0] = t_last + 0.2
     node.observed_s["a"] = t_last + 0.1  # sightings keep coming
     present = node.fix("a", clock[0])
-    held = Service._injected_fix(service)
+    held = service.fix()
     assert held.sigma_horizontal_m == pytest.approx(LANDING_HOLD_SIGMA_M)
     assert held.sigma_up_m == pytest.approx(present.sigma_up_m)
     assert (held.lat_deg, held.lon_deg) == (present.lat_deg, present.lon_deg)
     clock[0] = t_last + 3.0
     node.observed_s["a"] = t_last + 2.9
-    assert Service._injected_fix(service).lat_deg == held.lat_deg  # held to the ground
+    assert service.fix().lat_deg == held.lat_deg  # held to the ground
     node.close()
 
 
@@ -171,14 +167,14 @@ def test_a_hover_injects_the_autopilots_own_position_with_the_fused_accuracy():
     clock = [t_last + INJECT_HOLD_AFTER_S + 1.0]
     service = _service(node, clock, "hold")
     _telemetry_at(service, 3.0, -4.0)
-    injected = Service._injected_fix(service)
+    injected = service.fix()
     east, north, _ = FRAME.to_enu(injected.lat_deg, injected.lon_deg, injected.alt_m)
     assert (east, north) == pytest.approx((3.0, -4.0), abs=1e-6)
     fused = node.fix("a", clock[0])
     assert injected.sigma_horizontal_m == pytest.approx(fused.sigma_horizontal_m, rel=1e-6)
     assert injected.alt_m == pytest.approx(fused.alt_m)  # heights stay the fusion's (the autopilot's baro holds it)
     _telemetry_at(service, 3.0, -4.0, age_s=5.0)  # stale telemetry: the last measured fix, held, instead
-    held = Service._injected_fix(service)
+    held = service.fix()
     assert (held.lat_deg, held.lon_deg) == (service._hover_fix.lat_deg, service._hover_fix.lon_deg)
     node.close()
 
@@ -191,19 +187,19 @@ def test_a_hover_nothing_measures_ends_in_no_injection_until_an_observation():
     clock = [start]
     service = _service(node, clock, "hold")
     _telemetry_at(service, 0.0, 0.0)
-    assert Service._injected_fix(service) is not None
+    assert service.fix() is not None
     clock[0] = start + INJECT_HOLD_MAX_S - 0.5
-    assert Service._injected_fix(service) is not None
+    assert service.fix() is not None
     clock[0] = start + INJECT_HOLD_MAX_S + 0.5
-    assert Service._injected_fix(service) is None
+    assert service.fix() is None
     node.observed_s["a"] = clock[0] - 3.0  # a (late) sighting arrives
     clock[0] += 0.2
-    back = Service._injected_fix(service)
+    back = service.fix()
     assert back is not None and back.lat_deg == node.fix("a", clock[0]).lat_deg
     landing = _service(node, [start], "land")  # low: held to the ground, never cut
     for dt in (0.0, INJECT_HOLD_MAX_S + 5.0, 3 * INJECT_HOLD_MAX_S):
-        landing.clock = (lambda t: (lambda: t))(start + dt)
-        assert Service._injected_fix(landing) is not None
+        landing.svc.clock = (lambda t: (lambda: t))(start + dt)
+        assert landing.fix() is not None
     node.close()
 
 
@@ -217,17 +213,17 @@ def test_a_high_landing_nothing_measures_is_cut_like_a_hover_and_stays_cut_when_
     help_loop = SimpleNamespace(mode=SimpleNamespace(value="land"), landing_low=False)
     service = _service(node, clock, help_loop)
     _telemetry_at(service, 2.0, 1.0)
-    own = Service._injected_fix(service)
+    own = service.fix()
     assert FRAME.to_enu(own.lat_deg, own.lon_deg, own.alt_m)[0] == pytest.approx(2.0, abs=1e-6)
     assert service._held_fix is None
     clock[0] = start + INJECT_HOLD_MAX_S + 0.5
-    assert Service._injected_fix(service) is None
+    assert service.fix() is None
     help_loop.landing_low = True
     clock[0] += 2.0
-    assert Service._injected_fix(service) is None  # low now, still nothing measures it: stays cut
+    assert service.fix() is None  # low now, still nothing measures it: stays cut
     node.observed_s["a"] = clock[0] - 1.0
     clock[0] += 0.2
-    held = Service._injected_fix(service)
+    held = service.fix()
     assert held is not None and held.sigma_horizontal_m == pytest.approx(LANDING_HOLD_SIGMA_M)
     node.close()
 
@@ -248,17 +244,17 @@ def test_an_autopilot_leaning_hard_while_standing_still_gets_no_more_injection(r
     service = _service(node, clock, "hold")
     node.observed_s["a"] = t_last  # observed: the fused fix itself is injected
     _telemetry_at(service, 0.0, 0.0, roll_deg=roll_deg, north_mps=north_mps)
-    assert Service._injected_fix(service) is not None
+    assert service.fix() is not None
     for dt in np.arange(0.2, lean_s + 1e-9, 0.2):
         clock[0] = start + dt
         _telemetry_at(service, 0.0, 0.0, roll_deg=roll_deg, north_mps=north_mps)
-        last = Service._injected_fix(service)
+        last = service.fix()
     assert (last is None) is cut
-    assert (service.injection_cut_reason is not None) is cut
-    assert any("injection stopped" in text for text in service.help.notes) is cut  # on the timeline
+    assert (service.cut_reason is not None) is cut
+    assert any("injection stopped" in text for text in service.svc.help.notes) is cut  # on the timeline
     if cut:
         _telemetry_at(service, 0.0, 0.0)  # level again, and a sighting arrives: still nothing
         node.observed_s["a"] = clock[0]
         clock[0] += 0.2
-        assert Service._injected_fix(service) is None
+        assert service.fix() is None
     node.close()
