@@ -121,8 +121,9 @@ class InjectionPolicy:
         WINDUP_SPEED_MPS or less: the injected positions pin its EKF and its position controller winds up against
         them, flying it away (SITL: the EKF still, the copter at 30 deg and 10 m/s). Then nothing more is injected
         in this GNSS outage: the autopilot's own GPS-loss failsafe lands it level (a fix that did this once is not
-        flown on again). On 46 SITL logs of this flow every flyaway lasted 6.8-16.1 s in that state and no other
-        flight more than 0.8 s (from level flight, braking or landing)."""
+        flown on again). On 46 SITL dataflash logs of this flow (a by-hand scan of ATT and XKF1, 2026-11-29, not a
+        committed benchmark) every flyaway lasted 6.8-16.1 s in that state and no other flight more than 0.8 s
+        (from level flight, braking or landing)."""
         if self.cut_reason is not None:
             return True
         vehicle = self.svc.vehicle
@@ -139,7 +140,7 @@ class InjectionPolicy:
         if now_s - self._windup_since_s < WINDUP_FOR_S:
             return False
         self.cut_reason = (f"the autopilot leans {tilt_deg:.0f} deg while its estimate says "
-                                     f"{vel.ground_speed_mps:.1f} m/s: its EKF is pinned by the injected positions")
+                           f"{vel.ground_speed_mps:.1f} m/s: its EKF is pinned by the injected positions")
         log.error("%s: injection stopped: %s; its own failsafe flies it now", self.svc.cfg.drone_id,
                   self.cut_reason)
         if self.svc.help is not None:
