@@ -10,12 +10,19 @@ import numpy as np
 
 from skyfix.mapping.grid import Grid
 
-__all__ = ["write_dsm_tif", "write_mask_tif", "write_orthophoto_tif"]
+__all__ = ["write_cog_blocks", "write_dsm_tif", "write_mask_tif", "write_orthophoto_tif"]
 
 def _write_cog(path: str | os.PathLike, data: np.ndarray, profile: dict, band_tags: dict | None = None) -> None:
-    """Write ``data`` (bands, H, W) as a Cloud-Optimized GeoTIFF: 512 px tiles, deflate,
-    overviews inside the file before the full-resolution image (GDAL's COG driver, through
-    a temporary tiled GeoTIFF since the driver only copies)."""
+    """Write ``data`` (bands, H, W) as a Cloud-Optimized GeoTIFF (see :func:`write_cog_blocks`)."""
+    write_cog_blocks(path, profile, [(None, data)], band_tags)
+
+
+def write_cog_blocks(path: str | os.PathLike, profile: dict, blocks, band_tags: dict | None = None) -> None:
+    """Write a Cloud-Optimized GeoTIFF from ``blocks``, an iterable of ``(window, data)`` with
+    ``data`` (bands, h, w) for a ``rasterio.windows.Window`` (None: the whole raster), so a raster
+    larger than memory is written a block at a time: 512 px tiles, deflate, overviews inside the file
+    before the full-resolution image (GDAL's COG driver, through a temporary tiled GeoTIFF since the
+    driver only copies)."""
     import rasterio
     from rasterio.shutil import copy as rio_copy
 
@@ -23,7 +30,8 @@ def _write_cog(path: str | os.PathLike, data: np.ndarray, profile: dict, band_ta
     try:
         with rasterio.open(tmp, "w", driver="GTiff", tiled=True, blockxsize=512, blockysize=512,
                            compress="deflate", BIGTIFF="IF_SAFER", **profile) as dst:
-            dst.write(data)
+            for window, data in blocks:
+                dst.write(data, window=window)
             if band_tags:
                 dst.update_tags(1, **band_tags)
         rio_copy(tmp, path, driver="COG", compress="DEFLATE", blocksize=512, overview_resampling="average",

@@ -80,6 +80,7 @@ class PipelineConfig:
     threads: int = -1                     # -1: all cores
     sfm_threads: int = 1                  # structure from motion's registration and adjustment threads: 1 repeats exactly
     force: tuple[str, ...] = ()           # stages to re-run even when their outputs exist
+    stop_after: str | None = None         # end the run after this stage (a later run resumes from its marker)
 
     def __post_init__(self) -> None:
         if self.barrel is not None and self.calibration is not None:
@@ -88,6 +89,8 @@ class PipelineConfig:
         unknown = set(self.force) - set(STAGES)
         if unknown:
             raise ConfigurationError(f"force names unknown stage(s) {sorted(unknown)}; stages are {list(STAGES)}")
+        if self.stop_after is not None and self.stop_after not in STAGES:
+            raise ConfigurationError(f"stop_after names unknown stage {self.stop_after!r}; stages are {list(STAGES)}")
         if not 0.05 <= self.dense_scale <= 1.0:
             raise InputError(f"dense_scale must be in [0.05, 1], got {self.dense_scale!r}")
         if any(not 0.05 <= f < self.dense_scale for f in self.dense_fill_scales):
@@ -136,6 +139,8 @@ def run_pipeline(config: PipelineConfig) -> Report:
                 report.stage_seconds[stage] = marker.get("seconds", 0.0)
                 report.resumed_stages.append(stage)
                 _STAGE_LOAD[stage](config, project, state, report, marker)
+                if stage == config.stop_after:
+                    break
                 continue
             t0 = time.perf_counter()
             log.info("stage %s", stage)
@@ -152,6 +157,8 @@ def run_pipeline(config: PipelineConfig) -> Report:
                 config = dataclasses.replace(config, force=STAGES)
             project.mark(stage, data)
             report.stage_seconds[stage] = data["seconds"]
+            if stage == config.stop_after:
+                break
     except SkyfixError as exc:
         report.error = str(exc)
         raise

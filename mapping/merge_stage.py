@@ -1,0 +1,168 @@
+"""The last step of a split run (:mod:`skyfix.mapping.scale_out`): read the submodels' outputs, align them
+(:mod:`skyfix.mapping.align`), merge them (:mod:`skyfix.mapping.merge`) into the project folder, and
+gather one report over the whole survey with each submodel's figures."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from skyfix.errors import DataError
+from skyfix.mapping.align import align_submodels
+from skyfix.mapping.merge import Part, merge_cameras, merge_points, merge_rasters
+from skyfix.mapping.report import peak_memory_mib
+
+__all__ = ["merge_submodels"]
+
+log = logging.getLogger(__name__)
+
+
+def _transformers(epsg: int):
+    import pyproj
+
+    fwd = pyproj.Transformer.from_crs("EPSG:4326", f"EPSG:{epsg}", always_xy=True)
+    return fwd, pyproj.Transformer.from_crs(f"EPSG:{epsg}", "EPSG:4326", always_xy=True)
+
+
+def _raster_facts(path: Path) -> tuple[tuple[float, float, float, float], float, float]:
+    """(bounds W, S, E, N), pixel size and a typical value (median of a small overview) of a GeoTIFF."""
+    import rasterio
+
+    with rasterio.open(path) as ds:
+        b = ds.bounds
+        scale = max(1, max(ds.width, ds.height) // 256)
+        small = ds.read(1, out_shape=(max(1, ds.height // scale), max(1, ds.width // scale)), masked=True)
+        typical = float(np.ma.median(small)) if small.count() else float("nan")
+        return (b.left, b.bottom, b.right, b.top), float(ds.transform.a), typical
+
+
+def merge_submodels(out: Path, subs, results: list[dict], by_name: dict, scale) -> dict:
+    """Align and merge the finished submodels in ``out/submodels`` into ``out``; the survey report (dict)."""
+    from skyfix.mapping.model_files import write_preview_png
+
+    t0 = time.perf_counter()
+    folders = {s.index: out / "submodels" / s.name for s in subs}
+    ok = [s for s, r in zip(subs, results, strict=True) if not r.get("error") and (folders[s.index] / "dsm.tif").exists()]
+    if not ok:
+        raise DataError("no submodel reconstructed: " + "; ".join(f"{s.name}: {r.get('error')}" for s, r in
+                                                                   zip(subs, results, strict=True)))
+    epsgs = {r.get("crs_epsg") for s, r in zip(subs, results, strict=True) if s in ok}
+    if len(epsgs) != 1:
+        raise DataError(f"submodels fell in different UTM zones {sorted(epsgs)}: merging across zones is not "
+                        "supported; split the survey by zone and run each")
+    epsg = epsgs.pop()
+    fwd, back = _transformers(epsg)
+    utm = {n: np.array(fwd.transform(p.gps_lon_deg, p.gps_lat_deg)) for n, p in by_name.items()}
+    origin = np.round(np.mean(list(utm.values()), axis=0), -1)
+
+    def to_local(lon, lat, alt):
+        e, n = fwd.transform(lon, lat)
+        return np.stack((np.asarray(e) - origin[0], np.asarray(n) - origin[1], np.asarray(alt, float)), axis=1)
+
+    def to_geodetic(xyz):
+        lon, lat = back.transform(xyz[:, 0] + origin[0], xyz[:, 1] + origin[1])
+        return lon, lat, xyz[:, 2]
+
+    centres = {}
+    for s in ok:
+        feats = json.loads((folders[s.index] / "cameras.geojson").read_text())["features"]
+        centres[s.index] = {f["properties"]["photo"]: to_local(*([v] for v in f["geometry"]["coordinates"]))[0]
+                            for f in feats}
+    alignments = align_submodels(centres)
+    parts = [Part(s.index, folders[s.index], np.array([utm[n] - origin for n in s.core]), alignments[s.index].matrix)
+             for s in ok]
+    facts = {s.index: _raster_facts(folders[s.index] / "dsm.tif") for s in ok}
+    ortho_facts = {s.index: _raster_facts(folders[s.index] / "orthophoto.tif") for s in ok
+                   if (folders[s.index] / "orthophoto.tif").exists()}
+    shift = max(float(np.abs(a.matrix[:2, 3]).max()) for a in alignments.values()) + 1.0
+    bounds = (min(f[0][0] for f in facts.values()) - shift, min(f[0][1] for f in facts.values()) - shift,
+              max(f[0][2] for f in facts.values()) + shift, max(f[0][3] for f in facts.values()) + shift)
+    z_ref = float(np.nanmedian([f[2] for f in facts.values()]))
+    dsm_res = min(f[1] for f in facts.values())
+    ortho_res = min(f[1] for f in ortho_facts.values()) if ortho_facts else None
+    from skyfix.progress import bar
+
+    with bar(desc="merging", unit="block") as progress:
+        dsm_grid, ortho_grid, seams = merge_rasters(
+            parts, origin, epsg, out / "dsm.tif", out / "orthophoto.tif" if ortho_res else None, dsm_res_m=dsm_res,
+            ortho_res_m=ortho_res, bounds_m=bounds, z_ref_m=z_ref, dsm_band_m=scale.dsm_band_m,
+            ortho_band_m=scale.ortho_band_m, on_block=lambda: progress.update(1))
+    points = merge_points(parts, origin, out / "points.ply")
+    cameras = merge_cameras(parts, {s.index: set(s.core) for s in ok}, to_local, to_geodetic,
+                            out / "cameras.geojson")
+    outputs = {"dsm": str(out / "dsm.tif"), "points": str(out / "points.ply"),
+               "cameras": str(out / "cameras.geojson"), "report": str(out / "report.json")}
+    if ortho_grid is not None:
+        import rasterio
+
+        with rasterio.open(out / "orthophoto.tif") as ds:
+            k = max(1, max(ds.width, ds.height) // 2000)
+            preview = ds.read(out_shape=(4, max(1, ds.height // k), max(1, ds.width // k)))
+        write_preview_png(out / "orthophoto.png", np.ascontiguousarray(np.moveaxis(preview, 0, 2)))
+        outputs.update(orthophoto=str(out / "orthophoto.tif"), orthophoto_png=str(out / "orthophoto.png"))
+    per_sub = []
+    for s, r in zip(subs, results, strict=True):
+        a = alignments.get(s.index)
+        per_sub.append({"index": s.index, "folder": str(folders[s.index]), "core_photos": len(s.core),
+                        "shared_photos": len(s.shared), **{k: v for k, v in r.items() if k not in ("group",)},
+                        "alignment": a.to_dict() if a else None})
+    registered = set()
+    for s in ok:
+        registered |= set(centres[s.index]) & set(s.core)
+    report = {"submodels": per_sub, "registered": len(registered),
+              "registered_photos": sorted(registered), "epsg": epsg, "origin_utm_m": [float(v) for v in origin],
+              "dsm_resolution_m": dsm_res, "ortho_resolution_m": ortho_res, "dense_points": points,
+              "cameras": cameras, "seams": seams.to_dict(), "dsm_grid": dsm_grid.to_dict(),
+              "ortho_grid": ortho_grid.to_dict() if ortho_grid else None,
+              "worker_peak_memory_mib": max((r.get("worker_peak_memory_mib") or 0.0) for r in results),
+              "merge_seconds": time.perf_counter() - t0, "merge_peak_memory_mib": peak_memory_mib(),
+              "outputs": outputs}
+    _report_png(out / "report.png", report, parts, origin, out / "orthophoto.png" if ortho_grid else None,
+                ortho_grid)
+    report["outputs"]["report_png"] = str(out / "report.png")
+    return report
+
+
+def _report_png(path: Path, report: dict, parts: list[Part], origin: np.ndarray, preview: Path | None, grid) -> None:
+    """The orthophoto with each submodel's core photos in its own colour, and per-submodel figures."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax, ax_t) = plt.subplots(1, 2, figsize=(13, 6), gridspec_kw={"width_ratios": [2, 1]})
+    if preview is not None and grid is not None:
+        import cv2
+
+        img = cv2.cvtColor(cv2.imread(str(preview), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGRA2RGBA)
+        w, s, e, n = grid.bounds_m
+        ax.imshow(img, extent=(w, e, s, n))
+    for part in parts:
+        en = part.core_en_m + origin
+        ax.scatter(en[:, 0], en[:, 1], s=10, label=f"submodel {part.index}")
+    ax.legend(fontsize=8, loc="upper right")
+    ax.set_xlabel("easting (m)")
+    ax.set_ylabel("northing (m)")
+    ax.ticklabel_format(useOffset=False, style="plain")
+    ax.set_title(f"{report['registered']} photos registered in {len(parts)} submodels, EPSG:{report['epsg']}",
+                 fontsize=10)
+    lines = []
+    for sub in report["submodels"]:
+        a = sub.get("alignment") or {}
+        lines.append(f"{sub['index']}: {sub.get('registered', 0)}/{sub.get('photos', 0)} reg, georef "
+                     f"{sub.get('georef_rms_m', float('nan')):.2f} m, align {a.get('method', '-')} "
+                     f"{a.get('rms_after_m', float('nan')):.3f} m, {sub.get('worker_peak_memory_mib', 0):.0f} MiB"
+                     + (f"\n   {sub['error']}" if sub.get("error") else ""))
+    for key, seam in report["seams"].items():
+        dz, sh = seam["dsm_median_difference_m"], seam["ortho_shift_px"]
+        lines.append(f"seam {key}: dz {dz if dz is None else round(dz, 3)} m, shift "
+                     f"{sh if sh is None else round(sh, 2)} px")
+    ax_t.axis("off")
+    ax_t.text(0, 1, "\n".join(lines), va="top", family="monospace", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
