@@ -1,13 +1,19 @@
-"""Align georeferenced submodels to each other through the photos they share.
+"""Align georeferenced submodels to each other and to the photos' GPS, all at once.
 
-Every submodel is already georeferenced to the photos' GPS on its own, so they agree to within the GPS
-fit; what remains (a shift of a few centimetres to decimetres, a small scale or tilt) would show as a
-height step or an image shift where two submodels meet. Each submodel is mapped onto the largest one by a
-similarity fitted to the camera centres of the photos both reconstructed (LO-RANSAC, pycolmap
-``estimate_sim3d_robust``, then least squares on the inliers), chained along the pairs that share the
-most photos (a maximum spanning tree). Too few shared photos, or shared photos on one line (the roll about
-it is then free), give a translation only (median of the differences). Coordinates are UTM metres minus a
-common origin (E, N, height AMSL), transforms 3x4 ``[sR | t]`` acting on column vectors.
+Every submodel is already georeferenced to its own photos' GPS, so they agree to within the GPS fit; what
+remains between two of them (a shift of centimetres to decimetres, a scale or tilt of a few thousandths)
+would show as a height step or an image shift where they meet. Fitting each submodel onto one reference
+through the photos they share removes the step, but a tilt fixed on a narrow shared band is extrapolated
+across the whole submodel (a rendered survey split in 4: ground 0.45 m low at the far side of a submodel
+tied to the reference by 14 photos at its edge). So every submodel k gets a small similarity T_k (rotation
+w_k, scale 1 + d_k, shift t_k about the survey's centre p0, linearised: they are corrections of
+thousandths), solved jointly by weighted least squares over
+- every photo two submodels share: T_i(c_i) = T_j(c_j), to ``SHARED_SIGMA_M`` (the models place a photo
+  to millimetres-centimetres), and
+- every photo's GPS: T_k(c_k) = gps, to the GPS sigmas (horizontal, vertical),
+with Huber weights (iterated) so a badly placed photo or a bad GPS fix does not pull. The overlaps then
+agree as tightly as the models allow, and the whole survey sits on all its GPS at once as one model would.
+Coordinates: UTM metres minus a common origin (E, N, height AMSL); transforms 3x4 ``[sR | t]``.
 """
 
 from __future__ import annotations
@@ -21,29 +27,31 @@ __all__ = ["Alignment", "align_submodels", "apply"]
 
 log = logging.getLogger(__name__)
 
-MIN_SHARED = 3  # shared registered photos needed to tie two submodels
-SIM3_MIN_SHARED = 4  # ... and to fit more than a translation
-ALIGN_MAX_ERROR_M = 1.0  # RANSAC inlier distance between the two models' camera centres
+SHARED_SIGMA_M = 0.02  # one photo's centre in two submodels: how well each model places it
+HUBER_K = 2.0  # residuals beyond this many sigmas are down-weighted
+IRLS_ROUNDS = 5
 
 
 @dataclass
 class Alignment:
-    """How one submodel was placed onto the reference: ``matrix`` (3x4, local metres), fitted to
-    ``parent`` through ``shared`` photos by ``method`` ("reference", "sim3", "translation", "none");
-    RMS of the shared camera centres' differences before and after (m)."""
+    """How one submodel was placed: ``matrix`` (3x4, local metres); ``shared`` photos it shares with other
+    submodels, the RMS of their centres' differences before and after (m); ``gps_rms_m`` its cameras' RMS
+    distance from their GPS after; ``scale`` and ``tilt_deg`` of the correction."""
 
     index: int
     matrix: np.ndarray = field(default_factory=lambda: np.hstack((np.eye(3), np.zeros((3, 1)))))
-    parent: int | None = None
-    method: str = "reference"
+    method: str = "joint"
     shared: int = 0
     rms_before_m: float = float("nan")
     rms_after_m: float = float("nan")
+    gps_rms_m: float = float("nan")
     scale: float = 1.0
+    tilt_deg: float = 0.0
 
     def to_dict(self) -> dict:
-        return {"index": self.index, "parent": self.parent, "method": self.method, "shared_photos": self.shared,
-                "rms_before_m": self.rms_before_m, "rms_after_m": self.rms_after_m, "scale": self.scale,
+        return {"index": self.index, "method": self.method, "shared_photos": self.shared,
+                "rms_before_m": self.rms_before_m, "rms_after_m": self.rms_after_m, "gps_rms_m": self.gps_rms_m,
+                "scale": self.scale, "tilt_deg": self.tilt_deg,
                 "translation_m": [float(v) for v in self.matrix[:, 3]],
                 "matrix": [[float(v) for v in row] for row in self.matrix]}
 
@@ -53,59 +61,93 @@ def apply(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.asarray(points, float) @ matrix[:, :3].T + matrix[:, 3]
 
 
-def _collinear(points: np.ndarray, ratio: float = 0.25) -> bool:
-    sv = np.linalg.svd(points[:, :2] - points[:, :2].mean(axis=0), compute_uv=False)
-    return sv[0] == 0 or sv[1] / sv[0] < ratio
+def _jacobian(d: np.ndarray) -> np.ndarray:
+    """(N, 3, 7) derivative of T(p) = p + w x d + s d + t (d = p - p0) by (w, s, t)."""
+    n = len(d)
+    jac = np.zeros((n, 3, 7))
+    x, y, z = d[:, 0], d[:, 1], d[:, 2]
+    # w x d = -[d]x w
+    jac[:, 0, 1], jac[:, 0, 2] = z, -y
+    jac[:, 1, 0], jac[:, 1, 2] = -z, x
+    jac[:, 2, 0], jac[:, 2, 1] = y, -x
+    jac[:, :, 3] = d
+    jac[:, :, 4:] = np.eye(3)
+    return jac
 
 
-def _fit(src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, str]:
-    """Transform taking ``src`` centres onto ``tgt`` (both (N, 3))."""
-    if len(src) >= SIM3_MIN_SHARED and not _collinear(tgt):
-        import pycolmap
+def _matrix(params: np.ndarray, p0: np.ndarray) -> np.ndarray:
+    """The 3x4 similarity of (w, s, t) about ``p0`` (rotation by Rodrigues: exact for any w)."""
+    import cv2
 
-        ransac = pycolmap.RANSACOptions()
-        ransac.max_error = ALIGN_MAX_ERROR_M
-        ransac.random_seed = 0
-        found = pycolmap.estimate_sim3d_robust(src, tgt, ransac)
-        if found and found["num_inliers"] >= SIM3_MIN_SHARED:
-            m = np.asarray(found["tgt_from_src"].matrix())
-            inl = np.linalg.norm(apply(m, src) - tgt, axis=1) <= ALIGN_MAX_ERROR_M
-            refined = pycolmap.estimate_sim3d(src[inl], tgt[inl]) if inl.sum() >= SIM3_MIN_SHARED else None
-            return np.asarray((refined or found["tgt_from_src"]).matrix()), "sim3"
-    shift = np.median(tgt - src, axis=0)
-    return np.hstack((np.eye(3), shift[:, None])), "translation"
+    rot, _ = cv2.Rodrigues(params[:3].reshape(3, 1))
+    a = (1.0 + params[3]) * rot
+    return np.hstack((a, (p0 - a @ p0 + params[4:])[:, None]))
 
 
-def align_submodels(centres: dict[int, dict[str, np.ndarray]]) -> dict[int, Alignment]:
-    """Place every submodel onto the one with the most registered photos. ``centres``: submodel index ->
-    photo name -> camera centre (3,) in local metres. A submodel sharing fewer than MIN_SHARED
-    registered photos with every placed one keeps its own georeference (method "none")."""
-    if not centres:
+def align_submodels(centres: dict[int, dict[str, np.ndarray]], gps: dict[str, np.ndarray],
+                    gps_sigma_m: tuple[float, float] = (2.0, 4.0)) -> dict[int, Alignment]:
+    """Place every submodel (see the module docs). ``centres``: submodel index -> photo name -> camera centre
+    (3,) in local metres; ``gps``: photo name -> its GPS position (3,) in the same frame (photos without
+    one are tied only through sharing)."""
+    ids = sorted(centres)
+    if not ids:
         return {}
-    ref = max(centres, key=lambda i: (len(centres[i]), -i))
-    placed = {ref: Alignment(ref)}
-    while len(placed) < len(centres):
-        best = None  # (shared count, -child, parent, child, names)
-        for p in sorted(placed):
-            for c in sorted(set(centres) - set(placed)):
-                names = sorted(set(centres[p]) & set(centres[c]))
-                key = (len(names), -c, -p)
-                if len(names) >= MIN_SHARED and (best is None or key > best[0]):
-                    best = (key, p, c, names)
-        if best is None:
-            for c in sorted(set(centres) - set(placed)):
-                log.warning("submodel %d shares fewer than %d registered photos with the others: kept on its own "
-                            "GPS georeference", c, MIN_SHARED)
-                placed[c] = Alignment(c, method="none")
-            break
-        _, p, c, names = best
-        src = np.array([centres[c][n] for n in names])
-        tgt = apply(placed[p].matrix, np.array([centres[p][n] for n in names]))
-        matrix, method = _fit(src, tgt)  # tgt is already in the reference frame
-        before = float(np.sqrt(np.mean(np.sum((src - tgt) ** 2, axis=1))))
-        after = float(np.sqrt(np.mean(np.sum((apply(matrix, src) - tgt) ** 2, axis=1))))
-        scale = float(np.cbrt(np.linalg.det(matrix[:, :3])))
-        placed[c] = Alignment(c, matrix, p, method, len(names), before, after, scale)
-        log.info("submodel %d onto %d: %s through %d shared photos, RMS %.3f -> %.3f m", c, p, method, len(names),
-                 before, after)
-    return placed
+    col = {k: 7 * i for i, k in enumerate(ids)}
+    every = np.array([c for k in ids for c in centres[k].values()])
+    p0 = every.mean(axis=0)
+    shared_rows, gps_rows = [], []  # (k, name) pairs
+    names_by = {k: set(centres[k]) for k in ids}
+    pairs = [(i, j, sorted(names_by[i] & names_by[j])) for a, i in enumerate(ids) for j in ids[a + 1:]]
+    pairs = [(i, j, names) for i, j, names in pairs if names]
+    for k in ids:
+        gps_rows += [(k, n) for n in sorted(centres[k]) if n in gps]
+    shared_rows = [(i, j, n) for i, j, names in pairs for n in names]
+    sig_gps = np.array([gps_sigma_m[0], gps_sigma_m[0], gps_sigma_m[1]], float)
+    n_rows = 3 * (len(shared_rows) + len(gps_rows))
+    a_mat = np.zeros((n_rows, 7 * len(ids)))
+    b_vec = np.zeros(n_rows)
+    sig = np.zeros(n_rows)
+    r = 0
+    for i, j, n in shared_rows:
+        ci, cj = centres[i][n], centres[j][n]
+        a_mat[r:r + 3, col[i]:col[i] + 7] = _jacobian((ci - p0)[None])[0]
+        a_mat[r:r + 3, col[j]:col[j] + 7] = -_jacobian((cj - p0)[None])[0]
+        b_vec[r:r + 3] = cj - ci
+        sig[r:r + 3] = SHARED_SIGMA_M
+        r += 3
+    for k, n in gps_rows:
+        c = centres[k][n]
+        a_mat[r:r + 3, col[k]:col[k] + 7] = _jacobian((c - p0)[None])[0]
+        b_vec[r:r + 3] = gps[n] - c
+        sig[r:r + 3] = sig_gps
+        r += 3
+    weights = np.ones(n_rows)
+    x = np.zeros(7 * len(ids))
+    for _ in range(IRLS_ROUNDS):  # Huber: w = min(1, k / |r / sigma|), per photo (3 rows together)
+        w = np.sqrt(weights) / sig
+        x, *_ = np.linalg.lstsq(a_mat * w[:, None], b_vec * w, rcond=None)
+        res = ((a_mat @ x - b_vec) / sig).reshape(-1, 3)
+        norm = np.linalg.norm(res, axis=1) / np.sqrt(3)
+        weights = np.repeat(np.minimum(1.0, HUBER_K / np.maximum(norm, 1e-12)), 3)
+    out = {}
+    for k in ids:
+        m = _matrix(x[col[k]:col[k] + 7], p0)
+        mine = [(i, j, n) for i, j, n in shared_rows if k in (i, j)]
+        before = [centres[i][n] - centres[j][n] for i, j, n in mine]
+        after = [apply(_matrix(x[col[i]:col[i] + 7], p0), centres[i][n][None])[0]
+                 - apply(_matrix(x[col[j]:col[j] + 7], p0), centres[j][n][None])[0] for i, j, n in mine]
+        own = [n for n in centres[k] if n in gps]
+        gres = apply(m, np.array([centres[k][n] for n in own])) - np.array([gps[n] for n in own]) if own else None
+        w = x[col[k]:col[k] + 3]
+        tilt = float(np.degrees(np.hypot(w[0], w[1])))
+        out[k] = Alignment(k, m, "joint", len({n for _, _, n in mine}), _rms(before), _rms(after),
+                           _rms(gres) if gres is not None else float("nan"), float(1.0 + x[col[k] + 3]), tilt)
+        log.info("submodel %d: %d shared photos RMS %.3f -> %.3f m, %.3f m from GPS, scale %+.4f %%, tilt %.3f deg",
+                 k, out[k].shared, out[k].rms_before_m, out[k].rms_after_m, out[k].gps_rms_m,
+                 100 * x[col[k] + 3], tilt)
+    return out
+
+
+def _rms(diffs) -> float:
+    d = np.asarray(diffs, float)
+    return float(np.sqrt(np.mean(np.sum(d.reshape(-1, 3) ** 2, axis=1)))) if d.size else float("nan")

@@ -26,7 +26,7 @@ def flags_named(func):
 
     from skyfix.errors import SkyfixError
 
-    pattern = re.compile(r"\b(" + "|".join(FLAG_NAMES) + r")\b")
+    pattern = re.compile(r"(?<![-\w])(" + "|".join(FLAG_NAMES) + r")\b")  # not inside a flag already named
 
     @functools.wraps(func)
     def run(args: argparse.Namespace) -> int:

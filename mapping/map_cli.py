@@ -31,6 +31,12 @@ def _map(args: argparse.Namespace) -> int:
         seed=args.seed, dense=not args.sparse_dsm, dense_scale=args.dense_scale,
         ortho_seams=not args.feathered_ortho, max_ortho_mpx=args.max_ortho_mpx,
         force=tuple(args.force or ()))
+    if args.split is not None:
+        return _map_split(config, args)
+    if args.scheduler is not None or args.split_overlap is not None or args.workers is not None:
+        from skyfix.errors import InputError
+
+        raise InputError("--split-overlap, --scheduler and --workers only apply with --split N")
     report = run_pipeline(config)
     out = sys.stdout
     out.write(f"registered {len(report.registered)}/{len(report.photos_used)} photos "
@@ -55,6 +61,37 @@ def _map(args: argparse.Namespace) -> int:
         out.write(f"{name}: {path}\n")
     out.write(f"{report.total_seconds:.0f} s, peak memory {report.peak_memory_mib:.0f} MiB\n")
     return 0 if report.registered else 1
+
+
+def _map_split(config, args: argparse.Namespace) -> int:
+    from skyfix.mapping.scale_out import ScaleOut, run_split
+
+    report = run_split(config, ScaleOut(args.split, overlap_m=args.split_overlap, scheduler=args.scheduler,
+                                        workers=args.workers))
+    out = sys.stdout
+    subs = report["submodels"]
+    out.write(f"registered {report['registered']}/{report['photos']} photos in {len(subs)} submodels "
+              f"({report['target_photos']} photos each, {report['overlap_m']:.0f} m overlap) on "
+              f"{report['scheduler']}\n")
+    for sub in subs:
+        if sub.get("error"):
+            out.write(f"  submodel {sub['index']}: failed: {sub['error']}\n")
+            continue
+        a = sub.get("alignment") or {}
+        out.write(f"  submodel {sub['index']}: {sub['registered']}/{sub['photos']} registered, georef RMS "
+                  f"{sub['georef_rms_m']:.2f} m, {a.get('shared_photos')} photos shared with others "
+                  f"({a.get('rms_before_m', float('nan')):.3f} -> {a.get('rms_after_m', float('nan')):.3f} m apart "
+                  f"aligned), {a.get('gps_rms_m', float('nan')):.2f} m from GPS, "
+                  f"worker peak {sub['worker_peak_memory_mib']:.0f} MiB\n")
+    for key, seam in report["seams"].items():
+        dz, shift = seam["dsm_median_difference_m"], seam["ortho_shift_px"]
+        out.write(f"  seam {key}: height step {'-' if dz is None else f'{dz:+.3f} m'}, "
+                  f"image shift {'-' if shift is None else f'{shift:.2f} px'}\n")
+    for name, path in report["outputs"].items():
+        out.write(f"{name}: {path}\n")
+    out.write(f"{report['total_seconds']:.0f} s, worker peak memory {report['worker_peak_memory_mib']:.0f} MiB, "
+              f"merge peak {report['merge_peak_memory_mib']:.0f} MiB\n")
+    return 0 if report["registered"] else 1
 
 
 def register_map(subparsers: argparse._SubParsersAction) -> None:
@@ -109,6 +146,18 @@ def register_map(subparsers: argparse._SubParsersAction) -> None:
                    help="threads of structure from motion's registration and bundle adjustments; 1 (the default) "
                         "gives the same model every run, more (-1: all cores) are faster on large surveys but "
                         "COLMAP's threads then race (parallel RANSAC, thread-ordered sums) and runs differ")
+    p.add_argument("--split", type=int, default=None, metavar="N",
+                   help="split the survey by GPS into submodels of about N photos, reconstruct them as Dask tasks "
+                        "and merge them (large surveys; needs the 'scale' extra)")
+    p.add_argument("--split-overlap", type=float, default=None, metavar="M",
+                   help="with --split: photos of neighbouring submodels within M metres are shared, to align them "
+                        "(default: 1.5x the median distance from a photo to its 4th-nearest neighbour)")
+    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:8786",
+                   help="with --split: a running Dask scheduler whose workers see OUT_DIR and the photos at the "
+                        "same paths (default: a local cluster on this machine)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="with --split and no --scheduler: local worker processes (default: the cores, at most "
+                        "the submodels)")
     p.add_argument("--force", action="append", choices=STAGES, metavar="STAGE",
                    help=f"re-run this stage and the ones after it (repeat); one of {', '.join(STAGES)}")
     from skyfix.mapping.cli_args import flags_named

@@ -40,8 +40,10 @@ def _raster_facts(path: Path) -> tuple[tuple[float, float, float, float], float,
         return (b.left, b.bottom, b.right, b.top), float(ds.transform.a), typical
 
 
-def merge_submodels(out: Path, subs, results: list[dict], by_name: dict, scale) -> dict:
-    """Align and merge the finished submodels in ``out/submodels`` into ``out``; the survey report (dict)."""
+def merge_submodels(out: Path, subs, results: list[dict], by_name: dict, scale,
+                    gps_sigma_m: tuple[float, ...] = (2.0, 4.0)) -> dict:
+    """Align and merge the finished submodels in ``out/submodels`` into ``out``; the survey report (dict).
+    ``gps_sigma_m``: the photos' GPS sigmas (horizontal, vertical) the joint alignment weighs them by."""
     from skyfix.mapping.model_files import write_preview_png
 
     t0 = time.perf_counter()
@@ -72,7 +74,9 @@ def merge_submodels(out: Path, subs, results: list[dict], by_name: dict, scale) 
         feats = json.loads((folders[s.index] / "cameras.geojson").read_text())["features"]
         centres[s.index] = {f["properties"]["photo"]: to_local(*([v] for v in f["geometry"]["coordinates"]))[0]
                             for f in feats}
-    alignments = align_submodels(centres)
+    gps = {n: to_local(np.array([p.gps_lon_deg]), np.array([p.gps_lat_deg]), np.array([p.gps_alt_amsl_m]))[0]
+           for n, p in by_name.items() if p.has_gps}
+    alignments = align_submodels(centres, gps, tuple(gps_sigma_m) if len(gps_sigma_m) == 2 else (2.0, 4.0))
     parts = [Part(s.index, folders[s.index], np.array([utm[n] - origin for n in s.core]), alignments[s.index].matrix)
              for s in ok]
     facts = {s.index: _raster_facts(folders[s.index] / "dsm.tif") for s in ok}
@@ -154,7 +158,7 @@ def _report_png(path: Path, report: dict, parts: list[Part], origin: np.ndarray,
     for sub in report["submodels"]:
         a = sub.get("alignment") or {}
         lines.append(f"{sub['index']}: {sub.get('registered', 0)}/{sub.get('photos', 0)} reg, georef "
-                     f"{sub.get('georef_rms_m', float('nan')):.2f} m, align {a.get('method', '-')} "
+                     f"{sub.get('georef_rms_m', float('nan')):.2f} m, overlap "
                      f"{a.get('rms_after_m', float('nan')):.3f} m, {sub.get('worker_peak_memory_mib', 0):.0f} MiB"
                      + (f"\n   {sub['error']}" if sub.get("error") else ""))
     for key, seam in report["seams"].items():

@@ -75,11 +75,14 @@ def _stage_task(config: PipelineConfig, group: str, *previous) -> dict:
         return next(p for p in previous if p.get("error"))
     if done.exists():
         return json.loads(done.read_text())
+    _reset_peak_memory()
     try:
         report = run_pipeline(dataclasses.replace(config, stop_after=group))
     except SkyfixError as exc:
         return {"error": f"{type(exc).__name__}: {exc}", "group": group}
-    result = {"group": group, "pid": os.getpid(), "worker_peak_memory_mib": peak_memory_mib(),
+    peak = max([_task_peak_memory_mib()] + [p.get("worker_peak_memory_mib", 0.0) for p in previous
+                                            if isinstance(p, dict)])
+    result = {"group": group, "pid": os.getpid(), "worker_peak_memory_mib": peak,
               "registered": len(report.registered), "photos": len(report.photos_used),
               "georef_rms_m": report.georef_rms_m, "stage_seconds": report.stage_seconds,
               "crs_epsg": report.crs_epsg, "resolution_cm": report.resolution_cm,
@@ -89,6 +92,25 @@ def _stage_task(config: PipelineConfig, group: str, *previous) -> dict:
         tmp.write_text(json.dumps(result, indent=1, default=float))
         os.replace(tmp, done)
     return result
+
+
+def _reset_peak_memory() -> None:
+    """Start this worker process's peak-memory count again (Linux: VmHWM), so each task reports its own."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+
+
+def _task_peak_memory_mib() -> float:
+    """Peak resident memory (MiB) since :func:`_reset_peak_memory`; elsewhere the process's lifetime peak."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return peak_memory_mib()
 
 
 def _auto_overlap_m(en: np.ndarray) -> float:
@@ -171,7 +193,7 @@ def run_split(config: PipelineConfig, scale: ScaleOut) -> dict:
     run_s = time.perf_counter() - start
     from skyfix.mapping.merge_stage import merge_submodels
 
-    report = merge_submodels(out, subs, results, by_name, scale)
+    report = merge_submodels(out, subs, results, by_name, scale, config.gps_sigma_m)
     report.update({"photos_dir": str(config.photos_dir), "photos": len(photos), "rejected": len(rejected),
                    "overlap_m": overlap_m, "target_photos": scale.target_photos,
                    "scheduler": scale.scheduler or "LocalCluster", "submodels_seconds": run_s,
@@ -194,16 +216,17 @@ def _run_on_dask(configs: list[PipelineConfig], scale: ScaleOut) -> list[dict]:
             cores = os.cpu_count() or 1
             threads = max(1, cores // len(client.scheduler_info()["workers"]))
             configs = [dataclasses.replace(c, threads=c.threads if c.threads > 0 else threads) for c in configs]
-        finals, run = [], uuid.uuid4().hex[:8]  # a new run's keys: a shared scheduler may still hold old ones
+        finals, every, run = [], [], uuid.uuid4().hex[:8]  # a new run's keys: a shared scheduler may hold old ones
         for cfg in configs:
             prev = None
             for group in STAGE_GROUPS:
                 key = f"skyfix-map-{run}-{Path(cfg.out_dir).name}-{group}"
                 prev = client.submit(_stage_task, cfg, group, *(() if prev is None else (prev,)), key=key,
                                      pure=False, retries=scale.retries)
+                every.append(prev)
             finals.append(prev)
-        with bar(desc="submodels", total=len(finals), unit="submodel") as progress:
-            for _ in as_completed(finals):
+        with bar(desc=f"{len(configs)} submodels", total=len(every), unit="stage") as progress:
+            for _ in as_completed(every):
                 progress.update(1)
         return client.gather(finals)
     finally:

@@ -72,39 +72,42 @@ def _sim3(yaw_deg: float, tilt_deg: float, scale: float, shift):
     return np.hstack((scale * rz @ rx, np.asarray(shift, float)[:, None]))
 
 
-def test_alignment_recovers_a_known_misplacement_despite_an_outlier():
+def test_joint_alignment_ties_the_overlap_and_keeps_the_whole_on_its_gps():
+    """Two submodels of a 6 x 6 grid share 12 photos; each was georeferenced with its own small error (a tilt,
+    a scale, a shift, as a GPS fit over part of the survey leaves). Joint alignment brings the shared photos
+    together to the models' own precision (1 cm noise here) and the whole onto the GPS (0.3 m noise on 36
+    photos), while one shared photo placed 2 m wrong in one submodel is outvoted."""
     rng = np.random.default_rng(0)
     names, en = _grid_survey(6, 6)
     truth = np.column_stack((en, 40.0 + rng.normal(0, 0.3, len(en))))
-    ref = {n: p for n, p in zip(names[:24], truth[:24], strict=True)}
-    # submodel 1 reconstructed the last 24 photos (12 shared) misplaced by a small similarity
-    misplace = _sim3(0.3, 0.2, 1.004, [0.25, -0.15, 0.4])
-    placed = apply(misplace, truth[12:]) + rng.normal(0, 0.01, (24, 3))
-    placed[3] += [0.0, 0.0, 2.0]  # one shared photo badly placed (2 m): RANSAC leaves it out
-    other = {n: p for n, p in zip(names[12:], placed, strict=True)}
-    out = align_submodels({0: ref, 1: other})
-    assert out[0].method == "reference" and out[1].parent == 0 and out[1].method == "sim3"
-    assert out[1].shared == 12
-    back = apply(out[1].matrix, placed)
-    good = np.ones(24, bool)
-    good[3] = False
-    # 1 cm of noise on each centre: the fit is good to a few millimetres (12 photos)
-    assert np.abs(back[good] - truth[12:][good]).max() < 0.04
-    assert out[1].rms_before_m > 0.4
-    assert out[1].scale == pytest.approx(1 / 1.004, abs=1e-3)
+    gps = {n: p + rng.normal(0, [0.3, 0.3, 0.3]) for n, p in zip(names, truth, strict=True)}
+    err0, err1 = _sim3(0.2, -0.15, 0.997, [0.3, 0.1, -0.2]), _sim3(-0.3, 0.2, 1.004, [0.25, -0.15, 0.4])
+    c0 = apply(err0, truth[:24]) + rng.normal(0, 0.01, (24, 3))
+    c1 = apply(err1, truth[12:]) + rng.normal(0, 0.01, (24, 3))
+    c1[3] += [0.0, 0.0, 2.0]  # IMG_0015 badly placed in submodel 1
+    centres = {0: dict(zip(names[:24], c0, strict=True)), 1: dict(zip(names[12:], c1, strict=True))}
+    out = align_submodels(centres, gps, (0.3, 0.3))
+    assert out[0].shared == out[1].shared == 12
+    assert out[0].rms_before_m > 0.3
+    a0, a1 = apply(out[0].matrix, c0[12:]), apply(out[1].matrix, c1[:12])
+    good = np.arange(12) != 3
+    assert np.abs(a0[good] - a1[good]).max() < 0.04  # 1 cm noise on each centre, 2 centres
+    placed = np.vstack((apply(out[0].matrix, c0), apply(out[1].matrix, c1[12:])))
+    # a least-squares fit of 14 parameters to 48 GPS fixes of 0.3 m: sqrt(14 / 48) x 0.3 = 0.16 m RMS expected
+    assert np.sqrt(np.mean(np.sum((placed - truth) ** 2, axis=1))) < 0.25
+    # against the truth each submodel was 0.2-0.5 m off before
+    assert np.sqrt(np.mean(np.sum((c1[12:] - truth[24:]) ** 2, axis=1))) > 0.3
 
 
-def test_alignment_on_one_shared_line_is_a_translation_and_an_isolated_part_keeps_its_own():
+def test_a_submodel_sharing_nothing_is_placed_on_its_gps_alone():
     names, en = _grid_survey(4, 5)
     pts = np.column_stack((en, np.full(len(en), 30.0)))
-    line = [n for n, p in zip(names, pts, strict=True) if p[0] == 28.0]
-    ref = {n: p for n, p in zip(names, pts, strict=True) if p[0] <= 28.0}  # the larger: the reference
-    other = {n: p + [0.1, 0.2, -0.3] for n, p in zip(names, pts, strict=True) if p[0] >= 28.0}
-    alone = {"x1.jpg": np.zeros(3), "x2.jpg": np.ones(3), "x3.jpg": np.full(3, 2.0)}
-    out = align_submodels({0: ref, 1: other, 2: alone})
-    assert out[1].method == "translation" and out[1].shared == len(line)
-    np.testing.assert_allclose(out[1].matrix[:, 3], [-0.1, -0.2, 0.3], atol=1e-9)
-    assert out[2].method == "none"
+    gps = dict(zip(names, pts, strict=True))
+    centres = {0: {n: gps[n] for n in names[:10]}, 1: {n: gps[n] + [0.5, -0.2, 0.3] for n in names[10:]}}
+    out = align_submodels(centres, gps)
+    assert out[1].shared == 0 and np.isnan(out[1].rms_after_m)
+    np.testing.assert_allclose(out[1].matrix[:, 3], [-0.5, 0.2, -0.3], atol=1e-6)
+    assert out[1].gps_rms_m < 1e-6
 
 
 def _write(path, data, grid: Grid, nodata=None):
@@ -219,3 +222,20 @@ def test_pipeline_stop_after_names_a_stage():
 
     with pytest.raises(ConfigurationError, match="stop_after"):
         PipelineConfig("a", "b", stop_after="nope")
+
+
+@pytest.mark.parametrize("flags, named", [
+    (["--split", "2"], "--split must be at least 3"),
+    (["--scheduler", "tcp://127.0.0.1:9"], "only apply with --split"),
+    (["--split", "10", "--workers", "0"], "--workers must be at least 1"),
+    (["--split", "10", "--split-overlap", "-1"], "--split-overlap must be >= 0"),
+    (["--split", "10", "--scheduler", "nothere"], "--scheduler must be an address"),
+])
+def test_map_split_flags_are_checked_up_front(flags, named, tmp_path, capsys):
+    from skyfix.cli import main
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    rc = main(["map", str(photos), "-o", str(tmp_path / "out"), *flags])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and named in err[0] and "Traceback" not in err[0], err
