@@ -25,13 +25,13 @@ import numpy as np
 from skyfix.errors import DataError
 from skyfix.mapping.align import apply
 from skyfix.mapping.grid import Grid
+from skyfix.mapping.model_files import PLY_DTYPE, ply_header
 
 __all__ = ["Part", "MergeStats", "merge_rasters", "merge_points", "merge_cameras", "read_ply_header"]
 
 log = logging.getLogger(__name__)
 
 DSM_NODATA = -9999.0
-PLY_DTYPE = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
 
 
 @dataclass
@@ -181,81 +181,89 @@ def merge_rasters(parts: list[Part], origin: np.ndarray, epsg: int, dsm_path: Pa
     ``dsm_res_m`` / ``ortho_res_m`` covering ``bounds_m`` (west, south, east, north; UTM m of ``epsg``).
     ``z_ref_m``: a typical ground height, where the alignments are evaluated horizontally (their tilts are
     small: the error is tilt x height range). ``on_block()`` is called after each block (progress)."""
+    stats = MergeStats()
+    west, south, east_b, north_b = bounds_m
+    dsm_grid = Grid.covering(epsg, west, south, east_b, north_b, dsm_res_m)
+    if not any(p.dsm.exists() for p in parts):
+        raise DataError("no submodel produced a DSM: nothing to merge")
+    _merge_raster(parts, "dsm", dsm_grid, origin, dsm_path, z_ref_m, dsm_band_m, block_px, stats, on_block)
+    ortho_grid = None
+    if ortho_path is not None and ortho_res_m:
+        ortho_grid = Grid.covering(epsg, west, south, east_b, north_b, ortho_res_m)
+        _merge_raster(parts, "ortho", ortho_grid, origin, ortho_path, z_ref_m, ortho_band_m, block_px, stats,
+                      on_block)
+    return dsm_grid, ortho_grid, stats
+
+
+def _merge_raster(parts: list[Part], kind: str, grid: Grid, origin: np.ndarray, path: Path, z_ref_m: float,
+                  band_m: float, block_px: int, stats: MergeStats, on_block) -> None:
+    """One merged raster (``kind`` "dsm" or "ortho") written block by block."""
     from rasterio.windows import Window
 
     from skyfix.mapping.geotiff import write_cog_blocks
 
-    stats = MergeStats()
-    west, south, east_b, north_b = bounds_m
-    dsm_grid = Grid.covering(epsg, west, south, east_b, north_b, dsm_res_m)
-    sources = [(p, _Raster(p.dsm, p, origin)) for p in parts if p.dsm.exists()]
-    if not sources:
-        raise DataError("no submodel produced a DSM: nothing to merge")
+    sources = [(p, _Raster(p.dsm if kind == "dsm" else p.ortho, p, origin)) for p in parts
+               if (p.dsm if kind == "dsm" else p.ortho).exists()]
+    ids = [p.index for p, _ in sources]
 
-    def dsm_blocks():
-        for r0, c0, h, w in _blocks(dsm_grid, block_px):
-            e, n = _cells(dsm_grid, origin, r0, c0, h, w)
-            vals = np.full((len(sources), h, w), np.nan, np.float32)
-            for i, (part, src) in enumerate(sources):
-                got = src.sample(e, n, z_ref_m)
-                if got is not None:
-                    z_s, es, ns = got
-                    m = part.matrix
-                    vals[i] = m[2, 0] * es + m[2, 1] * ns + m[2, 2] * z_s[0] + m[2, 3]
-            valid = np.isfinite(vals)
-            dist = _ownership([p for p, _ in sources], e, n, max(dsm_res_m, 1.0))
-            wts = _weights(dist, valid, dsm_band_m)
-            total = wts.sum(axis=0)
-            merged = np.where(total > 0, np.nansum(np.where(valid, vals, 0.0) * wts, axis=0) / np.maximum(total, 1e-9),
-                              np.nan)
-            _pair_heights(stats, [p.index for p, _ in sources], vals, valid)
+    def blocks():
+        for r0, c0, h, w in _blocks(grid, block_px):
+            e, n = _cells(grid, origin, r0, c0, h, w)
+            dist = _ownership([p for p, _ in sources], e, n, max(grid.resolution_m, 1.0))
+            out = _dsm_block(sources, e, n, z_ref_m, dist, band_m, ids, stats) if kind == "dsm" else \
+                _ortho_block(sources, e, n, z_ref_m, dist, band_m, ids, stats)
             if on_block:
                 on_block()
-            yield Window(c0, r0, w, h), np.where(np.isfinite(merged), merged, DSM_NODATA).astype(np.float32)[None]
+            yield Window(c0, r0, w, h), out
 
+    if kind == "dsm":
+        profile = {"count": 1, "dtype": "float32", "nodata": DSM_NODATA}
+        tags = {"units": "metre", "vertical_datum": "as recorded by the photos' GPS"}
+    else:
+        profile, tags = {"count": 4, "dtype": "uint8", "photometric": "RGB", "alpha": "YES"}, None
     try:
-        write_cog_blocks(dsm_path, {"width": dsm_grid.width, "height": dsm_grid.height, "count": 1,
-                                    "dtype": "float32", "crs": f"EPSG:{epsg}", "transform": dsm_grid.affine(),
-                                    "nodata": DSM_NODATA},
-                         dsm_blocks(), {"units": "metre", "vertical_datum": "as recorded by the photos' GPS"})
+        write_cog_blocks(path, {"width": grid.width, "height": grid.height, "crs": f"EPSG:{grid.epsg}",
+                                "transform": grid.affine(), **profile}, blocks(), tags)
     finally:
         for _, src in sources:
             src.close()
-    ortho_grid = None
-    if ortho_path is not None and ortho_res_m:
-        ortho_grid = Grid.covering(epsg, west, south, east_b, north_b, ortho_res_m)
-        osources = [(p, _Raster(p.ortho, p, origin)) for p in parts if p.ortho.exists()]
 
-        def ortho_blocks():
-            for r0, c0, h, w in _blocks(ortho_grid, block_px):
-                e, n = _cells(ortho_grid, origin, r0, c0, h, w)
-                imgs = np.zeros((len(osources), 4, h, w), np.uint8)
-                for i, (_, src) in enumerate(osources):
-                    got = src.sample(e, n, z_ref_m)
-                    if got is not None:
-                        imgs[i] = got[0]
-                valid = imgs[:, 3] >= 128
-                dist = _ownership([p for p, _ in osources], e, n, max(ortho_res_m, 1.0))
-                wts = _weights(dist, valid, ortho_band_m)
-                total = wts.sum(axis=0)
-                rgb = (imgs[:, :3].astype(np.float32) * wts[:, None]).sum(axis=0) / np.maximum(total, 1e-9)
-                out = np.zeros((4, h, w), np.uint8)
-                out[:3] = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
-                out[3] = np.where(total > 0, 255, 0)
-                out[:3, total <= 0] = 0
-                _pair_shift(stats, [p.index for p, _ in osources], imgs, valid)
-                if on_block:
-                    on_block()
-                yield Window(c0, r0, w, h), out
 
-        try:
-            write_cog_blocks(ortho_path, {"width": ortho_grid.width, "height": ortho_grid.height, "count": 4,
-                                          "dtype": "uint8", "crs": f"EPSG:{epsg}", "transform": ortho_grid.affine(),
-                                          "photometric": "RGB", "alpha": "YES"}, ortho_blocks())
-        finally:
-            for _, src in osources:
-                src.close()
-    return dsm_grid, ortho_grid, stats
+def _dsm_block(sources, e, n, z_ref_m, dist, band_m, ids, stats) -> np.ndarray:
+    """Merged heights (1, h, w) of one block: each source's aligned heights, blended by ownership."""
+    vals = np.full((len(sources),) + e.shape, np.nan, np.float32)
+    for i, (part, src) in enumerate(sources):
+        got = src.sample(e, n, z_ref_m)
+        if got is not None:
+            z_s, es, ns = got
+            m = part.matrix
+            vals[i] = m[2, 0] * es + m[2, 1] * ns + m[2, 2] * z_s[0] + m[2, 3]
+    valid = np.isfinite(vals)
+    wts = _weights(dist, valid, band_m)
+    total = wts.sum(axis=0)
+    merged = np.where(total > 0, (np.where(valid, vals, 0.0) * wts).sum(axis=0) / np.maximum(total, 1e-9),
+                      np.nan)
+    _pair_heights(stats, ids, vals, valid)
+    return np.where(np.isfinite(merged), merged, DSM_NODATA).astype(np.float32)[None]
+
+
+def _ortho_block(sources, e, n, z_ref_m, dist, band_m, ids, stats) -> np.ndarray:
+    """Merged RGBA (4, h, w) of one block: each source's aligned pixels, blended by ownership."""
+    imgs = np.zeros((len(sources), 4) + e.shape, np.uint8)
+    for i, (_, src) in enumerate(sources):
+        got = src.sample(e, n, z_ref_m)
+        if got is not None:
+            imgs[i] = got[0]
+    valid = imgs[:, 3] >= 128
+    wts = _weights(dist, valid, band_m)
+    total = wts.sum(axis=0)
+    rgb = (imgs[:, :3].astype(np.float32) * wts[:, None]).sum(axis=0) / np.maximum(total, 1e-9)
+    out = np.zeros((4,) + e.shape, np.uint8)
+    out[:3] = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+    out[3] = np.where(total > 0, 255, 0)
+    out[:3, total <= 0] = 0
+    _pair_shift(stats, ids, imgs, valid)
+    return out
 
 
 def _pair_heights(stats: MergeStats, ids: list[int], vals: np.ndarray, valid: np.ndarray,
@@ -359,12 +367,8 @@ def merge_points(parts: list[Part], origin: np.ndarray, out_path: Path, chunk: i
                 out.write(rec.tobytes())
                 total += len(rec)
             del cloud
-    header = ("ply\nformat binary_little_endian 1.0\n"
-              "comment coordinates: UTM easting/northing metres, height metres (AMSL)\n"
-              f"element vertex {total}\nproperty double x\nproperty double y\nproperty double z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
     with open(out_path, "wb") as out, open(body, "rb") as src:
-        out.write(header.encode("ascii"))
+        out.write(ply_header(total))
         shutil.copyfileobj(src, out, 16 << 20)
     os.unlink(body)
     return total

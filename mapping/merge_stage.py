@@ -40,12 +40,40 @@ def _raster_facts(path: Path) -> tuple[tuple[float, float, float, float], float,
         return (b.left, b.bottom, b.right, b.top), float(ds.transform.a), typical
 
 
+class _LocalUtm:
+    """UTM metres of ``epsg`` minus an origin near the photos (heights unchanged), and back to WGS84."""
+
+    def __init__(self, epsg: int, by_name: dict) -> None:
+        self.fwd, self.back = _transformers(epsg)
+        self.utm = {n: np.array(self.fwd.transform(p.gps_lon_deg, p.gps_lat_deg)) for n, p in by_name.items()}
+        self.origin = np.round(np.mean(list(self.utm.values()), axis=0), -1)
+
+    def to_local(self, lon, lat, alt) -> np.ndarray:
+        e, n = self.fwd.transform(lon, lat)
+        return np.stack((np.asarray(e) - self.origin[0], np.asarray(n) - self.origin[1], np.asarray(alt, float)),
+                        axis=1)
+
+    def to_geodetic(self, xyz: np.ndarray):
+        lon, lat = self.back.transform(xyz[:, 0] + self.origin[0], xyz[:, 1] + self.origin[1])
+        return lon, lat, xyz[:, 2]
+
+
+def _preview(tif: Path, png: Path) -> None:
+    """A PNG of at most 2000 px from the COG's overviews (never the full raster in memory)."""
+    import rasterio
+
+    from skyfix.mapping.model_files import write_preview_png
+
+    with rasterio.open(tif) as ds:
+        k = max(1, max(ds.width, ds.height) // 2000)
+        preview = ds.read(out_shape=(4, max(1, ds.height // k), max(1, ds.width // k)))
+    write_preview_png(png, np.ascontiguousarray(np.moveaxis(preview, 0, 2)))
+
+
 def merge_submodels(out: Path, subs, results: list[dict], by_name: dict, scale,
                     gps_sigma_m: tuple[float, ...] = (2.0, 4.0)) -> dict:
     """Align and merge the finished submodels in ``out/submodels`` into ``out``; the survey report (dict).
     ``gps_sigma_m``: the photos' GPS sigmas (horizontal, vertical) the joint alignment weighs them by."""
-    from skyfix.mapping.model_files import write_preview_png
-
     t0 = time.perf_counter()
     folders = {s.index: out / "submodels" / s.name for s in subs}
     ok = [s for s, r in zip(subs, results, strict=True) if not r.get("error") and (folders[s.index] / "dsm.tif").exists()]
@@ -57,18 +85,8 @@ def merge_submodels(out: Path, subs, results: list[dict], by_name: dict, scale,
         raise DataError(f"submodels fell in different UTM zones {sorted(epsgs)}: merging across zones is not "
                         "supported; split the survey by zone and run each")
     epsg = epsgs.pop()
-    fwd, back = _transformers(epsg)
-    utm = {n: np.array(fwd.transform(p.gps_lon_deg, p.gps_lat_deg)) for n, p in by_name.items()}
-    origin = np.round(np.mean(list(utm.values()), axis=0), -1)
-
-    def to_local(lon, lat, alt):
-        e, n = fwd.transform(lon, lat)
-        return np.stack((np.asarray(e) - origin[0], np.asarray(n) - origin[1], np.asarray(alt, float)), axis=1)
-
-    def to_geodetic(xyz):
-        lon, lat = back.transform(xyz[:, 0] + origin[0], xyz[:, 1] + origin[1])
-        return lon, lat, xyz[:, 2]
-
+    local = _LocalUtm(epsg, by_name)
+    utm, origin, to_local, to_geodetic = local.utm, local.origin, local.to_local, local.to_geodetic
     centres = {}
     for s in ok:
         feats = json.loads((folders[s.index] / "cameras.geojson").read_text())["features"]
@@ -101,19 +119,12 @@ def merge_submodels(out: Path, subs, results: list[dict], by_name: dict, scale,
     outputs = {"dsm": str(out / "dsm.tif"), "points": str(out / "points.ply"),
                "cameras": str(out / "cameras.geojson"), "report": str(out / "report.json")}
     if ortho_grid is not None:
-        import rasterio
-
-        with rasterio.open(out / "orthophoto.tif") as ds:
-            k = max(1, max(ds.width, ds.height) // 2000)
-            preview = ds.read(out_shape=(4, max(1, ds.height // k), max(1, ds.width // k)))
-        write_preview_png(out / "orthophoto.png", np.ascontiguousarray(np.moveaxis(preview, 0, 2)))
+        _preview(out / "orthophoto.tif", out / "orthophoto.png")
         outputs.update(orthophoto=str(out / "orthophoto.tif"), orthophoto_png=str(out / "orthophoto.png"))
-    per_sub = []
-    for s, r in zip(subs, results, strict=True):
-        a = alignments.get(s.index)
-        per_sub.append({"index": s.index, "folder": str(folders[s.index]), "core_photos": len(s.core),
-                        "shared_photos": len(s.shared), **{k: v for k, v in r.items() if k not in ("group",)},
-                        "alignment": a.to_dict() if a else None})
+    per_sub = [{"index": s.index, "folder": str(folders[s.index]), "core_photos": len(s.core),
+                "shared_photos": len(s.shared), **{k: v for k, v in r.items() if k != "group"},
+                "alignment": alignments[s.index].to_dict() if s.index in alignments else None}
+               for s, r in zip(subs, results, strict=True)]
     registered = set()
     for s in ok:
         registered |= set(centres[s.index]) & set(s.core)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_cameras_geojson", "write_ply", "write_preview_png"]
+__all__ = ["PLY_DTYPE", "ply_header", "write_cameras_geojson", "write_ply", "write_preview_png"]
 
 
 def write_preview_png(path: str | os.PathLike, rgba: np.ndarray, max_side_px: int = 2000) -> None:
@@ -23,18 +23,26 @@ def write_preview_png(path: str | os.PathLike, rgba: np.ndarray, max_side_px: in
     cv2.imwrite(str(path), cv2.cvtColor(small, cv2.COLOR_RGBA2BGRA))
 
 
+#: one vertex of the pipeline's PLY clouds (binary little endian)
+PLY_DTYPE = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+
+
+def ply_header(n: int) -> bytes:
+    """The header of a cloud of ``n`` :data:`PLY_DTYPE` vertices (UTM metres, heights AMSL)."""
+    return ("ply\nformat binary_little_endian 1.0\n"
+            "comment coordinates: UTM easting/northing metres, height metres (AMSL)\n"
+            f"element vertex {n}\nproperty double x\nproperty double y\nproperty double z\n"
+            "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n").encode("ascii")
+
+
 def write_ply(path: str | os.PathLike, xyz: np.ndarray, rgb: np.ndarray) -> None:
     """Binary little-endian PLY of ``(N, 3)`` float64 coordinates and ``(N, 3)`` uint8 colours."""
     n = len(xyz)
-    header = ("ply\nformat binary_little_endian 1.0\n"
-              "comment coordinates: UTM easting/northing metres, height metres (AMSL)\n"
-              f"element vertex {n}\nproperty double x\nproperty double y\nproperty double z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
-    rec = np.empty(n, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+    rec = np.empty(n, dtype=PLY_DTYPE)
     rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     rec["r"], rec["g"], rec["b"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
     with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
+        fh.write(ply_header(n))
         fh.write(rec.tobytes())
 
 

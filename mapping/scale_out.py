@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from skyfix import validate
-from skyfix.errors import DataError, InputError, SkyfixError
+from skyfix.errors import ConfigurationError, DataError, InputError, SkyfixError
 from skyfix.mapping.pipeline import PipelineConfig, run_pipeline
 from skyfix.mapping.report import peak_memory_mib
 
@@ -141,7 +141,10 @@ def _link_photos(folder: Path, paths: list[str]) -> None:
 
 
 def _client(scale: ScaleOut, n_submodels: int):
-    from distributed import Client, LocalCluster
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as exc:
+        raise ConfigurationError("--split runs on Dask, which is not installed: pip install 'skyfix[scale]'") from exc
 
     if scale.scheduler:
         try:

@@ -28,6 +28,9 @@ from skyfix.datasets.survey_scene import make_scene, write_survey
 from skyfix.mapping.pipeline import PipelineConfig, run_pipeline
 
 LINES, PER_LINE = 10, 10
+# Minutes of work: rendering 100 photos, one model to its georeference, four submodels of 42 photos on two
+# worker processes and a re-run after one is killed (quiet 2-core machine: ~6 min; two suites at once: ~12)
+pytestmark = pytest.mark.timeout(1800)
 
 
 @pytest.fixture(scope="module")

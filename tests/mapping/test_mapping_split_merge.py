@@ -207,7 +207,7 @@ def test_points_merge_keeps_each_ground_once_and_streams(tmp_path):
     count = merge_points(parts, origin, tmp_path / "merged.ply", chunk=97)
     n, offset = read_ply_header(tmp_path / "merged.ply")
     assert n == count
-    from skyfix.mapping.merge import PLY_DTYPE
+    from skyfix.mapping.model_files import PLY_DTYPE
 
     rec = np.fromfile(tmp_path / "merged.ply", PLY_DTYPE, offset=offset)
     east = rec["x"] - origin[0]
