@@ -10,9 +10,17 @@ w_k, scale 1 + d_k, shift t_k about the survey's centre p0, linearised: they are
 thousandths), solved jointly by weighted least squares over
 - every photo two submodels share: T_i(c_i) = T_j(c_j), to ``SHARED_SIGMA_M`` (the models place a photo
   to millimetres-centimetres), and
-- every photo's GPS: T_k(c_k) = gps, to the GPS sigmas (horizontal, vertical),
-with Huber weights (iterated) so a badly placed photo or a bad GPS fix does not pull. The overlaps then
-agree as tightly as the models allow, and the whole survey sits on all its GPS at once as one model would.
+- every camera where its own submodel's georeference put it: T_k(c_k) = c_k, to the GPS sigmas
+  (horizontal, vertical). Each submodel was fitted to its photos' GPS by least squares (after removing
+  their time lag, :mod:`skyfix.mapping.gps_lag`), so near that fit its GPS residuals are orthogonal to any
+  small similarity: moving it away from its own cameras costs what moving it away from its GPS costs, without
+  the GPS noise and lag. (Raw GPS here, tried first, pulled both Seneca submodels to a 3 % smaller scale:
+  a 1-2 s lag shifts the tags along alternating lines.)
+leaving out, after each solve, a shared photo the two submodels still place more than ``SHARED_OUTLIER_M``
+(and 3x the median) apart: a photo placed by another model inside one submodel (Seneca: three photos 5 m
+off) would otherwise be worth shrinking both submodels by 2 % (a Huber weight still lets a 5 m residual
+at a 2 cm sigma pull hard). The overlaps then agree as tightly as the models allow, and each submodel moves no further from its
+own georeference than that takes, the larger ones least.
 Coordinates: UTM metres minus a common origin (E, N, height AMSL); transforms 3x4 ``[sR | t]``.
 """
 
@@ -28,15 +36,15 @@ __all__ = ["Alignment", "align_submodels", "apply"]
 log = logging.getLogger(__name__)
 
 SHARED_SIGMA_M = 0.02  # one photo's centre in two submodels: how well each model places it
-HUBER_K = 2.0  # residuals beyond this many sigmas are down-weighted
+SHARED_OUTLIER_M = 0.5  # a shared photo the submodels place further apart than this after the fit is left out
 IRLS_ROUNDS = 5
 
 
 @dataclass
 class Alignment:
     """How one submodel was placed: ``matrix`` (3x4, local metres); ``shared`` photos it shares with other
-    submodels, the RMS of their centres' differences before and after (m); ``gps_rms_m`` its cameras' RMS
-    distance from their GPS after; ``scale`` and ``tilt_deg`` of the correction."""
+    submodels, the RMS of their centres' differences before and after (m); ``moved_rms_m`` how far its
+    cameras moved; ``scale`` and ``tilt_deg`` of the correction."""
 
     index: int
     matrix: np.ndarray = field(default_factory=lambda: np.hstack((np.eye(3), np.zeros((3, 1)))))
@@ -44,13 +52,13 @@ class Alignment:
     shared: int = 0
     rms_before_m: float = float("nan")
     rms_after_m: float = float("nan")
-    gps_rms_m: float = float("nan")
+    moved_rms_m: float = float("nan")
     scale: float = 1.0
     tilt_deg: float = 0.0
 
     def to_dict(self) -> dict:
         return {"index": self.index, "method": self.method, "shared_photos": self.shared,
-                "rms_before_m": self.rms_before_m, "rms_after_m": self.rms_after_m, "gps_rms_m": self.gps_rms_m,
+                "rms_before_m": self.rms_before_m, "rms_after_m": self.rms_after_m, "moved_rms_m": self.moved_rms_m,
                 "scale": self.scale, "tilt_deg": self.tilt_deg,
                 "translation_m": [float(v) for v in self.matrix[:, 3]],
                 "matrix": [[float(v) for v in row] for row in self.matrix]}
@@ -84,11 +92,11 @@ def _matrix(params: np.ndarray, p0: np.ndarray) -> np.ndarray:
     return np.hstack((a, (p0 - a @ p0 + params[4:])[:, None]))
 
 
-def align_submodels(centres: dict[int, dict[str, np.ndarray]], gps: dict[str, np.ndarray],
+def align_submodels(centres: dict[int, dict[str, np.ndarray]],
                     gps_sigma_m: tuple[float, float] = (2.0, 4.0)) -> dict[int, Alignment]:
     """Place every submodel (see the module docs). ``centres``: submodel index -> photo name -> camera centre
-    (3,) in local metres; ``gps``: photo name -> its GPS position (3,) in the same frame (photos without
-    one are tied only through sharing)."""
+    (3,) in local metres, as the submodel's own georeference put it; ``gps_sigma_m``: the GPS sigmas
+    (horizontal, vertical) that georeference was fitted with."""
     ids = sorted(centres)
     if not ids:
         return {}
@@ -100,7 +108,7 @@ def align_submodels(centres: dict[int, dict[str, np.ndarray]], gps: dict[str, np
     pairs = [(i, j, sorted(names_by[i] & names_by[j])) for a, i in enumerate(ids) for j in ids[a + 1:]]
     pairs = [(i, j, names) for i, j, names in pairs if names]
     for k in ids:
-        gps_rows += [(k, n) for n in sorted(centres[k]) if n in gps]
+        gps_rows += [(k, n) for n in sorted(centres[k])]
     shared_rows = [(i, j, n) for i, j, names in pairs for n in names]
     sig_gps = np.array([gps_sigma_m[0], gps_sigma_m[0], gps_sigma_m[1]], float)
     n_rows = 3 * (len(shared_rows) + len(gps_rows))
@@ -118,17 +126,23 @@ def align_submodels(centres: dict[int, dict[str, np.ndarray]], gps: dict[str, np
     for k, n in gps_rows:
         c = centres[k][n]
         a_mat[r:r + 3, col[k]:col[k] + 7] = _jacobian((c - p0)[None])[0]
-        b_vec[r:r + 3] = gps[n] - c
+        b_vec[r:r + 3] = 0.0  # stay where the submodel's own GPS fit put it
         sig[r:r + 3] = sig_gps
         r += 3
     weights = np.ones(n_rows)
     x = np.zeros(7 * len(ids))
-    for _ in range(IRLS_ROUNDS):  # Huber: w = min(1, k / |r / sigma|), per photo (3 rows together)
+    n_shared = 3 * len(shared_rows)
+    for _ in range(IRLS_ROUNDS):
         w = np.sqrt(weights) / sig
         x, *_ = np.linalg.lstsq(a_mat * w[:, None], b_vec * w, rcond=None)
-        res = ((a_mat @ x - b_vec) / sig).reshape(-1, 3)
-        norm = np.linalg.norm(res, axis=1) / np.sqrt(3)
-        weights = np.repeat(np.minimum(1.0, HUBER_K / np.maximum(norm, 1e-12)), 3)
+        if not n_shared:
+            break
+        apart = np.linalg.norm((a_mat[:n_shared] @ x - b_vec[:n_shared]).reshape(-1, 3), axis=1)
+        keep = apart <= max(SHARED_OUTLIER_M, 3.0 * float(np.median(apart)))
+        new = np.concatenate((np.repeat(keep.astype(float), 3), np.ones(n_rows - n_shared)))
+        if np.array_equal(new, weights):
+            break
+        weights = new
     out = {}
     for k in ids:
         m = _matrix(x[col[k]:col[k] + 7], p0)
@@ -136,14 +150,13 @@ def align_submodels(centres: dict[int, dict[str, np.ndarray]], gps: dict[str, np
         before = [centres[i][n] - centres[j][n] for i, j, n in mine]
         after = [apply(_matrix(x[col[i]:col[i] + 7], p0), centres[i][n][None])[0]
                  - apply(_matrix(x[col[j]:col[j] + 7], p0), centres[j][n][None])[0] for i, j, n in mine]
-        own = [n for n in centres[k] if n in gps]
-        gres = apply(m, np.array([centres[k][n] for n in own])) - np.array([gps[n] for n in own]) if own else None
+        own = np.array(list(centres[k].values()))
         w = x[col[k]:col[k] + 3]
         tilt = float(np.degrees(np.hypot(w[0], w[1])))
         out[k] = Alignment(k, m, "joint", len({n for _, _, n in mine}), _rms(before), _rms(after),
-                           _rms(gres) if gres is not None else float("nan"), float(1.0 + x[col[k] + 3]), tilt)
-        log.info("submodel %d: %d shared photos RMS %.3f -> %.3f m, %.3f m from GPS, scale %+.4f %%, tilt %.3f deg",
-                 k, out[k].shared, out[k].rms_before_m, out[k].rms_after_m, out[k].gps_rms_m,
+                           _rms(apply(m, own) - own), float(1.0 + x[col[k] + 3]), tilt)
+        log.info("submodel %d: %d shared photos RMS %.3f -> %.3f m, cameras moved %.3f m, scale %+.4f %%, "
+                 "tilt %.3f deg", k, out[k].shared, out[k].rms_before_m, out[k].rms_after_m, out[k].moved_rms_m,
                  100 * x[col[k] + 3], tilt)
     return out
 

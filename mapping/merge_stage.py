@@ -92,9 +92,7 @@ def merge_submodels(out: Path, subs, results: list[dict], by_name: dict, scale,
         feats = json.loads((folders[s.index] / "cameras.geojson").read_text())["features"]
         centres[s.index] = {f["properties"]["photo"]: to_local(*([v] for v in f["geometry"]["coordinates"]))[0]
                             for f in feats}
-    gps = {n: to_local(np.array([p.gps_lon_deg]), np.array([p.gps_lat_deg]), np.array([p.gps_alt_amsl_m]))[0]
-           for n, p in by_name.items() if p.has_gps}
-    alignments = align_submodels(centres, gps, tuple(gps_sigma_m) if len(gps_sigma_m) == 2 else (2.0, 4.0))
+    alignments = align_submodels(centres, tuple(gps_sigma_m) if len(gps_sigma_m) == 2 else (2.0, 4.0))
     parts = [Part(s.index, folders[s.index], np.array([utm[n] - origin for n in s.core]), alignments[s.index].matrix)
              for s in ok]
     facts = {s.index: _raster_facts(folders[s.index] / "dsm.tif") for s in ok}
