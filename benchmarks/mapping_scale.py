@@ -97,7 +97,8 @@ def main() -> int:
             a = s.get("alignment") or {}
             print(f"  submodel {s['index']}: {s.get('registered')}/{s.get('photos')} registered, georef RMS "
                   f"{s.get('georef_rms_m', math.nan):.2f} m, {a.get('shared_photos')} photos shared: RMS "
-                  f"{a.get('rms_before_m')} -> {a.get('rms_after_m')} m apart, cameras moved {a.get('moved_rms_m')} m, "
+                  f"{a.get('rms_before_m')} -> {a.get('rms_after_m')} m apart (left out: {', '.join(a.get('left_out') or []) or 'none'}), cameras moved "
+                  f"{a.get('moved_rms_m')} m, "
                   f"worker peak {s.get('worker_peak_memory_mib', 0):.0f} MiB, stages "
                   + ", ".join(f"{k} {v:.0f}" for k, v in (s.get("stage_seconds") or {}).items()) + " s"
                   + (f"; FAILED: {s['error']}" if s.get("error") else ""))

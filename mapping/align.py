@@ -43,8 +43,9 @@ IRLS_ROUNDS = 5
 @dataclass
 class Alignment:
     """How one submodel was placed: ``matrix`` (3x4, local metres); ``shared`` photos it shares with other
-    submodels, the RMS of their centres' differences before and after (m); ``moved_rms_m`` how far its
-    cameras moved; ``scale`` and ``tilt_deg`` of the correction."""
+    submodels, the RMS of their centres' differences before and after (m; after: over those kept),
+    ``left_out`` the shared photos left out as placed too far apart; ``moved_rms_m`` how far its cameras
+    moved; ``scale`` and ``tilt_deg`` of the correction."""
 
     index: int
     matrix: np.ndarray = field(default_factory=lambda: np.hstack((np.eye(3), np.zeros((3, 1)))))
@@ -55,11 +56,12 @@ class Alignment:
     moved_rms_m: float = float("nan")
     scale: float = 1.0
     tilt_deg: float = 0.0
+    left_out: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {"index": self.index, "method": self.method, "shared_photos": self.shared,
                 "rms_before_m": self.rms_before_m, "rms_after_m": self.rms_after_m, "moved_rms_m": self.moved_rms_m,
-                "scale": self.scale, "tilt_deg": self.tilt_deg,
+                "scale": self.scale, "tilt_deg": self.tilt_deg, "left_out": list(self.left_out),
                 "translation_m": [float(v) for v in self.matrix[:, 3]],
                 "matrix": [[float(v) for v in row] for row in self.matrix]}
 
@@ -144,17 +146,19 @@ def align_submodels(centres: dict[int, dict[str, np.ndarray]],
             break
         weights = new
     out = {}
+    kept = weights[:n_shared:3] > 0
     for k in ids:
         m = _matrix(x[col[k]:col[k] + 7], p0)
-        mine = [(i, j, n) for i, j, n in shared_rows if k in (i, j)]
-        before = [centres[i][n] - centres[j][n] for i, j, n in mine]
+        mine = [(i, j, n, ok) for (i, j, n), ok in zip(shared_rows, kept, strict=True) if k in (i, j)]
+        before = [centres[i][n] - centres[j][n] for i, j, n, _ in mine]
         after = [apply(_matrix(x[col[i]:col[i] + 7], p0), centres[i][n][None])[0]
-                 - apply(_matrix(x[col[j]:col[j] + 7], p0), centres[j][n][None])[0] for i, j, n in mine]
+                 - apply(_matrix(x[col[j]:col[j] + 7], p0), centres[j][n][None])[0] for i, j, n, ok in mine if ok]
         own = np.array(list(centres[k].values()))
         w = x[col[k]:col[k] + 3]
         tilt = float(np.degrees(np.hypot(w[0], w[1])))
-        out[k] = Alignment(k, m, "joint", len({n for _, _, n in mine}), _rms(before), _rms(after),
-                           _rms(apply(m, own) - own), float(1.0 + x[col[k] + 3]), tilt)
+        out[k] = Alignment(k, m, "joint", len({n for _, _, n, _ in mine}), _rms(before), _rms(after),
+                           _rms(apply(m, own) - own), float(1.0 + x[col[k] + 3]), tilt,
+                           sorted({n for _, _, n, ok in mine if not ok}))
         log.info("submodel %d: %d shared photos RMS %.3f -> %.3f m, cameras moved %.3f m, scale %+.4f %%, "
                  "tilt %.3f deg", k, out[k].shared, out[k].rms_before_m, out[k].rms_after_m, out[k].moved_rms_m,
                  100 * x[col[k] + 3], tilt)

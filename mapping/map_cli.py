@@ -81,7 +81,7 @@ def _map_split(config, args: argparse.Namespace) -> int:
         out.write(f"  submodel {sub['index']}: {sub['registered']}/{sub['photos']} registered, georef RMS "
                   f"{sub['georef_rms_m']:.2f} m, {a.get('shared_photos')} photos shared with others "
                   f"({a.get('rms_before_m', float('nan')):.3f} -> {a.get('rms_after_m', float('nan')):.3f} m apart "
-                  f"aligned, cameras moved {a.get('moved_rms_m', float('nan')):.2f} m), "
+                  f"aligned, {len(a.get('left_out') or [])} left out, cameras moved {a.get('moved_rms_m', float('nan')):.2f} m), "
                   f"worker peak {sub['worker_peak_memory_mib']:.0f} MiB\n")
     for key, seam in report["seams"].items():
         dz, shift = seam["dsm_median_difference_m"], seam["ortho_shift_px"]

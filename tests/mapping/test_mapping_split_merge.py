@@ -103,6 +103,7 @@ def test_joint_alignment_ties_the_overlap_and_leaves_each_submodel_near_its_gps_
     centres = {0: dict(zip(names[:24], c0, strict=True)), 1: dict(zip(names[12:], c1, strict=True))}
     out = align_submodels(centres, (0.3, 0.3))
     assert out[0].shared == out[1].shared == 12
+    assert out[0].left_out == out[1].left_out == ["IMG_0015.jpg"]
     good = np.arange(12) != 3
     assert np.sqrt(np.mean(np.sum((c0[12:] - c1[:12])[good] ** 2, axis=1))) > 0.4  # apart before
     a0, a1 = apply(out[0].matrix, c0[12:]), apply(out[1].matrix, c1[:12])
