@@ -8,8 +8,11 @@ across the whole submodel (a rendered survey split in 4: ground 0.45 m low at th
 tied to the reference by 14 photos at its edge). So every submodel k gets a small similarity T_k (rotation
 w_k, scale 1 + d_k, shift t_k about the survey's centre p0, linearised: they are corrections of
 thousandths), solved jointly by weighted least squares over
-- every photo two submodels share: T_i(c_i) = T_j(c_j), to ``SHARED_SIGMA_M`` (the models place a photo
-  to millimetres-centimetres), and
+- every photo two submodels share: T_i(c_i) = T_j(c_j), to a sigma estimated from the fit itself (the RMS
+  per axis of the kept shared photos' differences, at least ``SHARED_SIGMA_M``): models that differ in
+  shape by decimetres (Seneca) must not be held to centimetres, or shrinking every submodel about the
+  centre shortens their differences more than it costs (a 10 % shrink, cameras moved 10 m, on Seneca split
+  in 3 at a fixed 2 cm), and
 - every camera where its own submodel's georeference put it: T_k(c_k) = c_k, to the GPS sigmas
   (horizontal, vertical). Each submodel was fitted to its photos' GPS by least squares (after removing
   their time lag, :mod:`skyfix.mapping.gps_lag`), so near that fit its GPS residuals are orthogonal to any
@@ -35,7 +38,7 @@ __all__ = ["Alignment", "align_submodels", "apply"]
 
 log = logging.getLogger(__name__)
 
-SHARED_SIGMA_M = 0.02  # one photo's centre in two submodels: how well each model places it
+SHARED_SIGMA_M = 0.02  # one photo's centre in two submodels: at best (then re-estimated from the fit)
 SHARED_OUTLIER_M = 0.5  # a shared photo the submodels place further apart than this after the fit is left out
 IRLS_ROUNDS = 5
 
@@ -142,9 +145,10 @@ def align_submodels(centres: dict[int, dict[str, np.ndarray]],
         apart = np.linalg.norm((a_mat[:n_shared] @ x - b_vec[:n_shared]).reshape(-1, 3), axis=1)
         keep = apart <= max(SHARED_OUTLIER_M, 3.0 * float(np.median(apart)))
         new = np.concatenate((np.repeat(keep.astype(float), 3), np.ones(n_rows - n_shared)))
-        if np.array_equal(new, weights):
+        sigma = max(SHARED_SIGMA_M, float(np.sqrt(np.mean(apart[keep] ** 2) / 3.0))) if keep.any() else SHARED_SIGMA_M
+        if np.array_equal(new, weights) and abs(sigma - sig[0]) <= 0.05 * sig[0]:
             break
-        weights = new
+        weights, sig[:n_shared] = new, sigma
     out = {}
     kept = weights[:n_shared:3] > 0
     for k in ids:
