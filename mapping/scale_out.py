@@ -73,8 +73,9 @@ def _stage_task(config: PipelineConfig, group: str, *previous) -> dict:
     done = Path(config.out_dir) / "work" / "submodel_done.json"
     if any(p.get("error") for p in previous if isinstance(p, dict)):
         return next(p for p in previous if p.get("error"))
-    if done.exists():
-        return json.loads(done.read_text())
+    cached = finished_result(config)
+    if cached is not None:
+        return cached
     _reset_peak_memory()
     try:
         report = run_pipeline(dataclasses.replace(config, stop_after=group))
@@ -86,11 +87,31 @@ def _stage_task(config: PipelineConfig, group: str, *previous) -> dict:
               "registered": len(report.registered), "photos": len(report.photos_used),
               "georef_rms_m": report.georef_rms_m, "stage_seconds": report.stage_seconds,
               "crs_epsg": report.crs_epsg, "resolution_cm": report.resolution_cm,
-              "dsm_resolution_m": report.dsm_resolution_m}
+              "dsm_resolution_m": report.dsm_resolution_m, "options": _all_options(config)}
     if group == STAGE_GROUPS[-1]:
         tmp = done.with_suffix(".part")
         tmp.write_text(json.dumps(result, indent=1, default=float))
         os.replace(tmp, done)
+    return result
+
+
+def _all_options(config: PipelineConfig) -> dict:
+    from skyfix.mapping.project import STAGES, stage_options
+
+    return {stage: stage_options(config, stage) for stage in STAGES}
+
+
+def finished_result(config: PipelineConfig) -> dict | None:
+    """A submodel's result from an earlier run (``work/submodel_done.json``), when it was made with the
+    options ``config`` has now; None otherwise (then its stages resume or re-run as their markers say)."""
+    done = Path(config.out_dir) / "work" / "submodel_done.json"
+    if not done.exists():
+        return None
+    result = json.loads(done.read_text())
+    if result.get("options") != json.loads(json.dumps(_all_options(config))):
+        log.info("submodel %s: options changed since it finished: its stages are checked again",
+                 Path(config.out_dir).name)
+        return None
     return result
 
 

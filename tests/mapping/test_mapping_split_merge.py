@@ -258,3 +258,19 @@ def test_map_split_flags_are_checked_up_front(flags, named, tmp_path, capsys):
     rc = main(["map", str(photos), "-o", str(tmp_path / "out"), *flags])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and named in err[0] and "Traceback" not in err[0], err
+
+
+def test_a_finished_submodel_is_reused_only_with_the_same_options(tmp_path):
+    import json
+
+    from skyfix.mapping.pipeline import PipelineConfig
+    from skyfix.mapping.scale_out import _all_options, finished_result
+
+    config = PipelineConfig(tmp_path / "photos", tmp_path)
+    assert finished_result(config) is None
+    (tmp_path / "work").mkdir(exist_ok=True)
+    (tmp_path / "work" / "submodel_done.json").write_text(json.dumps({"registered": 7,
+                                                                      "options": _all_options(config)}))
+    assert finished_result(config)["registered"] == 7
+    changed = PipelineConfig(tmp_path / "photos", tmp_path, resolution_cm=30.0)
+    assert finished_result(changed) is None  # --resolution-cm changed: the ortho stage must run again
