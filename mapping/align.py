@@ -52,7 +52,6 @@ class Alignment:
 
     index: int
     matrix: np.ndarray = field(default_factory=lambda: np.hstack((np.eye(3), np.zeros((3, 1)))))
-    method: str = "joint"
     shared: int = 0
     rms_before_m: float = float("nan")
     rms_after_m: float = float("nan")
@@ -62,7 +61,7 @@ class Alignment:
     left_out: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        return {"index": self.index, "method": self.method, "shared_photos": self.shared,
+        return {"index": self.index, "shared_photos": self.shared,
                 "rms_before_m": self.rms_before_m, "rms_after_m": self.rms_after_m, "moved_rms_m": self.moved_rms_m,
                 "scale": self.scale, "tilt_deg": self.tilt_deg, "left_out": list(self.left_out),
                 "translation_m": [float(v) for v in self.matrix[:, 3]],
@@ -160,7 +159,7 @@ def align_submodels(centres: dict[int, dict[str, np.ndarray]],
         own = np.array(list(centres[k].values()))
         w = x[col[k]:col[k] + 3]
         tilt = float(np.degrees(np.hypot(w[0], w[1])))
-        out[k] = Alignment(k, m, "joint", len({n for _, _, n, _ in mine}), _rms(before), _rms(after),
+        out[k] = Alignment(k, m, len({n for _, _, n, _ in mine}), _rms(before), _rms(after),
                            _rms(apply(m, own) - own), float(1.0 + x[col[k] + 3]), tilt,
                            sorted({n for _, _, n, ok in mine if not ok}))
         log.info("submodel %d: %d shared photos RMS %.3f -> %.3f m, cameras moved %.3f m, scale %+.4f %%, "

@@ -19,7 +19,7 @@ from skyfix import validate
 from skyfix.errors import GeometryError, InputError
 from skyfix.geo import LocalFrame
 
-__all__ = ["EnuToUtm", "Grid", "UtmToEnu", "enu_to_utm", "utm_epsg"]
+__all__ = ["EnuToUtm", "Grid", "UtmToEnu", "enu_to_utm", "utm_epsg", "utm_transformer"]
 
 _EARTH_RADIUS_M = 6_371_000.0
 
@@ -37,14 +37,18 @@ def utm_epsg(lat_deg: float, lon_deg: float) -> int:
     return codes[0] if codes else int(infos[0].code)
 
 
-def _to_utm(epsg: int) -> pyproj.Transformer:
-    return pyproj.Transformer.from_crs("EPSG:4326", f"EPSG:{epsg}", always_xy=True)
+def utm_transformer(epsg: int, inverse: bool = False) -> pyproj.Transformer:
+    """WGS84 (lon, lat) -> easting, northing of zone ``epsg`` (``inverse``: back), axis order x, y."""
+    a, b = "EPSG:4326", f"EPSG:{epsg}"
+    return pyproj.Transformer.from_crs(b, a, always_xy=True) if inverse else \
+        pyproj.Transformer.from_crs(a, b, always_xy=True)
+
 
 
 def enu_to_utm(frame: LocalFrame, enu_m: np.ndarray, epsg: int) -> np.ndarray:
     """``(N, 3)`` local ENU metres -> ``(N, 3)`` (easting_m, northing_m, height_m) in the zone."""
     lla = frame.to_geodetic_points(enu_m)
-    east, north = _to_utm(epsg).transform(lla[:, 1], lla[:, 0])
+    east, north = utm_transformer(epsg).transform(lla[:, 1], lla[:, 0])
     return np.stack((east, north, lla[:, 2]), axis=1)
 
 

@@ -21,13 +21,6 @@ __all__ = ["merge_submodels"]
 log = logging.getLogger(__name__)
 
 
-def _transformers(epsg: int):
-    import pyproj
-
-    fwd = pyproj.Transformer.from_crs("EPSG:4326", f"EPSG:{epsg}", always_xy=True)
-    return fwd, pyproj.Transformer.from_crs(f"EPSG:{epsg}", "EPSG:4326", always_xy=True)
-
-
 def _raster_facts(path: Path) -> tuple[tuple[float, float, float, float], float, float]:
     """(bounds W, S, E, N), pixel size and a typical value (median of a small overview) of a GeoTIFF."""
     import rasterio
@@ -44,7 +37,9 @@ class _LocalUtm:
     """UTM metres of ``epsg`` minus an origin near the photos (heights unchanged), and back to WGS84."""
 
     def __init__(self, epsg: int, by_name: dict) -> None:
-        self.fwd, self.back = _transformers(epsg)
+        from skyfix.mapping.grid import utm_transformer
+
+        self.fwd, self.back = utm_transformer(epsg), utm_transformer(epsg, inverse=True)
         self.utm = {n: np.array(self.fwd.transform(p.gps_lon_deg, p.gps_lat_deg)) for n, p in by_name.items()}
         self.origin = np.round(np.mean(list(self.utm.values()), axis=0), -1)
 
