@@ -129,20 +129,20 @@ class _Raster:
         return out, src[:, 0].reshape(east.shape), src[:, 1].reshape(east.shape)
 
 
-def _ownership(parts: list[Part], east: np.ndarray, north: np.ndarray, step_m: float) -> np.ndarray:
-    """Distance (m) of every cell to each part's nearest core photo, (parts, h, w): computed on cells of
-    ``step_m`` and interpolated (a distance changes by at most one metre per metre)."""
+def _ownership(trees: list, east: np.ndarray, north: np.ndarray, step_m: float) -> np.ndarray:
+    """Distance (m) of every cell to each part's nearest core photo (``trees``: a ``cKDTree`` of each part's
+    core photos), (parts, h, w): computed on cells of ``step_m`` and interpolated (a distance changes by at
+    most one metre per metre)."""
     import cv2
-    from scipy.spatial import cKDTree
 
     h, w = east.shape
     res = abs(float(east[0, 1] - east[0, 0])) if w > 1 else step_m
     k = max(1, int(step_m / max(res, 1e-9)))
     ce, cn = east[::k, ::k], north[::k, ::k]
     q = np.stack((ce.ravel(), cn.ravel()), axis=1)
-    out = np.empty((len(parts), h, w), np.float32)
-    for i, part in enumerate(parts):
-        d, _ = cKDTree(part.core_en_m).query(q)
+    out = np.empty((len(trees), h, w), np.float32)
+    for i, tree in enumerate(trees):
+        d, _ = tree.query(q)
         coarse = d.reshape(ce.shape).astype(np.float32)
         if coarse.shape == (h, w):
             out[i] = coarse
@@ -199,17 +199,21 @@ def _merge_raster(parts: list[Part], kind: str, grid: Grid, origin: np.ndarray, 
                   band_m: float, block_px: int, stats: MergeStats, on_block) -> None:
     """One merged raster (``kind`` "dsm" or "ortho") written block by block."""
     from rasterio.windows import Window
+    from scipy.spatial import cKDTree
 
     from skyfix.mapping.geotiff import write_cog_blocks
 
-    sources = [(p, _Raster(p.dsm if kind == "dsm" else p.ortho, p, origin)) for p in parts
-               if (p.dsm if kind == "dsm" else p.ortho).exists()]
+    def source_of(p: Part) -> Path:
+        return p.dsm if kind == "dsm" else p.ortho
+
+    sources = [(p, _Raster(source_of(p), p, origin)) for p in parts if source_of(p).exists()]
     ids = [p.index for p, _ in sources]
+    trees = [cKDTree(p.core_en_m) for p, _ in sources]  # once, not per block
 
     def blocks():
         for r0, c0, h, w in _blocks(grid, block_px):
             e, n = _cells(grid, origin, r0, c0, h, w)
-            dist = _ownership([p for p, _ in sources], e, n, max(grid.resolution_m, 1.0))
+            dist = _ownership(trees, e, n, max(grid.resolution_m, 1.0))
             out = _dsm_block(sources, e, n, z_ref_m, dist, band_m, ids, stats) if kind == "dsm" else \
                 _ortho_block(sources, e, n, z_ref_m, dist, band_m, ids, stats)
             if on_block:
