@@ -14,13 +14,21 @@ import threading
 import time
 
 from skyfix.drivers.mav import mavlink
-from skyfix.drivers.modes import PX4_MODES, custom_mode_of, role_mode
+from skyfix.drivers.modes import PX4_MODES, custom_mode_of, mode_name, role_mode
 from skyfix.drivers.safety import SafetyGate
 from skyfix.drivers.state import Position, Velocity
 from skyfix.errors import CommandRejected, LinkError, SkyfixTimeout
 
 log = logging.getLogger("skyfix.drivers.vehicle")  # the Vehicle's logger: one name for its whole story
 M = mavlink
+#: the gate's mode change is re-sent every 0.5 s for up to 4 s: over a link that loses 15 % each
+#: way, eight silent attempts in a row are a 4e-5 chance (five were 2e-3)
+SAFETY_ACK_TIMEOUT_S = 0.5
+SAFETY_RETRIES = 7
+
+
+def _confirming(msg) -> bool:
+    return msg.get_type() in ("COMMAND_ACK", "HEARTBEAT")
 
 
 class SafetyMonitor:
@@ -50,19 +58,25 @@ class SafetyMonitor:
         # otherwise the safety thread sends it right after the current one (one channel)
         generation = self._command_seq
         sent = self._command_lock.acquire(blocking=False)
+        replies = None
         if sent:
+            # subscribed before the send: the ACK can come back before the confirming thread runs
+            replies = self._open_subscription(_confirming)
             self._send_command_long(M.MAV_CMD_DO_SET_MODE, params, 0)
         latency_s = time.monotonic() - t_mono
         self.safety_log.append((latency_s, why))
         log.warning("vehicle %d safety violation: %s -> %s (%.1f ms after telemetry%s)", self.system_id,
                     why, mode, latency_s * 1e3, "" if sent else ", queued behind a command in flight")
         self._emit("safety_violation", why, action=mode, latency_s=latency_s)
-        threading.Thread(target=self._safety_action, args=(mode, params, generation, sent), daemon=True,
+        threading.Thread(target=self._safety_action, args=(mode, params, generation, replies), daemon=True,
                          name=f"skyfix-safety-{self.system_id}").start()
 
-    def _safety_action(self, mode: str, params: list[float], generation: int, holding: bool) -> None:
-        """Confirm the gate's mode change (ACK, then heartbeat) without ever overriding a command
-        the user gave after the violation, and without acting on a time-out."""
+    def _safety_action(self, mode: str, params: list[float], generation: int, replies) -> None:
+        """Confirm the gate's mode change (its ACK, or a heartbeat already in the new mode when
+        the ACKs are lost) without ever overriding a command the user gave after the violation,
+        and without acting on a time-out. ``replies``: the subscription opened when the reader
+        thread sent attempt 0 itself (it then holds the command lock); None when queued."""
+        holding = replies is not None
         if not holding:
             self._command_lock.acquire()
         try:
@@ -72,7 +86,11 @@ class SafetyMonitor:
                 return
             self._command_seq += 1
             generation = self._command_seq
-            self._command_locked(M.MAV_CMD_DO_SET_MODE, params, 0.5, 4, first_sent=holding)
+            if replies is None:  # opened only now: a DO_SET_MODE ACK before this was the user's
+                replies = self._open_subscription(_confirming)
+            self._command_locked(M.MAV_CMD_DO_SET_MODE, params, SAFETY_ACK_TIMEOUT_S, SAFETY_RETRIES,
+                                 first_sent=holding, replies=replies.queue,
+                                 confirmed_by=lambda msg: self._heartbeat_in_mode(msg, mode))
         except CommandRejected as exc:
             if self._command_seq == generation:  # refused outright: land (envelope already breached)
                 log.error("vehicle %d: safety action %s refused (%s); landing", self.system_id, mode, exc)
@@ -85,10 +103,18 @@ class SafetyMonitor:
             self._emit("safety_action_failed", str(exc), action=mode)
             return
         finally:
+            if replies is not None:
+                self._close_subscription(replies)
             self._command_lock.release()
         with contextlib.suppress(SkyfixTimeout, LinkError):
             self.wait_until(lambda s: s.mode == mode or self._command_seq != generation, 3.0,
                             what=f"safety action {mode}")
+
+    def _heartbeat_in_mode(self, msg, mode: str) -> bool:
+        """True for this vehicle's autopilot heartbeat reporting ``mode``."""
+        return msg.get_type() == "HEARTBEAT" and msg.get_srcSystem() == self.system_id \
+            and msg.get_srcComponent() == self.component_id \
+            and mode_name(self.autopilot, msg.custom_mode) == mode
 
     def _mode_params(self, mode: str) -> list[float]:
         """DO_SET_MODE params for a mode name (PX4: main and sub mode)."""

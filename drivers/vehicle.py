@@ -224,11 +224,21 @@ class Vehicle(TelemetryHandlers, SetpointStream, SafetyMonitor, InjectionCommand
     @contextlib.contextmanager
     def subscribe(self, predicate: Callable) -> Iterator[queue.Queue]:
         """Queue of ``(msg, t_mono)`` for incoming messages matching ``predicate`` while open."""
-        sub = _Subscription(predicate)
-        self._subs.append(sub)
+        sub = self._open_subscription(predicate)
         try:
             yield sub.queue
         finally:
+            self._close_subscription(sub)
+
+    def _open_subscription(self, predicate: Callable) -> _Subscription:
+        """A subscription that outlives one call (the safety gate opens it on the reader
+        thread before its first send and its confirming thread closes it)."""
+        sub = _Subscription(predicate)
+        self._subs.append(sub)
+        return sub
+
+    def _close_subscription(self, sub: _Subscription) -> None:
+        with contextlib.suppress(ValueError):
             self._subs.remove(sub)
 
     def send(self, msg) -> None:
@@ -274,15 +284,28 @@ class Vehicle(TelemetryHandlers, SetpointStream, SafetyMonitor, InjectionCommand
         return verdict
 
     def _command_locked(self, command: int, params: list[float], timeout_s: float, retries: int, *,
-                        first_sent: bool = False) -> int:
-        """One command transaction; the caller holds ``_command_lock``."""
+                        first_sent: bool = False, replies: queue.Queue | None = None,
+                        confirmed_by: Callable[[Any], bool] | None = None) -> int:
+        """One command transaction; the caller holds ``_command_lock``.
+
+        ``replies``: a subscription queue opened before attempt 0 was sent (``first_sent``), so
+        a fast ACK is not missed. ``confirmed_by(msg)``: another message that proves the command
+        took effect (the heartbeat showing the new mode) when every ACK is lost.
+        """
         name = command_name(command)
         t0 = time.monotonic()
-        ack = transact(self, lambda attempt: self._command_long(command, params, attempt),
-                       self._ack_verdict(command), types=("COMMAND_ACK",), timeout_s=timeout_s,
-                       retries=retries, what=f"{name} (COMMAND_ACK)", first_sent=first_sent)
-        if ack.result == M.MAV_RESULT_ACCEPTED:
-            return ack.result
+        ack_verdict = self._ack_verdict(command)
+        verdict = ack_verdict
+        if confirmed_by is not None:
+            def verdict(msg) -> str | None:
+                if msg.get_type() == "COMMAND_ACK":
+                    return ack_verdict(msg)
+                return DONE if confirmed_by(msg) else None
+        ack = transact(self, lambda attempt: self._command_long(command, params, attempt), verdict,
+                       types=("COMMAND_ACK",), timeout_s=timeout_s, retries=retries,
+                       what=f"{name} (COMMAND_ACK)", first_sent=first_sent, replies=replies)
+        if ack.get_type() != "COMMAND_ACK" or ack.result == M.MAV_RESULT_ACCEPTED:
+            return M.MAV_RESULT_ACCEPTED
         time.sleep(0.02)  # a STATUSTEXT explaining the refusal may trail the ACK
         reason = self._reasons(t0 - 0.5)
         raise CommandRejected(f"vehicle {self.system_id} rejected {name} ({result_name(ack.result)}){reason}",
