@@ -52,6 +52,7 @@ class PipelineConfig:
     out_dir: str | os.PathLike
     barrel: Barrel | None = None          # ImageMagick barrel model: photos are corrected first
     calibration: Camera | None = None     # pre-calibrated lens, passed to pycolmap (held fixed)
+    shared_lens: tuple | None = ()        # another model's lens per camera group (sfm.model_lenses), held fixed in mapping
     resolution_cm: float | None = None    # orthophoto pixel; None: the photos' median GSD
     dsm_resolution_m: float | None = None  # DSM cell; None: dense_cell_px matched pixels (sparse: 2x point spacing)
     max_ortho_mpx: float | None = None    # only if asked: raise the pixel size if the orthophoto would be larger
@@ -86,6 +87,8 @@ class PipelineConfig:
         if self.barrel is not None and self.calibration is not None:
             raise ConfigurationError("give either barrel= (correct photos) or calibration= (pass the lens "
                                      "model to pycolmap), not both")
+        if self.calibration is not None and self.shared_lens:
+            raise ConfigurationError("give either calibration= or shared_lens=, not both")
         unknown = set(self.force) - set(STAGES)
         if unknown:
             raise ConfigurationError(f"force names unknown stage(s) {sorted(unknown)}; stages are {list(STAGES)}")

@@ -170,6 +170,53 @@ def extract(database: Path, image_dir: Path, photos: list[Photo], *, calibration
                                       extraction_options=options, device=pycolmap.Device.cpu)
 
 
+def lens_key(photo: Photo) -> str:
+    """A photo's camera group (:attr:`Photo.camera_key`) as one string (a JSON and option value)."""
+    return "|".join(str(v) for v in photo.camera_key)
+
+
+def model_lenses(model, photos: list[Photo]) -> tuple[tuple[str, str, tuple[float, ...]], ...]:
+    """The lens ``model`` (a pycolmap.Reconstruction) estimated for each camera group of
+    ``photos`` it registered: ``(lens_key, COLMAP model name, params)``, to hold another model of
+    the same survey to it (:func:`set_lenses`)."""
+    registered = {im.name: im.camera_id for im in model.images.values() if im.has_pose}
+    found = {}
+    for group in camera_groups(photos).values():
+        named = next((p.name for p in group if p.name in registered), None)
+        if named is not None:
+            cam = model.cameras[registered[named]]
+            found[lens_key(group[0])] = (cam.model.name, tuple(float(v) for v in cam.params))
+    return tuple((k, m, p) for k, (m, p) in sorted(found.items()))
+
+
+def set_lenses(database: Path, photos: list[Photo], lenses: tuple) -> int:
+    """Write ``lenses`` (from :func:`model_lenses`) into the database's cameras of ``photos``'
+    camera groups, for mapping with the lens held fixed; returns the cameras changed. A group
+    the lenses do not name keeps its own (refined) camera."""
+    pycolmap = _colmap_logging()
+
+    by_key = {k: (m, p) for k, m, p in lenses}
+    db = pycolmap.Database.open(str(database))
+    changed = 0
+    try:
+        ids = {im.name: im.camera_id for im in db.read_all_images()}
+        for group in camera_groups(photos).values():
+            lens = by_key.get(lens_key(group[0]))
+            cam_ids = {ids[p.name] for p in group if p.name in ids}
+            for cam_id in cam_ids if lens is not None else ():
+                cam = db.read_camera(cam_id)
+                if cam.model.name != lens[0] or len(cam.params) != len(lens[1]):
+                    raise ConfigurationError(f"the shared lens is a {lens[0]} camera, the database's camera "
+                                             f"{cam_id} a {cam.model.name}")
+                cam.params = np.asarray(lens[1], dtype=float)
+                cam.has_prior_focal_length = True
+                db.update_camera(cam)
+                changed += 1
+    finally:
+        db.close()
+    return changed
+
+
 def match(database: Path, photos: list[Photo], *, exhaustive_max_photos: int = 40, neighbours: int = 12,
           seed: int = 0, threads: int = -1) -> str:
     """Match features; returns the method used ('exhaustive' or 'spatial').

@@ -51,8 +51,11 @@ def mapping_run(config: PipelineConfig, project: Project, state: RunState, repor
     priors = 0
     if frame is not None and config.gps_sigma_m:
         priors = sfm.set_pose_priors(project.database, state.photos, frame, config.gps_sigma_m)
+    if config.shared_lens:  # split-merge: every submodel with one lens, or their overlaps disagree
+        sfm.set_lenses(project.database, state.photos, config.shared_lens)
     models = sfm.reconstruct(project.database, state.image_dir, project.sparse,
-                             calibrated=config.calibration is not None, refine_focal=config.refine_focal,
+                             calibrated=config.calibration is not None or bool(config.shared_lens),
+                             refine_focal=config.refine_focal,
                              pose_priors=priors >= 3, seed=config.seed, sfm_threads=config.sfm_threads)
     if not models:
         raise DataError("structure from motion reconstructed nothing: the photos share too few features "

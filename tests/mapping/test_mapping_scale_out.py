@@ -102,6 +102,24 @@ def test_split_survives_a_killed_worker_and_registers_every_photo(split_run):
     assert json.loads((out / "report.json").read_text())["registered"] == report["registered"]
 
 
+def test_every_submodel_is_mapped_with_the_lens_of_the_largest(split_run):
+    """One lens for all: submodels that each refine their own radial term disagree in their overlap."""
+    import pycolmap
+
+    _, report, *_ = split_run
+    subs = report["submodels"]
+    lens = report["shared_lens"]
+    largest = max(subs, key=lambda s: (s["photos"], -s["index"]))
+    assert lens["from"] == Path(largest["folder"]).name and not lens.get("error")
+    ((_, model, params),) = lens["lens"]  # one camera
+    assert model == "SIMPLE_RADIAL"
+    for s in subs:
+        rec = pycolmap.Reconstruction(str(Path(s["folder"]) / "work" / "sparse" / "0"))
+        for cam in rec.cameras.values():
+            assert cam.model.name == model
+            np.testing.assert_allclose(cam.params, params, rtol=0, atol=1e-9)
+
+
 def test_submodels_agree_in_their_overlap_within_twice_the_one_model_residual(split_run, one_model):
     _, report, *_ = split_run
     rms1 = one_model.georef_rms_m
