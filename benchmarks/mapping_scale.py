@@ -19,7 +19,9 @@ here than one model (the submodels' overlap is extra work): the times show the o
 Then a *modelled* projection (not a measurement) for 1 000 and 5 000 photos from the measured costs:
 features, dense matching and orthophoto per photo (linear), feature matching per matched pair (GPS
 neighbours: ``--spatial-neighbours`` pairs per photo, linear), incremental mapping per submodel as
-a * photos^p fitted to the three runs' mapping times, the submodels' overlap factor as measured,
+a * photos^p fitted to the three runs' mapping times, the submodels' overlap factor (photos run over
+photos in the survey) scaled from the measured runs to the projected submodel size as a band of fixed width
+around a part does: its extra photos grow with the part's perimeter, so (factor - 1) ~ 1/sqrt(core photos),
 perfect packing on W workers. Exits non-zero when a goal is not met.
 """
 
@@ -102,7 +104,7 @@ def main() -> int:
         lens = rep.get("shared_lens") or {}
         print("  lens of every submodel: " + (f"from submodel {lens['from']}: " + "; ".join(
             f"{m} {', '.join(f'{v:.5g}' for v in p)}" for _, m, p in lens.get("lens") or ()) if lens else "each its own"))
-        overlap_factors.append(sum(s["photos"] for s in subs) / n_photos)
+        overlap_factors.append((sum(s["photos"] for s in subs) / n_photos, n_photos / len(subs)))
         for s in subs:
             a = s.get("alignment") or {}
             print(f"  submodel {s['index']}: {s.get('registered')}/{s.get('photos')} registered, georef RMS "
@@ -161,14 +163,23 @@ def _projection(single: dict, map_points: list, overlap_factors: list, n_photos:
         p, log_a = np.polyfit(np.log(sizes), np.log(secs), 1)
     else:
         p, log_a = 1.0, math.log(secs[0] / sizes[0])
-    overlap = float(np.mean(overlap_factors)) if overlap_factors else 1.3
+    measured = overlap_factors or [(1.3, 100.0)]
+
+    def overlap_at(core: float) -> float:  # a band of fixed width: extra photos ~ perimeter ~ sqrt(core)
+        return 1.0 + float(np.mean([(f - 1.0) * math.sqrt(c / core) for f, c in measured]))
+
     print(f"projection (a model, not a measurement): {per_photo:.2f} s/photo for features + dense + orthophoto, "
           f"{per_pair * 1000:.1f} ms per matched pair ({args.spatial_neighbours} GPS neighbours a photo), mapping "
-          f"{math.exp(log_a):.3g} * photos^{p:.2f} s (fitted to {len(sizes)} runs), overlap factor {overlap:.2f}")
+          f"{math.exp(log_a):.3g} * photos^{p:.2f} s (fitted to {len(sizes)} runs), overlap factor "
+          + ", ".join(f"{f:.2f} at {c:.0f} core photos" for f, c in measured) + " measured, "
+          + ", ".join(f"{overlap_at(t):.2f} at {t}" for t in (100, 250)) + " scaled; models of at most "
+          f"{sizes.max():.0f} photos cannot show how incremental mapping's repeated global adjustments grow on "
+          "thousands, so the one-model times are lower bounds")
     for n in (1000, 5000):
         one = n * (per_photo + args.spatial_neighbours * per_pair) + math.exp(log_a) * n ** p
         for target, workers in ((100, 2), (100, 8), (250, 8)):
             k = math.ceil(n / target)
+            overlap = overlap_at(target)
             size = target * overlap
             work = n * overlap * (per_photo + args.spatial_neighbours * per_pair) + k * math.exp(log_a) * size ** p
             print(f"  {n} photos: one model {one / 3600:.1f} h on one machine; split {target} ({k} submodels of "
