@@ -67,8 +67,8 @@ def test_covariance_is_calibrated_monte_carlo():
             h = -d * np.array([math.sin(math.radians(az)), math.cos(math.radians(az)), -0.2])
             cov = radial_cov(target - h, 0.03 * d, d * math.radians(0.3))
             pos_cov = np.diag([0.25, 0.25, 0.64])
-            noisy_target = target + rng.multivariate_normal(np.zeros(3), cov)
-            noisy_helper = h + rng.multivariate_normal(np.zeros(3), pos_cov)
+            noisy_target = target + rng.multivariate_normal(np.zeros(3), cov, method="cholesky")
+            noisy_helper = h + rng.multivariate_normal(np.zeros(3), pos_cov, method="cholesky")
             # The helper reports its noisy position and what it saw from its true one.
             o = observation(frame, h, noisy_target, cov)
             lat, lon, alt = (float(x) for x in frame.to_geodetic(*noisy_helper))

@@ -35,7 +35,7 @@ def _fly(seed: int, correlated: bool) -> tuple[float, float]:
                 los = TARGET - p
                 r = float(np.linalg.norm(los))
                 cov = np.eye(3) * (3.5e-3 * r) ** 2 + np.outer(los, los) / r**2 * (0.02 * r) ** 2
-                seen = los + rng.multivariate_normal(np.zeros(3), cov)
+                seen = los + rng.multivariate_normal(np.zeros(3), cov, method="cholesky")
                 lat, lon, alt = FRAME.to_geodetic(*(p + bias[h]))  # the helper's own belief; never used
                 engine.add_relative(RelativeObservation(h, "a", t, seen / np.linalg.norm(seen),
                                                         float(np.linalg.norm(seen)), cov, float(lat), float(lon),
