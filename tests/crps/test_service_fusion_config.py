@@ -133,3 +133,37 @@ def test_velocity_of_an_autopilot_flying_on_the_injected_fix_is_a_wandering_echo
     assert np.all(echo[:, 0] < 4.0) and np.all(echo[:, 1] < 2.5), echo  # seen 1.60-3.31 m, <= 1.13 sigma
     assert np.median(naive[:, 0]) > 2.0 * np.median(echo[:, 0]), (naive, echo)  # seen 5.40 vs 2.10 m
     assert np.all(naive[:, 1] > 2.5), naive  # seen 4.3-5.9 sigma
+
+
+def test_fix_moved_on_a_held_velocity_states_what_braking_could_change():
+    """Node.fix moves the newest estimate to the present with its velocity. A drone flying east at 5 m/s whose
+    inputs stop (a MAVLink drop) and that brakes to a stop at ArduPilot's 2.5 m/s^2 is 5 m short of the held
+    velocity's answer 2 s later: the fix's sigma must say so (the acceleration term, 0.5 a t^2 = 5 m)."""
+    from skyfix.crps.node import EXTRAPOLATION_ACCEL_MPS2, Node
+    from skyfix.drivers.state import GnssFix, VehicleState, Velocity
+
+    rng = np.random.default_rng(9)
+    node = Node("a", (LAT0, LON0, ALT0), lag_s=LAG_S, config=fusion_config(("a",), LAG_S))
+    vel = np.array([5.0, 0.0, 0.0])
+    for k in range(50):  # 10 s of GNSS and velocity at 5 Hz
+        t = round(0.2 * k, 6)
+        lat, lon, alt = FRAME.to_geodetic(*(TARGET + vel * t + rng.normal(0, 0.3, 3)))
+        gps = GnssFix(fix_type=3, satellites=12, h_acc_m=0.5, v_acc_m=0.8, hdop=0.9, vdop=1.2, lat_deg=float(lat),
+                      lon_deg=float(lon), alt_amsl_m=float(alt), alt_ellipsoid_m=float(alt),
+                      alt_ellipsoid_source="autopilot", time_s=t)
+        node.add_telemetry("a", VehicleState(1, velocity=Velocity(vel[1], vel[0], -vel[2], t), gps=gps),
+                           lambda m: m.time_s)
+        node.update(("a",))
+    t_last = node.latest["a"].time_s
+    now = t_last + 2.0
+    fix = node.fix("a", now)
+    e, n, _ = FRAME.to_enu(fix.lat_deg, fix.lon_deg, fix.alt_m)
+    held_e_m = TARGET[0] + vel[0] * now
+    assert float(e) == pytest.approx(held_e_m, abs=1.5)  # moved on with the fused velocity
+    braked_e_m = TARGET[0] + vel[0] * t_last + 0.5 * vel[0] ** 2 / EXTRAPOLATION_ACCEL_MPS2  # stopped in 2 s
+    assert abs(float(e) - braked_e_m) == pytest.approx(5.0, abs=1.5)
+    assert fix.sigma_horizontal_m >= 0.5 * EXTRAPOLATION_ACCEL_MPS2 * 2.0**2  # that 5 m is within 1 sigma
+    # at the estimate's own time: the estimate's own covariance, nothing added
+    assert np.allclose(node.fix("a", t_last).cov_enu_m2, node.latest["a"].cov_enu_m2)
+    assert fix.sigma_horizontal_m > node.latest["a"].sigma_horizontal_m + 3.0
+    node.close()
