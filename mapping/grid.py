@@ -44,7 +44,6 @@ def utm_transformer(epsg: int, inverse: bool = False) -> pyproj.Transformer:
         pyproj.Transformer.from_crs(a, b, always_xy=True)
 
 
-
 def enu_to_utm(frame: LocalFrame, enu_m: np.ndarray, epsg: int) -> np.ndarray:
     """``(N, 3)`` local ENU metres -> ``(N, 3)`` (easting_m, northing_m, height_m) in the zone."""
     lla = frame.to_geodetic_points(enu_m)

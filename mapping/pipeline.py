@@ -52,7 +52,8 @@ class PipelineConfig:
     out_dir: str | os.PathLike
     barrel: Barrel | None = None          # ImageMagick barrel model: photos are corrected first
     calibration: Camera | None = None     # pre-calibrated lens, passed to pycolmap (held fixed)
-    shared_lens: tuple | None = ()        # another model's lens per camera group (sfm.model_lenses), held fixed in mapping
+    shared_lens: tuple | None = ()        # another model's lens per camera group (sfm.model_lenses), held fixed in mapping;
+                                          # None: not known yet (scale_out: the lens submodel's task supplies it)
     resolution_cm: float | None = None    # orthophoto pixel; None: the photos' median GSD
     dsm_resolution_m: float | None = None  # DSM cell; None: dense_cell_px matched pixels (sparse: 2x point spacing)
     max_ortho_mpx: float | None = None    # only if asked: raise the pixel size if the orthophoto would be larger
