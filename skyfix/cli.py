@@ -76,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"skyfix {skyfix.__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0,
-                        help="more log output (-v: info, -vv: debug)")
+                        help="more log output: skyfix's info is shown by default; -v adds other libraries' info, -vv debug")
     parser.add_argument("-q", "--quiet", action="store_true",
                         help="only warnings and errors; no progress bars")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands")
@@ -157,7 +157,7 @@ def _add_log_flags(parser: argparse.ArgumentParser) -> None:
     taken = {s for a in parser._actions for s in a.option_strings}
     if not taken & {"-v", "--verbose"}:
         parser.add_argument("-v", "--verbose", action="count", dest="sub_verbose", default=argparse.SUPPRESS,
-                            help="more log output (-v: info, -vv: debug; also before the command)")
+                            help="-v: other libraries' info too, -vv: debug (also before the command)")
     if not taken & {"-q", "--quiet"}:
         parser.add_argument("-q", "--quiet", action="store_true", dest="sub_quiet", default=argparse.SUPPRESS,
                             help="only warnings and errors; no progress bars (also before the command)")
