@@ -11,6 +11,9 @@ Scoring only: the truth is read here, never by the run. Per run folder (``RUN/tr
   frame (the observer position it sent minus its truth minus the shared GNSS error: its own receiver's part);
 * the lost drone's fused error at touchdown against the truth and against the swarm's GNSS frame, and where
   it landed from home (a drone landing on its fix lands off by that error, less its home's own GNSS error);
+* with ``--ranges``, every run's observations pooled: the range error by the target's elevation above the
+  observer's horizon and by the target's speed, and per run the touchdown error against the swarm's GNSS frame
+  along the observers' mean line of sight (positive: away from them, as long ranges push it);
 * with ``--frames``, where the simulated autopilot records them (``ap_*`` columns): its home error, its own
   estimate's error at touchdown and how far from its home it landed on that estimate;
 * where the home error comes from (``--frames``): the lost drone's fused error before take-off (its home: the
@@ -28,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import itertools
 import json
 import math
 import sys
@@ -145,8 +149,9 @@ def summary(found: list[dict[str, np.ndarray]], baselines: list[dict[str, np.nda
             f"{corr:+.2f} over {2 * len(own)} axis pairs (the home offset carries over only as far as these agree)"]
 
 
-def diagnose(run: Path, world: LocalFrame) -> str:
-    """The figures of one run folder, as printable lines."""
+def diagnose(run: Path, world: LocalFrame) -> tuple[str, np.ndarray]:
+    """The figures of one run folder, as printable lines, and one row per helper observation: (relative range
+    error, the target's elevation above the observer's horizon in deg, the target's speed in m/s)."""
     rows = _trajectory(run)
     t = _columns(rows, ("t_s",))[:, 0]
     truth = {d: _columns(rows, (f"{d}_east_m", f"{d}_north_m", f"{d}_up_m")) for d in ("d1", "d2", "d3")}
@@ -157,6 +162,7 @@ def diagnose(run: Path, world: LocalFrame) -> str:
         return np.array([np.interp(ts, t, arr[:, i]) for i in range(3)])
 
     per: dict[str, dict[str, list]] = {}
+    records = []
     for msg in iter_messages(run / f"{LOST}.mcap", ["/fusion/relative"]):
         obs = json.loads(msg[-1])["args"]["obs"]
         h, ts = obs["observer_id"], obs["time_s"]
@@ -164,9 +170,12 @@ def diagnose(run: Path, world: LocalFrame) -> str:
             continue
         seen_from = np.array([float(v) for v in world.to_enu(obs["observer_lat_deg"], obs["observer_lon_deg"],
                                                                obs["observer_alt_m"])])
-        true_range = float(np.linalg.norm(at(truth[LOST], ts) - at(truth[h], ts)))
+        seen = at(truth[LOST], ts) - at(truth[h], ts)
+        true_range = float(np.linalg.norm(seen))
         per.setdefault(h, {"range": [], "own": []})
         per[h]["range"].append(obs["range_m"] / true_range - 1.0)
+        speed = float(np.linalg.norm(at(truth[LOST], ts + 0.25) - at(truth[LOST], ts - 0.25))) / 0.5
+        records.append((per[h]["range"][-1], math.degrees(math.asin(seen[2] / true_range)), speed))
         per[h]["own"].append(seen_from - at(truth[h], ts) - at(common, ts))
     lines = []
     for h, f in sorted(per.items()):
@@ -185,7 +194,26 @@ def diagnose(run: Path, world: LocalFrame) -> str:
                  f"({math.hypot(*err):.2f} m), vs the swarm's GNSS frame E {rel[0]:+.2f} N {rel[1]:+.2f} m "
                  f"({math.hypot(*rel):.2f} m); landed E {landed[0]:+.2f} N {landed[1]:+.2f} m from home "
                  f"({math.hypot(*landed):.2f} m)")
-    return "\n".join(lines)
+    helpers = [d for d in truth if d != LOST]
+    sight = sum((truth[LOST][last, :2] - truth[d][last, :2]) / np.linalg.norm(truth[LOST][last, :2] - truth[d][last, :2])
+                for d in helpers)
+    lines.append(f"  {LOST} at touchdown: its error against the swarm's GNSS frame along {'+'.join(helpers)}'s mean line "
+                 f"of sight (away from them) {float(rel @ sight) / np.linalg.norm(sight):+.2f} m")
+    return "\n".join(lines), np.array(records).reshape(-1, 3)
+
+
+def range_lines(records: np.ndarray) -> list[str]:
+    """The pooled range errors (rows of :func:`diagnose`) by the target's elevation and by its speed."""
+    out = [f"range error over {len(records)} observations: median {100 * np.median(records[:, 0]):+.2f} %, mean "
+           f"{100 * records[:, 0].mean():+.2f} %"]
+    for col, name, unit, edges in ((1, "target elevation above the observer's horizon", "deg", (-90, 0, 3, 6, 10, 20, 90)),
+                                   (2, "target speed", "m/s", (0.0, 0.3, 1.0, 3.0, 100.0))):
+        for lo, hi in itertools.pairwise(edges):
+            e = records[(records[:, col] >= lo) & (records[:, col] < hi), 0]
+            if e.size:
+                out.append(f"  {name} {lo}-{hi} {unit}: {e.size} observations, median {100 * np.median(e):+.2f} %, "
+                           f"mean {100 * e.mean():+.2f} %, p90 {100 * np.percentile(e, 90):+.2f} %")
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -193,6 +221,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("runs", type=Path, nargs="+", help="run folders, or benchmark output folders (seed_<n>/recovery)")
     ap.add_argument("--origin", default=None, help="lat,lon,alt_amsl_m of the world origin (default: the "
                     "simulator's default ArduPilot home, what run_recovery flies without SITL)")
+    ap.add_argument("--ranges", action="store_true", help="also the range error of every run's observations "
+                    "pooled, by the target's elevation and by its speed")
     ap.add_argument("--frames", action="store_true", help="also the home error and the frame offset lines, and "
                     "the oracle landing with the home carried into the helpers' frame (with the baselines')")
     args = ap.parse_args(argv)
@@ -201,13 +231,16 @@ def main(argv: list[str] | None = None) -> int:
     found = 0
     frames: list[dict[str, np.ndarray]] = []
     baselines: list[dict[str, np.ndarray]] = []
+    records: list[np.ndarray] = []
     for root in args.runs:
         runs = [root] if (root / "trajectory.csv").exists() else sorted(
             (p for p in root.glob("seed_*/recovery") if (p / "trajectory.csv").exists()),
             key=lambda p: int(p.parent.name.split("_")[1]))
         for run in runs:
             found += 1
-            print(f"{run}:\n{diagnose(run, world)}", flush=True)
+            text, rows = diagnose(run, world)
+            records.append(rows)
+            print(f"{run}:\n{text}", flush=True)
             if args.frames:
                 lines, vecs = home_frames(run)
                 frames.append(vecs)
@@ -219,6 +252,8 @@ def main(argv: list[str] | None = None) -> int:
                 print("\n".join(lines), flush=True)
     if args.frames and frames:
         print("\n".join(summary(frames, baselines)))
+    if args.ranges and records:
+        print("\n".join(range_lines(np.vstack(records))))
     return 0 if found else 2
 
 
