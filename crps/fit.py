@@ -62,7 +62,12 @@ class SilhouetteFitConfig:
     # single-frame p95 range error fit / moments 1.8 / 4.9 % at 40 m (~13 px), 2.6 / 7.8 %
     # at 55 m, 6.4 / 8.7 % at 70 m; at 25-30 m (19-23 px) the moments win (2.3-3.4 % vs 6 %).
     max_extent_px: float = 14.0
-    canvas_px: int = 320  # longest side of the supersampled canvas; sets the supersampling (2..8)
+    # Longest side of the supersampled canvas; sets the supersampling (2..max_supersample). A quad seen a few
+    # degrees from below shows its rotor discs as slivers under a pixel tall: at 320 px (5 sub-samples a side
+    # on a 20 m helper view) noise-free edge-on fits read +1 % long on average and up to 7 %, at 640 px
+    # +0.2 % and 0.9 % (tests/crps/test_crps_fit.py; benchmarks/helper_ranging.py by elevation).
+    canvas_px: int = 640
+    max_supersample: int = 8  # sub-samples per pixel side, at most
     yaw_steps: int = 4  # yaw hypotheses over the symmetry period, each fitted and weighted
     iterations: int = 5  # least-squares steps (Jacobians, at most) from a yaw search
     tracked_iterations: int = 1  # ... when started from the previous frame's solution
@@ -79,7 +84,7 @@ class SilhouetteFitConfig:
         validate.positive_scalar("SilhouetteFitConfig.max_extent_px", self.max_extent_px)
         if validate.finite_scalar("SilhouetteFitConfig.model_sigma_rel", self.model_sigma_rel) < 0:
             raise InputError("SilhouetteFitConfig.model_sigma_rel must be >= 0")
-        for name in ("canvas_px", "yaw_steps", "iterations", "tracked_iterations"):
+        for name in ("canvas_px", "max_supersample", "yaw_steps", "iterations", "tracked_iterations"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
                 raise InputError(f"SilhouetteFitConfig.{name} must be a positive integer, got {value!r}")
@@ -220,7 +225,7 @@ class SilhouetteFit:
             return None
         win = to_gray(np.asarray(image)[v0:v1, u0:u1]).astype(np.float64)
         shape = win.shape
-        ss = int(np.clip(cfg.canvas_px // max(shape), 2, 8))
+        ss = int(np.clip(cfg.canvas_px // max(shape), 2, cfg.max_supersample))
         yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
         xs, ys = (xx - xx.mean()) / shape[1], (yy - yy.mean()) / shape[0]
         obs = win.ravel()

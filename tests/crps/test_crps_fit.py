@@ -135,3 +135,27 @@ def test_cli_range_fits_a_distant_target(tmp_path):
     rec = json.loads(out.with_suffix(".json").read_text())["detections"][0]
     assert rec["kind"] == "model"
     assert abs(rec["range_m"] - view.truth.range_m) <= 3.0 * rec["range_sigma_m"]
+
+
+def test_fit_ranges_a_near_edge_on_quad_without_bias():
+    """Seen 3 deg from below (a helper's view of a drone flying home), a quad's rotor discs are slivers
+    ~0.5 px tall at 12-20 m. The template must sample them finely enough (``canvas_px``) or the fit settles
+    where the coarse sampling happens to match: with 320 px this grid read up to 2.1 % off (mean +0.7 %),
+    with 640 px within 0.7 % (mean +0.15 %). Noise-free, exact model: what is left is that sampling."""
+    camera = Camera.from_fov(960, 720, 50.0)  # a recovery helper's camera (RecoveryConfig)
+    fit = SilhouetteFit(camera, DroneModel.quad(), SilhouetteFitConfig(psf_sigma_px=BLUR, max_extent_px=64.0))
+    errors = []
+    for dist_m in (12.0, 20.0):
+        for yaw in np.arange(0.0, 90.0, 10.0):
+            helper = CameraPose(47.0, 8.0, 400.0, gimbal_pitch_deg=3.0)
+            lat, lon = destination(47.0, 8.0, 0.0, dist_m * math.cos(math.radians(3.0)))
+            target = TargetPose(float(lat), float(lon), 400.0 + dist_m * math.sin(math.radians(3.0)),
+                                yaw_deg=float(yaw))
+            view = render_drone_view(camera, helper, target, DroneModel.quad(), blur_sigma_px=BLUR,
+                                     rng=np.random.default_rng(0))
+            fitted = fit(view.image, DETECT(view.image)[0], helper)
+            assert fitted.kind == "model"
+            errors.append(observe(camera, helper, fitted, 0.5).range_m / view.truth.range_m - 1.0)
+    errors = np.array(errors)
+    assert np.abs(errors).max() <= 0.015
+    assert abs(errors.mean()) <= 0.004

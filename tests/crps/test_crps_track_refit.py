@@ -3,9 +3,9 @@
 A helper's tracker starts each frame's fit from the last frame's solution with one least-squares step. A
 solution gone wrong (the target turned, a noisy frame) can then persist: here the carried state is put 35 %
 long in range and 45 deg off in yaw (the worst yaw for a quad) before the second frame. Without the guard
-the fit stays there (seen +16 % and +19 % on the next frames); with it the fitted size disagrees with the
-moments' size by more than ``refit_z`` sigmas, the fit is redone from the yaw search and the range is
-back within the model's 3 % (seen 0.9 %).
+the fit stays off (seen +13 % on the next frame, +5 % on the one after: one least-squares step a frame walks
+it back slowly); with it the fitted size disagrees with the moments' size by more than ``refit_z`` sigmas, the
+fit is redone from the yaw search and the range is back within the model's 3 % (seen 0.9 % and 1.3 %).
 """
 
 import math
@@ -65,7 +65,7 @@ def test_a_tracked_fit_gone_wrong_is_redone_from_the_yaw_search():
     unguarded, refits = _track(math.inf)
     assert refits == 0
     assert abs(unguarded[0]) < 0.03  # the first frame's fresh fit is right
-    assert min(unguarded[1:]) > 0.08  # then the carried wrong solution stays wrong
+    assert unguarded[1] > 0.08  # then the carried wrong solution is still wrong a frame later
     guarded, refits = _track(EyeConfig().refit_z)  # the helper eye's guard (the Tracker's default: none)
     assert refits >= 1
     assert max(abs(e) for e in guarded) < 0.03  # the model's stated 3 %
