@@ -8,7 +8,9 @@ Scoring only: the truth is read here, never by the run. Per run folder (``RUN/tr
 
 * per helper, each observation's range error against the true distance at its exposure time (median, mean:
   a bias that fusion cannot average away), and the helper's own position error against the swarm's GNSS
-  frame (the observer position it sent minus its truth minus the shared GNSS error: its own receiver's part);
+  frame (the observer position it sent minus its truth minus the shared GNSS error: its own receiver's part),
+  also along its line of sight to the target (+ toward it; over all and over its last 20 s of observations):
+  an observer whose fix sits toward the target puts the target's fix beyond it, as a long range does;
 * the lost drone's fused error at touchdown against the truth and against the swarm's GNSS frame, and where
   it landed from home (a drone landing on its fix lands off by that error, less its home's own GNSS error);
 * with ``--ranges``, every run's observations pooled: the range error by the target's elevation above the
@@ -172,17 +174,22 @@ def diagnose(run: Path, world: LocalFrame) -> tuple[str, np.ndarray]:
                                                                obs["observer_alt_m"])])
         seen = at(truth[LOST], ts) - at(truth[h], ts)
         true_range = float(np.linalg.norm(seen))
-        per.setdefault(h, {"range": [], "own": []})
+        per.setdefault(h, {"range": [], "own": [], "los": [], "t": []})
         per[h]["range"].append(obs["range_m"] / true_range - 1.0)
         speed = float(np.linalg.norm(at(truth[LOST], ts + 0.25) - at(truth[LOST], ts - 0.25))) / 0.5
         records.append((per[h]["range"][-1], math.degrees(math.asin(seen[2] / true_range)), speed))
         per[h]["own"].append(seen_from - at(truth[h], ts) - at(common, ts))
+        per[h]["los"].append(float(per[h]["own"][-1] @ seen) / true_range)  # + : toward the target
+        per[h]["t"].append(ts)
     lines = []
     for h, f in sorted(per.items()):
-        r, own = np.array(f["range"]), np.array(f["own"])
+        r, own, los, ts_obs = np.array(f["range"]), np.array(f["own"]), np.array(f["los"]), np.array(f["t"])
+        late = ts_obs >= ts_obs.max() - 20.0
         lines.append(f"  {h}: {len(r)} observations, range error median {100 * np.median(r):+.1f} %, mean "
                      f"{100 * r.mean():+.1f} %; own position vs the swarm's GNSS frame mean E {own[:, 0].mean():+.2f} "
-                     f"N {own[:, 1].mean():+.2f} m (sd {own[:, 0].std():.2f}, {own[:, 1].std():.2f})")
+                     f"N {own[:, 1].mean():+.2f} m (sd {own[:, 0].std():.2f}, {own[:, 1].std():.2f}), along its line "
+                     f"of sight (+ toward the target) {los.mean():+.2f} m, over its last 20 s of observations "
+                     f"{los[late].mean():+.2f} m")
     alt = _columns(rows, (f"{LOST}_alt_rel_m",))[:, 0]
     airborne = np.flatnonzero(alt > 0.3)
     td = min(int(airborne[-1]) + 1, len(rows) - 1) if airborne.size else len(rows) - 1
