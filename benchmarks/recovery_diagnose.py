@@ -151,9 +151,11 @@ def summary(found: list[dict[str, np.ndarray]], baselines: list[dict[str, np.nda
             f"{corr:+.2f} over {2 * len(own)} axis pairs (the home offset carries over only as far as these agree)"]
 
 
-def diagnose(run: Path, world: LocalFrame) -> tuple[str, np.ndarray]:
-    """The figures of one run folder, as printable lines, and one row per helper observation: (relative range
-    error, the target's elevation above the observer's horizon in deg, the target's speed in m/s)."""
+def diagnose(run: Path, world: LocalFrame) -> tuple[str, np.ndarray, np.ndarray | None]:
+    """The figures of one run folder, as printable lines; one row per helper observation: (relative range
+    error, the target's elevation above the observer's horizon in deg, the target's speed in m/s); and over the
+    last 8 s of observations, the horizontal error against the swarm's GNSS frame (m) of where they put the
+    target, of the observers' own fixes and of their cameras' part (None without observations)."""
     rows = _trajectory(run)
     t = _columns(rows, ("t_s",))[:, 0]
     truth = {d: _columns(rows, (f"{d}_east_m", f"{d}_north_m", f"{d}_up_m")) for d in ("d1", "d2", "d3")}
@@ -174,13 +176,16 @@ def diagnose(run: Path, world: LocalFrame) -> tuple[str, np.ndarray]:
                                                                obs["observer_alt_m"])])
         seen = at(truth[LOST], ts) - at(truth[h], ts)
         true_range = float(np.linalg.norm(seen))
-        per.setdefault(h, {"range": [], "own": [], "los": [], "t": []})
+        per.setdefault(h, {"range": [], "own": [], "los": [], "t": [], "implied": []})
         per[h]["range"].append(obs["range_m"] / true_range - 1.0)
         speed = float(np.linalg.norm(at(truth[LOST], ts + 0.25) - at(truth[LOST], ts - 0.25))) / 0.5
         records.append((per[h]["range"][-1], math.degrees(math.asin(seen[2] / true_range)), speed))
         per[h]["own"].append(seen_from - at(truth[h], ts) - at(common, ts))
         per[h]["los"].append(float(per[h]["own"][-1] @ seen) / true_range)  # + : toward the target
         per[h]["t"].append(ts)
+        # where this observation alone puts the target, against the swarm's GNSS frame
+        per[h]["implied"].append(seen_from + np.asarray(obs["bearing_unit_enu"], float) * obs["range_m"]
+                                 - at(truth[LOST], ts) - at(common, ts))
     lines = []
     for h, f in sorted(per.items()):
         r, own, los, ts_obs = np.array(f["range"]), np.array(f["own"]), np.array(f["los"]), np.array(f["t"])
@@ -206,7 +211,17 @@ def diagnose(run: Path, world: LocalFrame) -> tuple[str, np.ndarray]:
                 for d in helpers)
     lines.append(f"  {LOST} at touchdown: its error against the swarm's GNSS frame along {'+'.join(helpers)}'s mean line "
                  f"of sight (away from them) {float(rel @ sight) / np.linalg.norm(sight):+.2f} m")
-    return "\n".join(lines), np.array(records).reshape(-1, 3)
+    t_end = max((max(f["t"]) for f in per.values()), default=None)
+    end = None
+    if t_end is not None:
+        own_end = [o for f in per.values() for o, ts in zip(f["own"], f["t"], strict=True) if ts >= t_end - 8.0]
+        implied_end = [o for f in per.values() for o, ts in zip(f["implied"], f["t"], strict=True) if ts >= t_end - 8.0]
+        implied_h, own_h = np.mean(implied_end, axis=0)[:2], np.mean(own_end, axis=0)[:2]
+        lines.append(f"  {LOST} over the last 8 s of observations: where they put it, against the swarm's GNSS frame "
+                     f"(mean) {np.linalg.norm(implied_h):.2f} m = the observers' own fixes {np.linalg.norm(own_h):.2f} m "
+                     f"+ their cameras (range and bearing) {np.linalg.norm(implied_h - own_h):.2f} m (vectors)")
+        end = np.array([np.linalg.norm(implied_h), np.linalg.norm(own_h), np.linalg.norm(implied_h - own_h)])
+    return "\n".join(lines), np.array(records).reshape(-1, 3), end
 
 
 def range_lines(records: np.ndarray) -> list[str]:
@@ -239,14 +254,17 @@ def main(argv: list[str] | None = None) -> int:
     frames: list[dict[str, np.ndarray]] = []
     baselines: list[dict[str, np.ndarray]] = []
     records: list[np.ndarray] = []
+    ends: list[np.ndarray] = []
     for root in args.runs:
         runs = [root] if (root / "trajectory.csv").exists() else sorted(
             (p for p in root.glob("seed_*/recovery") if (p / "trajectory.csv").exists()),
             key=lambda p: int(p.parent.name.split("_")[1]))
         for run in runs:
             found += 1
-            text, rows = diagnose(run, world)
+            text, rows, end = diagnose(run, world)
             records.append(rows)
+            if end is not None:
+                ends.append(end)
             print(f"{run}:\n{text}", flush=True)
             if args.frames:
                 lines, vecs = home_frames(run)
@@ -257,6 +275,11 @@ def main(argv: list[str] | None = None) -> int:
                     lines += more
                     baselines.append(bvecs)
                 print("\n".join(lines), flush=True)
+    if ends:
+        med = np.median(np.array(ends), axis=0)
+        print(f"over the last 8 s of observations, median over {len(ends)} runs: where they put the lost drone "
+              f"{med[0]:.2f} m from the swarm's GNSS frame; the observers' own fixes {med[1]:.2f} m; their cameras' "
+              f"part {med[2]:.2f} m")
     if args.frames and frames:
         print("\n".join(summary(frames, baselines)))
     if args.ranges and records:
