@@ -64,6 +64,23 @@ def _fused_error(rows: list[dict], truth: np.ndarray) -> np.ndarray:
     return _columns(rows, ("fused_east_m", "fused_north_m")) - truth[:, :2]
 
 
+def honesty(run: Path) -> float | None:
+    """Mean of (horizontal fused error / stated sigma_h)^2 from the GNSS loss (``report.json``'s loss time) while
+    airborne. sigma_h is the larger horizontal axis' 1-sigma, so an honest covariance gives 1 (a thin ellipse) to 2
+    (a round one); above 2 is over-confident. None without a loss time or fused rows."""
+    rows = _trajectory(run)
+    report = json.loads((run / "report.json").read_text()) if (run / "report.json").exists() else {}
+    t_loss = (report.get("figures") or {}).get("loss_time_s")
+    if t_loss is None:
+        return None
+    t = _columns(rows, ("t_s",))[:, 0]
+    err = _fused_error(rows, _columns(rows, (f"{LOST}_east_m", f"{LOST}_north_m", f"{LOST}_up_m")))
+    sigma = _columns(rows, ("fused_sigma_h_m",))[:, 0]
+    alt = _columns(rows, (f"{LOST}_alt_rel_m",))[:, 0]
+    use = (t >= t_loss) & (alt > 0.5) & np.isfinite(err[:, 0]) & (sigma > 0)
+    return float(np.mean(np.sum(err[use] ** 2, axis=1) / sigma[use] ** 2)) if use.any() else None
+
+
 def home_frames(run: Path) -> tuple[list[str], dict[str, np.ndarray]]:
     """The home error and the own-receiver / helpers' frame offset of one run folder (recovery or baseline):
     printable lines and the vectors (ENU m, horizontal) for the summary."""
@@ -255,6 +272,7 @@ def main(argv: list[str] | None = None) -> int:
     baselines: list[dict[str, np.ndarray]] = []
     records: list[np.ndarray] = []
     ends: list[np.ndarray] = []
+    honest: list[tuple[float, float | None]] = []
     for root in args.runs:
         runs = [root] if (root / "trajectory.csv").exists() else sorted(
             (p for p in root.glob("seed_*/recovery") if (p / "trajectory.csv").exists()),
@@ -263,6 +281,13 @@ def main(argv: list[str] | None = None) -> int:
             found += 1
             text, rows, end = diagnose(run, world)
             records.append(rows)
+            base_dir = run.parent / "baseline"
+            pair = (honesty(run), honesty(base_dir) if (base_dir / "trajectory.csv").exists() else None)
+            if pair[0] is not None:
+                honest.append(pair)
+                text += (f"\n  {LOST} stated sigma against its error from the loss, mean (error_h / sigma_h)^2 (honest: "
+                         f"1-2): recovering {pair[0]:.2f}" + ("" if pair[1] is None else
+                                                                  f", the healthy RTL of the same seed {pair[1]:.2f}"))
             if end is not None:
                 ends.append(end)
             print(f"{run}:\n{text}", flush=True)
@@ -280,6 +305,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"over the last 8 s of observations, median over {len(ends)} runs: where they put the lost drone "
               f"{med[0]:.2f} m from the swarm's GNSS frame; the observers' own fixes {med[1]:.2f} m; their cameras' "
               f"part {med[2]:.2f} m")
+    if honest:
+        base = [b for _, b in honest if b is not None]
+        print(f"stated sigma from the loss, median over {len(honest)} runs of mean (error_h / sigma_h)^2 (honest: 1-2): "
+              f"recovering {np.median([r for r, _ in honest]):.2f}"
+              + (f", healthy RTL {np.median(base):.2f} over {len(base)}" if base else ""))
     if args.frames and frames:
         print("\n".join(summary(frames, baselines)))
     if args.ranges and records:
