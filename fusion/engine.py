@@ -372,7 +372,9 @@ class FusionEngine:
         """Fused state of ``drone_id`` at ``time_s`` (default: its newest measurement time).
 
         ``time_s`` may lie anywhere inside the lag (a smoothed answer) or ahead of the newest
-        state (a prediction with grown covariance).
+        state (a prediction with grown covariance). A drone silent for longer than the lag has no
+        newest measurement left in the window: :class:`NotAvailableError` (an explicit ``time_s``
+        before the window: :class:`InputError`).
         """
         drone = self._known(drone_id)
         self.update()
@@ -382,6 +384,10 @@ class FusionEngine:
         t_s = drone.last_time_s if time_s is None else validate.finite_scalar("time_s", time_s)
         window = self._window
         oldest_s = window.time_of(drone.first_k) - window.dt_s / 2
+        if t_s < oldest_s and time_s is None:
+            # not the caller's mistake: the drone has been silent for longer than the lag
+            raise NotAvailableError(f"drone {drone_id!r}'s newest measurement (time_s={t_s}) has left the window "
+                                    f"(silent for longer than lag_s {self.lag_s:g}): no estimate until it reports again")
         if t_s < oldest_s:
             raise InputError(f"time_s={t_s} is before drone {drone_id!r}'s window (oldest {oldest_s:.3f} s, lag_s "
                              f"{self.lag_s:g}); record estimates as they come or replay the log")

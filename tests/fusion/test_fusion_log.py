@@ -106,3 +106,27 @@ def test_cli_replay_writes_csv_geojson_and_png(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--drone Z" in err[0] and "A, B" in err[0] and "Traceback" not in err[0]
     assert not (tmp_path / "z").exists()
+
+
+def test_a_drone_silent_longer_than_the_lag_has_no_estimate_and_the_replay_goes_on(tmp_path):
+    """B reports once and falls silent; A goes on for longer than the lag. Asking for B's newest estimate is
+    'not available' (as for a drone not yet localised), not a bad argument, so a replay of the log, which asks
+    for every drone's estimate after each update, runs to the end (a live node skipped it the same way; the
+    replay of a loaded demo's log stopped there with exit 2)."""
+    from skyfix.errors import NotAvailableError
+
+    path = tmp_path / "silent.jsonl"
+    with FusionEngine(ORIGIN, lag_s=2.0, log_path=path) as engine:
+        engine.add_gnss("B", 1.0, 47.0, 8.0, 400.0, h_sigma_m=1.5, v_sigma_m=3.0)
+        for k in range(40):
+            t = 1.0 + 0.2 * k
+            engine.add_gnss("A", t, 47.0, 8.0 + 1e-6 * k, 400.0, h_sigma_m=1.5, v_sigma_m=3.0)
+            engine.update()
+        assert engine.estimate("A").time_s == pytest.approx(8.8)
+        with pytest.raises(NotAvailableError, match="silent for longer than"):
+            engine.estimate("B")
+        with pytest.raises(InputError, match="before drone 'B'"):
+            engine.estimate("B", time_s=1.0)
+    result = replay(path, show_progress=False)
+    assert result.n_rejected_inputs == 0
+    assert len(result.fused["A"].arrays()[0]) >= 30 and "B" in result.fused
