@@ -369,13 +369,9 @@ class FusionEngine:
                 self._chains.latest_cov(drone)
 
     def estimate(self, drone_id: str, time_s: float | None = None) -> Estimate:
-        """Fused state of ``drone_id`` at ``time_s`` (default: its newest measurement time).
-
-        ``time_s`` may lie anywhere inside the lag (a smoothed answer) or ahead of the newest
-        state (a prediction with grown covariance). A drone silent for longer than the lag has no
-        newest measurement left in the window: :class:`NotAvailableError` (an explicit ``time_s``
-        before the window: :class:`InputError`).
-        """
+        """Fused state of ``drone_id`` at ``time_s`` (default: its newest measurement time): anywhere inside the
+        lag (a smoothed answer) or ahead of the newest state (a prediction with grown covariance).
+        NotAvailableError for a drone silent for longer than the lag (its newest measurement left the window)."""
         drone = self._known(drone_id)
         self.update()
         if not drone.anchored:
@@ -384,10 +380,8 @@ class FusionEngine:
         t_s = drone.last_time_s if time_s is None else validate.finite_scalar("time_s", time_s)
         window = self._window
         oldest_s = window.time_of(drone.first_k) - window.dt_s / 2
-        if t_s < oldest_s and time_s is None:
-            # not the caller's mistake: the drone has been silent for longer than the lag
-            raise NotAvailableError(f"drone {drone_id!r}'s newest measurement (time_s={t_s}) has left the window "
-                                    f"(silent for longer than lag_s {self.lag_s:g}): no estimate until it reports again")
+        if t_s < oldest_s and time_s is None:  # its newest measurement left the window: not the caller's mistake
+            raise NotAvailableError(f"drone {drone_id!r} silent for longer than lag_s {self.lag_s:g}: no estimate")
         if t_s < oldest_s:
             raise InputError(f"time_s={t_s} is before drone {drone_id!r}'s window (oldest {oldest_s:.3f} s, lag_s "
                              f"{self.lag_s:g}); record estimates as they come or replay the log")
