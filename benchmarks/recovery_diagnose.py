@@ -64,13 +64,18 @@ def _fused_error(rows: list[dict], truth: np.ndarray) -> np.ndarray:
     return _columns(rows, ("fused_east_m", "fused_north_m")) - truth[:, :2]
 
 
+def _loss_time_s(run: Path) -> float | None:
+    """The GNSS loss time the run's ``report.json`` records (s), None without one."""
+    report = json.loads((run / "report.json").read_text()) if (run / "report.json").exists() else {}
+    return (report.get("figures") or {}).get("loss_time_s")
+
+
 def honesty(run: Path) -> float | None:
     """Mean of (horizontal fused error / stated sigma_h)^2 from the GNSS loss (``report.json``'s loss time) while
     airborne. sigma_h is the larger horizontal axis' 1-sigma, so an honest covariance gives 1 (a thin ellipse) to 2
     (a round one); above 2 is over-confident. None without a loss time or fused rows."""
     rows = _trajectory(run)
-    report = json.loads((run / "report.json").read_text()) if (run / "report.json").exists() else {}
-    t_loss = (report.get("figures") or {}).get("loss_time_s")
+    t_loss = _loss_time_s(run)
     if t_loss is None:
         return None
     t = _columns(rows, ("t_s",))[:, 0]
@@ -91,8 +96,7 @@ def home_frames(run: Path) -> tuple[list[str], dict[str, np.ndarray]]:
     err = _fused_error(rows, truth)
     alt = _columns(rows, (f"{LOST}_alt_rel_m",))[:, 0]
     up = np.flatnonzero(alt > 0.3)
-    report = json.loads((run / "report.json").read_text()) if (run / "report.json").exists() else {}
-    t_loss = (report.get("figures") or {}).get("loss_time_s")
+    t_loss = _loss_time_s(run)
     if not up.size or t_loss is None:
         return [f"  {run.name}: no take-off or no loss time recorded"], {}
     lift, td = int(up[0]), min(int(up[-1]) + 1, len(rows) - 1)
