@@ -15,7 +15,7 @@ FLAG_NAMES = {"step_m": "--step", "altitude_m": "--alt", "hold_s": "--hold", "fo
               "jpeg_quality": "--quality", "workers": "--workers", "resolution_cm": "--resolution-cm",
               "dsm_resolution_m": "--dsm-resolution-m", "dense_scale": "--dense-scale",
               "max_ortho_mpx": "--max-ortho-mpx", "max_image_size_px": "--max-image-size",
-              "max_features": "--max-features", "sfm_threads": "--sfm-threads", "threads": "--threads"}
+              "max_features": "--max-features", "sfm_threads": "--sfm-threads", "match_threads": "--match-threads", "threads": "--threads"}
 
 
 def flags_named(func):

@@ -26,7 +26,7 @@ def _map(args: argparse.Namespace) -> int:
         resolution_cm=args.resolution_cm, dsm_resolution_m=args.dsm_resolution_m,
         max_image_size_px=args.max_image_size, max_features=args.max_features,
         exhaustive_max_photos=args.exhaustive_max, max_agl_m=args.max_agl, threads=args.threads,
-        sfm_threads=args.sfm_threads,
+        sfm_threads=args.sfm_threads, match_threads=args.match_threads,
         refine_focal=args.refine_focal, gps_sigma_m=tuple(args.gps_sigma) if args.gps_sigma[0] > 0 else (),
         seed=args.seed, dense=not args.sparse_dsm, dense_scale=args.dense_scale,
         ortho_seams=not args.feathered_ortho, max_ortho_mpx=args.max_ortho_mpx,
@@ -141,7 +141,11 @@ def register_map(subparsers: argparse._SubParsersAction) -> None:
                         "adjustment; 0 0 turns the priors off")
     p.add_argument("--seed", type=int, default=0, help="random seed (the same photos and seed give the same outputs)")
     p.add_argument("--threads", type=int, default=-1,
-                   help="worker threads of feature extraction, matching and dense matching (-1: all cores)")
+                   help="worker threads of feature extraction and dense matching (-1: all cores)")
+    p.add_argument("--match-threads", type=int, default=1,
+                   help="threads of feature matching; 1 (the default) gives the same matches every run, more "
+                        "(-1: all cores) are faster but COLMAP's matcher threads then race and a pair now and "
+                        "then loses matches")
     p.add_argument("--sfm-threads", type=int, default=1,
                    help="threads of structure from motion's registration and bundle adjustments; 1 (the default) "
                         "gives the same model every run, more (-1: all cores) are faster on large surveys but "

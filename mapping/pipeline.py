@@ -81,6 +81,7 @@ class PipelineConfig:
     dsm_fill_max_m2: float = 4.0          # dense DSM: enclosed holes up to this area interpolated, in dsm_interpolated.tif
     threads: int = -1                     # -1: all cores
     sfm_threads: int = 1                  # structure from motion's registration and adjustment threads: 1 repeats exactly
+    match_threads: int = 1                # feature matching threads: 1 repeats exactly
     force: tuple[str, ...] = ()           # stages to re-run even when their outputs exist
     stop_after: str | None = None         # end the run after this stage (a later run resumes from its marker)
 
@@ -101,7 +102,7 @@ class PipelineConfig:
             raise InputError(f"dense_fill_scales must each be in [0.05, dense_scale), got {self.dense_fill_scales!r}")
         if not (self.dense_local_norm_px == 0 or 3 <= self.dense_local_norm_px <= 255):
             raise InputError(f"dense_local_norm_px must be 0 (off) or in [3, 255] px, got {self.dense_local_norm_px!r}")
-        for name in ("threads", "sfm_threads"):  # COLMAP aborts the process on 0 or below -1
+        for name in ("threads", "sfm_threads", "match_threads"):  # COLMAP aborts the process on 0 or below -1
             if getattr(self, name) == 0 or getattr(self, name) < -1:
                 raise InputError(f"{name} must be -1 (all cores) or at least 1, got {getattr(self, name)!r}")
         for name in ("resolution_cm", "dsm_resolution_m", "max_ortho_mpx"):

@@ -23,7 +23,7 @@ _STAGE_OPTIONS = {
     "photos": (), "correct": ("barrel",),
     "features": ("barrel", "calibration", "max_image_size_px", "max_features"),
     "matches": ("barrel", "calibration", "max_image_size_px", "max_features", "exhaustive_max_photos",
-                "spatial_neighbours", "seed"),
+                "spatial_neighbours", "seed", "match_threads"),
     "mapping": ("calibration", "shared_lens", "refine_focal", "gps_sigma_m", "seed", "sfm_threads"),
     "georef": ("georef_max_error_m", "two_view_max_offset_m", "two_view_max_vertical_m", "estimate_gps_lag"),
     "dsm": ("dense", "dense_scale", "dense_fill_scales", "dense_local_norm_px", "dense_cell_px", "dsm_resolution_m",

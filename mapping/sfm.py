@@ -218,12 +218,15 @@ def set_lenses(database: Path, photos: list[Photo], lenses: tuple) -> int:
 
 
 def match(database: Path, photos: list[Photo], *, exhaustive_max_photos: int = 40, neighbours: int = 12,
-          seed: int = 0, threads: int = -1) -> str:
+          seed: int = 0, threads: int = 1) -> str:
     """Match features; returns the method used ('exhaustive' or 'spatial').
 
     Small sets (or any set with photos lacking GPS) are matched exhaustively; larger ones
     pair each photo with its ``neighbours`` nearest GPS positions (pycolmap spatial matching
-    on the EXIF positions the extractor stored as pose priors).
+    on the EXIF positions the extractor stored as pose priors). ``threads`` = 1 (one
+    matcher thread beside one verifier thread) gives the same matches every run; with more,
+    COLMAP's matcher threads build and search their faiss indices at once and now and then
+    a pair loses matches (mapping/README, Repeatable).
     """
     pycolmap = _colmap_logging()
 

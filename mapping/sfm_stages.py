@@ -32,7 +32,7 @@ def matches_run(config: PipelineConfig, project: Project, state: RunState, repor
     from skyfix.mapping import sfm
 
     report.matching = sfm.match(project.database, state.photos, exhaustive_max_photos=config.exhaustive_max_photos,
-                                neighbours=config.spatial_neighbours, seed=config.seed, threads=config.threads)
+                                neighbours=config.spatial_neighbours, seed=config.seed, threads=config.match_threads)
     return {"method": report.matching}
 
 
