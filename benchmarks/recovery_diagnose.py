@@ -176,7 +176,8 @@ def diagnose(run: Path, world: LocalFrame) -> tuple[str, np.ndarray, np.ndarray 
     """The figures of one run folder, as printable lines; one row per helper observation: (relative range
     error, the target's elevation above the observer's horizon in deg, the target's speed in m/s); and over the
     last 8 s of observations, the horizontal error against the swarm's GNSS frame (m) of where they put the
-    target, of the observers' own fixes and of their cameras' part (None without observations)."""
+    target, of the observers' own fixes and of their cameras' part, and the fused fix's at the last observation
+    and at touchdown (None without observations)."""
     rows = _trajectory(run)
     t = _columns(rows, ("t_s",))[:, 0]
     truth = {d: _columns(rows, (f"{d}_east_m", f"{d}_north_m", f"{d}_up_m")) for d in ("d1", "d2", "d3")}
@@ -241,7 +242,14 @@ def diagnose(run: Path, world: LocalFrame) -> tuple[str, np.ndarray, np.ndarray 
         lines.append(f"  {LOST} over the last 8 s of observations: where they put it, against the swarm's GNSS frame "
                      f"(mean) {np.linalg.norm(implied_h):.2f} m = the observers' own fixes {np.linalg.norm(own_h):.2f} m "
                      f"+ their cameras (range and bearing) {np.linalg.norm(implied_h - own_h):.2f} m (vectors)")
-        end = np.array([np.linalg.norm(implied_h), np.linalg.norm(own_h), np.linalg.norm(implied_h - own_h)])
+        # after the last observation the fix runs on the autopilot's velocity alone (dead reckoning) to touchdown
+        i_obs = min(int(np.searchsorted(t, t_end)), last)
+        at_obs = float(np.linalg.norm(fused[i_obs, :2] - truth[LOST][i_obs, :2] - common[i_obs, :2]))
+        lines.append(f"  {LOST} after the last observation (t={t_end:.1f} s, {t[td] - t_end:.1f} s before touchdown, "
+                     f"{truth[LOST][i_obs, 2]:.1f} m up): fused fix vs the swarm's GNSS frame {at_obs:.2f} m there, "
+                     f"{math.hypot(*rel):.2f} m at touchdown")
+        end = np.array([np.linalg.norm(implied_h), np.linalg.norm(own_h), np.linalg.norm(implied_h - own_h),
+                        at_obs, math.hypot(*rel)])
     return "\n".join(lines), np.array(records).reshape(-1, 3), end
 
 
@@ -308,7 +316,8 @@ def main(argv: list[str] | None = None) -> int:
         med = np.median(np.array(ends), axis=0)
         print(f"over the last 8 s of observations, median over {len(ends)} runs: where they put the lost drone "
               f"{med[0]:.2f} m from the swarm's GNSS frame; the observers' own fixes {med[1]:.2f} m; their cameras' "
-              f"part {med[2]:.2f} m")
+              f"part {med[2]:.2f} m; the fused fix from the swarm's GNSS frame at the last observation {med[3]:.2f} m, "
+              f"at touchdown {med[4]:.2f} m")
     if honest:
         base = [b for _, b in honest if b is not None]
         print(f"stated sigma from the loss, median over {len(honest)} runs of mean (error_h / sigma_h)^2 (honest: 1-2): "
