@@ -1,0 +1,133 @@
+"""Would other fusion settings have landed the lost drone closer? Its recorded inputs, fused again.
+
+``benchmarks/recovery.py -o DIR`` keeps, per seed, the lost drone's fusion log (``d2.mcap``: every
+GNSS fix, velocity, peer fix and helper observation its engine took) and the simulator's truth
+(``trajectory.csv``). This replays each log through a fresh engine (:func:`skyfix.fusion.replay`),
+once as recorded and once per variant (``--variant NAME:KEY=VALUE[,KEY=VALUE]``, KEY a
+:class:`~skyfix.fusion.FusionConfig` field, or ``rel_cov_scale`` / ``vel_sigma_scale``, which scale
+the helpers' observation covariances / the lost drone's velocity sigma in the log), and prints
+per seed and as medians: the fix's horizontal error at touchdown against the swarm's GNSS frame
+(truth plus the error all receivers share), and the landing error it predicts.
+
+The prediction holds the flown trajectory fixed: the drone lands where its fix says home is, so a
+fix at touchdown moved by d moves the landing by -d (the recorded runs land within ~0.1 m of their
+own fix, ``recovery_diagnose.py --frames``). It ignores that a different fix would have steered
+the flight differently before touchdown; a variant worth keeping is then flown by
+``benchmarks/recovery.py``. Scoring only: truth is read here, never by the replayed engine.
+The replay as recorded must reproduce the flown fix (printed: its largest deviation at touchdown).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import recovery_diagnose as rd  # noqa: E402  (a sibling script: the trajectory readers)
+
+LOST = rd.LOST
+LOG_SCALES = ("rel_cov_scale", "vel_sigma_scale")
+
+
+def _variant(text: str) -> tuple[str, dict]:
+    name, _, body = text.partition(":")
+    if not body:
+        raise SystemExit(f"--variant {text!r}: expected NAME:KEY=VALUE[,KEY=VALUE]")
+    settings = {}
+    for item in body.split(","):
+        key, _, value = item.partition("=")
+        settings[key.strip()] = json.loads(value)
+    return name, settings
+
+
+def _replay(log_path: Path, settings: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(time_s, east/north m in the log's frame) of the lost drone's replayed fix under ``settings``."""
+    replay_mod = importlib.import_module("skyfix.fusion.replay")
+    from skyfix.fusion.config import FusionConfig
+    from skyfix.fusion.log_mcap import read_mcap_log
+
+    settings = dict(settings)
+    scales = {k: settings.pop(k) for k in LOG_SCALES if k in settings}
+    header, records = read_mcap_log(log_path)
+    records = list(records)
+    for r in records:
+        if "vel_sigma_scale" in scales and r["op"] == "velocity" and r["args"]["drone_id"] == LOST:
+            r["args"] = dict(r["args"], sigma_mps=r["args"]["sigma_mps"] * scales["vel_sigma_scale"])
+        if "rel_cov_scale" in scales and r["op"] == "relative":
+            obs = r["args"]["obs"]
+            r["args"] = {"obs": dataclasses.replace(obs, cov_enu_m2=obs.cov_enu_m2 * scales["rel_cov_scale"])}
+    config = dataclasses.replace(FusionConfig.from_dict(header["config"]), **settings)
+    # the replay builds its engine from the log's header: hand it these records and this config
+    saved = replay_mod.read_mcap_log, replay_mod.FusionConfig
+    replay_mod.read_mcap_log = lambda _path: (header, iter(records))
+    replay_mod.FusionConfig = type("Fixed", (), {"from_dict": staticmethod(lambda _d: config)})
+    try:
+        result = replay_mod.replay(log_path, show_progress=False)
+    finally:
+        replay_mod.read_mcap_log, replay_mod.FusionConfig = saved
+    t, enu, _ = result.fused[LOST].arrays()
+    return t, enu[:, :2]
+
+
+def score(run: Path, variants: list[tuple[str, dict]]) -> dict[str, tuple[float, float]]:
+    """Per variant (and 'as recorded'): (fix error at touchdown vs the swarm's GNSS frame, predicted landing), m."""
+    rows = rd._trajectory(run)
+    t = rd._columns(rows, ("t_s",))[:, 0]
+    truth = rd._columns(rows, (f"{LOST}_east_m", f"{LOST}_north_m"))
+    common = np.nan_to_num(rd._columns(rows, ("common_east_m", "common_north_m")))
+    flown = rd._columns(rows, ("fused_east_m", "fused_north_m"))
+    airborne = np.flatnonzero(rd._columns(rows, (f"{LOST}_alt_rel_m",))[:, 0] > 0.3)
+    td = int(airborne[-1])
+    landed = truth[td] - truth[0]
+    out = {}
+    offset = None
+    for name, settings in [("as recorded", {})] + variants:
+        ts, fix = _replay(run / f"{LOST}.mcap", settings)
+        at_td = np.array([np.interp(t[td], ts, fix[:, i]) for i in range(2)])
+        if offset is None:  # the log's frame is the lost drone's: its offset from the world's, from the flown fix
+            ok = np.isfinite(flown[:, 0]) & (t >= ts[0]) & (t <= ts[-1])
+            offset = np.median(flown[ok] - np.stack([np.interp(t[ok], ts, fix[:, i]) for i in range(2)], 1), axis=0)
+            out["deviation"] = (float(np.linalg.norm(at_td + offset - flown[td])), float("nan"))
+        moved = at_td + offset - flown[td]
+        out[name] = (float(np.linalg.norm(at_td + offset - truth[td] - common[td])),
+                     float(np.linalg.norm(landed - moved)))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("runs", type=Path, help="a benchmarks/recovery.py output folder (seed_<n>/recovery)")
+    ap.add_argument("--variant", action="append", default=[], type=_variant, metavar="NAME:KEY=VALUE[,...]",
+                    help="fusion settings to replay with (repeatable)")
+    args = ap.parse_args(argv)
+    runs = sorted((p for p in args.runs.glob("seed_*/recovery") if (p / f"{LOST}.mcap").exists()),
+                  key=lambda p: int(p.parent.name.split("_")[1]))
+    if not runs:
+        print(f"no seed_<n>/recovery/{LOST}.mcap under {args.runs}", file=sys.stderr)
+        return 2
+    names = ["as recorded"] + [n for n, _ in args.variant]
+    table = {n: [] for n in names}
+    worst_dev = 0.0
+    for run in runs:
+        found = score(run, args.variant)
+        worst_dev = max(worst_dev, found.pop("deviation")[0])
+        print(f"{run.parent.name}: " + "; ".join(f"{n} {found[n][0]:.2f} m, landing {found[n][1]:.2f} m"
+                                                for n in names), flush=True)
+        for n in names:
+            table[n].append(found[n])
+    print(f"the replay as recorded against the flown fix at touchdown: up to {worst_dev:.2f} m apart")
+    for n in names:
+        v = np.array(table[n])
+        print(f"{n:>24}: fix at touchdown vs the swarm's GNSS frame median {np.median(v[:, 0]):.2f} m; "
+              f"predicted landing median {np.median(v[:, 1]):.2f} m, mean {v[:, 1].mean():.2f} m")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
