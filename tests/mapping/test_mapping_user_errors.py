@@ -55,7 +55,7 @@ def test_errors_name_the_flags_not_the_parameters(tmp_path, capsys):
     assert rc == 2 and "--quality" in line and "jpeg_quality" not in line
 
 
-@pytest.mark.parametrize(("flag", "value"), [("--sfm-threads", "0"), ("--threads", "-4")])
+@pytest.mark.parametrize(("flag", "value"), [("--sfm-threads", "0"), ("--threads", "-4"), ("--match-threads", "0")])
 def test_map_thread_counts_checked_before_colmap(flag, value, tmp_path, capsys):
     # COLMAP aborts the whole process on a thread count of 0 or below -1 (a CHECK, no exception).
     src = tmp_path / "in"
@@ -63,7 +63,7 @@ def test_map_thread_counts_checked_before_colmap(flag, value, tmp_path, capsys):
     shutil.copy(DATA / "IMG_0459.jpg", src)
     rc = main(["map", str(src), "-o", str(tmp_path / "m"), flag, value])
     line = _one_error_line(capsys)
-    assert rc == 2 and flag in line and value in line and "sfm_threads" not in line
+    assert rc == 2 and flag in line and value in line and "sfm_threads" not in line and "match_threads" not in line
 
 
 @pytest.mark.parametrize("polygon", ["bad.geojson", "area.txt", "missing.geojson", "40.1,-8.1;40.2"])
