@@ -27,6 +27,10 @@ SAFETY_ACK_TIMEOUT_S = 0.5
 SAFETY_RETRIES = 7
 
 
+#: the messages that answer a command: its ACK, or the state that proves it took effect when every ACK was lost
+CONFIRMING_TYPES = ("COMMAND_ACK", "HEARTBEAT", "EXTENDED_SYS_STATE")
+
+
 def _confirming(msg) -> bool:
     return msg.get_type() in ("COMMAND_ACK", "HEARTBEAT")
 
@@ -110,11 +114,22 @@ class SafetyMonitor:
             self.wait_until(lambda s: s.mode == mode or self._command_seq != generation, 3.0,
                             what=f"safety action {mode}")
 
+    def _from_autopilot(self, msg, kind: str) -> bool:
+        return msg.get_type() == kind and msg.get_srcSystem() == self.system_id \
+            and msg.get_srcComponent() == self.component_id
+
     def _heartbeat_in_mode(self, msg, mode: str) -> bool:
         """True for this vehicle's autopilot heartbeat reporting ``mode``."""
-        return msg.get_type() == "HEARTBEAT" and msg.get_srcSystem() == self.system_id \
-            and msg.get_srcComponent() == self.component_id \
-            and mode_name(self.autopilot, msg.custom_mode) == mode
+        return self._from_autopilot(msg, "HEARTBEAT") and mode_name(self.autopilot, msg.custom_mode) == mode
+
+    def _heartbeat_armed(self, msg, armed: bool) -> bool:
+        """True for this vehicle's autopilot heartbeat reporting the motors ``armed`` (or disarmed)."""
+        return self._from_autopilot(msg, "HEARTBEAT") and bool(msg.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED) == armed
+
+    def _reports_airborne(self, msg) -> bool:
+        """True for this vehicle's EXTENDED_SYS_STATE reporting it taking off or in the air."""
+        return self._from_autopilot(msg, "EXTENDED_SYS_STATE") and msg.landed_state in (
+            M.MAV_LANDED_STATE_TAKEOFF, M.MAV_LANDED_STATE_IN_AIR)
 
     def _mode_params(self, mode: str) -> list[float]:
         """DO_SET_MODE params for a mode name (PX4: main and sub mode)."""

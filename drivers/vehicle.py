@@ -37,7 +37,7 @@ from skyfix.drivers.mav import command_name, mavlink, result_name
 from skyfix.drivers.modes import custom_mode_of, flavour_of, role_mode
 from skyfix.drivers.request import AGAIN, DONE, WAIT, transact
 from skyfix.drivers.safety import SafetyGate
-from skyfix.drivers.safety_monitor import SafetyMonitor
+from skyfix.drivers.safety_monitor import CONFIRMING_TYPES, SafetyMonitor
 from skyfix.drivers.setpoints import POSITION_ONLY_MASK, VELOCITY_ONLY_MASK, SetpointStream
 from skyfix.drivers.state import VehicleEvent, VehicleState
 from skyfix.drivers.telemetry import TelemetryHandlers
@@ -253,13 +253,16 @@ class Vehicle(TelemetryHandlers, SetpointStream, SafetyMonitor, InjectionCommand
         """Fire and forget (stream rates): no ACK awaited, so no command lock either."""
         self.send(self._command_long(command, params, confirmation))
 
-    def command(self, command: int, *params: float, timeout_s: float = 1.0, retries: int = 3) -> int:
+    def command(self, command: int, *params: float, timeout_s: float = 1.0, retries: int = 3,
+                confirmed_by: Callable[[Any], bool] | None = None) -> int:
         """Send COMMAND_LONG and wait for its COMMAND_ACK, resending up to ``retries`` times.
 
         Commands to one vehicle go out one at a time (the safety gate's included), so an ACK
-        is never taken for another request's. Returns the MAV_RESULT (ACCEPTED). Raises
-        CommandRejected (with the autopilot's STATUSTEXT reason), SkyfixTimeout, or LinkError
-        when the heartbeat is lost.
+        is never taken for another request's. ``confirmed_by(msg)``: a HEARTBEAT or
+        EXTENDED_SYS_STATE that proves the command took effect also ends the wait (on a lossy
+        link every ACK may be lost while the command got through). Returns the MAV_RESULT
+        (ACCEPTED). Raises CommandRejected (with the autopilot's STATUSTEXT reason),
+        SkyfixTimeout, or LinkError when the heartbeat is lost.
         """
         if len(params) > 7:
             raise InputError(f"a COMMAND_LONG takes at most 7 params, got {len(params)}")
@@ -268,7 +271,7 @@ class Vehicle(TelemetryHandlers, SetpointStream, SafetyMonitor, InjectionCommand
                 raise InputError(f"param{i + 1} of {command_name(command)} must be finite or NaN, got {p}")
         with self._command_lock:
             self._command_seq += 1
-            return self._command_locked(command, list(params), timeout_s, retries)
+            return self._command_locked(command, list(params), timeout_s, retries, confirmed_by=confirmed_by)
 
     def _ack_verdict(self, command: int) -> Callable[[Any], str | None]:
         src = (self.link.source_system, self.link.source_component) if self.link else (0, 0)
@@ -302,7 +305,8 @@ class Vehicle(TelemetryHandlers, SetpointStream, SafetyMonitor, InjectionCommand
                     return ack_verdict(msg)
                 return DONE if confirmed_by(msg) else None
         ack = transact(self, lambda attempt: self._command_long(command, params, attempt), verdict,
-                       types=("COMMAND_ACK",), timeout_s=timeout_s, retries=retries,
+                       types=("COMMAND_ACK",) if confirmed_by is None else CONFIRMING_TYPES, timeout_s=timeout_s,
+                       retries=retries,
                        what=f"{name} (COMMAND_ACK)", first_sent=first_sent, replies=replies)
         if ack.get_type() != "COMMAND_ACK" or ack.result == M.MAV_RESULT_ACCEPTED:
             return M.MAV_RESULT_ACCEPTED
@@ -313,12 +317,14 @@ class Vehicle(TelemetryHandlers, SetpointStream, SafetyMonitor, InjectionCommand
 
     def arm(self, *, force: bool = False, timeout_s: float = 3.0) -> None:
         """Arm the motors and wait until the heartbeat shows it."""
-        self.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1, 21196 if force else 0)
+        self.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1, 21196 if force else 0,
+                     confirmed_by=lambda msg: self._heartbeat_armed(msg, True))
         self.wait_until(lambda s: s.armed, timeout_s, what="armed")
 
     def disarm(self, *, force: bool = False, timeout_s: float = 3.0) -> None:
         """Disarm (the autopilot refuses in flight unless ``force``) and wait for it."""
-        self.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196 if force else 0)
+        self.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196 if force else 0,
+                     confirmed_by=lambda msg: self._heartbeat_armed(msg, False))
         self.wait_until(lambda s: not s.armed, timeout_s, what="disarmed")
 
     def set_mode(self, name: str, *, timeout_s: float = 3.0) -> None:
@@ -337,7 +343,7 @@ class Vehicle(TelemetryHandlers, SetpointStream, SafetyMonitor, InjectionCommand
             # a fresh setpoint right before the switch: the stream thread may have been delayed
             # (PX4 refuses OFFBOARD unless a setpoint arrived within COM_OF_LOSS_T)
             self.send(self._setpoint)
-        self.command(M.MAV_CMD_DO_SET_MODE, *mode_params)
+        self.command(M.MAV_CMD_DO_SET_MODE, *mode_params, confirmed_by=lambda msg: self._heartbeat_in_mode(msg, name))
         self.wait_until(lambda s: s.mode == name, timeout_s, what=f"mode {name}")
 
     def _ensure_guided(self) -> None:
@@ -362,7 +368,7 @@ class Vehicle(TelemetryHandlers, SetpointStream, SafetyMonitor, InjectionCommand
             params = [0, 0, 0, 0, 0, 0, alt_m]
         t0 = time.monotonic()
         try:
-            self.command(M.MAV_CMD_NAV_TAKEOFF, *params)
+            self.command(M.MAV_CMD_NAV_TAKEOFF, *params, confirmed_by=self._reports_airborne)
         except CommandRejected:
             # a re-sent takeoff whose first copy was accepted (its ACK lost) is refused as
             # "already flying": not an error when the vehicle did leave the ground just now
