@@ -6,54 +6,16 @@ from __future__ import annotations
 import json
 import math
 import os
-import select
-import socket
 import threading
 import time
 
 import pytest
 from test_swarm_transport import wait_for
+from udp_relay import UdpRelay
 
 from skyfix.crps.service import Service, ServiceConfig
 from skyfix.crps.transport import Endpoints, InProcessBus
 from skyfix.fusion.log_mcap import iter_messages
-
-
-class UdpRelay:
-    """A MAVLink link that can be cut: forwards datagrams between the service and the simulated
-    autopilot, and drops everything in both directions while ``cut`` is set."""
-
-    def __init__(self, autopilot: tuple[str, int]) -> None:
-        self.autopilot = autopilot
-        self.front = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.front.bind(("127.0.0.1", 0))
-        self.back = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.back.bind(("127.0.0.1", 0))
-        self.port = self.front.getsockname()[1]
-        self.cut = threading.Event()
-        self._stop = threading.Event()
-        self._client = None
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            ready, _, _ = select.select([self.front, self.back], [], [], 0.05)
-            for sock in ready:
-                data, addr = sock.recvfrom(65535)
-                if self.cut.is_set():
-                    continue
-                if sock is self.front:
-                    self._client = addr  # a reconnecting service comes from a new port
-                    self.back.sendto(data, self.autopilot)
-                elif self._client is not None:
-                    self.front.sendto(data, self._client)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=1.0)
-        self.front.close()
-        self.back.close()
 
 
 @pytest.mark.slow

@@ -9,10 +9,10 @@ A relay between the vehicle and the simulator forwards every datagram except COM
 
 from __future__ import annotations
 
-import socket
-import threading
+from collections.abc import Callable
 
 import pytest
+from udp_relay import UdpRelay
 
 from skyfix.datasets.sim import Simulator, SimulatorConfig
 from skyfix.drivers.mav import mavlink
@@ -20,57 +20,17 @@ from skyfix.drivers.vehicle import Vehicle
 from skyfix.errors import SkyfixTimeout
 
 
-class AckEater:
-    """UDP relay: the vehicle side at ``port``, the simulator at ``target``; COMMAND_ACK never gets back."""
-
-    def __init__(self, target: tuple[str, int]) -> None:
-        self.target = target
-        self.front = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.front.bind(("127.0.0.1", 0))
-        self.back = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.back.bind(("127.0.0.1", 0))
-        for s in (self.front, self.back):
-            s.settimeout(0.1)
-        self.port = self.front.getsockname()[1]
-        self.client: tuple[str, int] | None = None
-        self.eaten = 0
-        self.stop = threading.Event()
-        self._parser = mavlink.MAVLink(None)
-        self._parser.robust_parsing = True
-        self.threads = [threading.Thread(target=self._pump, args=(up,), daemon=True) for up in (True, False)]
-        for t in self.threads:
-            t.start()
-
-    def _pump(self, up: bool) -> None:
-        src = self.front if up else self.back
-        while not self.stop.is_set():
-            try:
-                data, addr = src.recvfrom(65536)
-            except (TimeoutError, OSError):
-                continue
-            if up:
-                self.client = addr
-                self.back.sendto(data, self.target)
-                continue
-            msgs = self._parser.parse_buffer(data) or []
-            if any(m.get_type() == "COMMAND_ACK" for m in msgs):
-                self.eaten += 1
-                continue
-            if self.client is not None:
-                self.front.sendto(data, self.client)
-
-    def close(self) -> None:
-        self.stop.set()
-        for t in self.threads:
-            t.join(2.0)
-        self.front.close()
-        self.back.close()
+def _acks_dropped() -> Callable[[bytes], bool]:
+    """A relay filter: True for a datagram carrying a COMMAND_ACK (the simulator sends one message a datagram)."""
+    parser = mavlink.MAVLink(None)
+    parser.robust_parsing = True
+    return lambda data: any(m.get_type() == "COMMAND_ACK" for m in parser.parse_buffer(data) or [])
 
 
 @pytest.fixture
 def relayed():
     with Simulator(SimulatorConfig(vehicles=1, speed=2.0, seed=3)) as sim:
-        relay = AckEater(sim.addresses[0])
+        relay = UdpRelay(sim.addresses[0], drop_from_autopilot=_acks_dropped())
         v = Vehicle.connect(f"udpout:127.0.0.1:{relay.port}", timeout_s=5.0)
         try:
             v.wait_until(lambda s: s.position is not None and s.home is not None, 10.0, what="telemetry")
@@ -87,7 +47,7 @@ def test_arm_mode_and_takeoff_confirmed_without_any_ack(relayed):
     v.takeoff(5.0, timeout_s=30.0)
     assert v.state.armed and v.state.mode == "GUIDED"
     assert v.state.position.alt_rel_m >= 4.5
-    assert relay.eaten >= 3  # every one of the three commands was answered, and every answer eaten
+    assert relay.dropped >= 3  # every one of the three commands was answered, and every answer eaten
 
 
 def test_a_command_nothing_confirms_still_times_out(relayed):
@@ -95,4 +55,4 @@ def test_a_command_nothing_confirms_still_times_out(relayed):
     # a parameter-free request with no state to show for it: without its ACK there is no proof
     with pytest.raises(SkyfixTimeout):
         v.command(mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 1, timeout_s=0.3, retries=1)
-    assert relay.eaten >= 1
+    assert relay.dropped >= 1
