@@ -257,7 +257,8 @@ class SitlFleet:
         return SitlInstance(n, sysid, wd, proc, log_path)
 
     def stop(self) -> None:
-        """Stop every instance (and remove the temporary working folder)."""
+        """Stop every instance (and remove the temporary working folder, unless the ``with`` block
+        that started them raised: then it is kept and its path logged)."""
         for inst in self.instances:
             inst.stop()
         self.instances = []
@@ -268,7 +269,12 @@ class SitlFleet:
     def __enter__(self) -> SitlFleet:
         return self.start()
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None and self._own_tmp and self.workdir is not None:
+            # the firmware's own output is what tells why a link stayed silent: not removed with the folder
+            self._own_tmp = False
+            log.warning("SITL working folder kept after %s: %s (firmware output in sitl<N>/sitl.out)",
+                        exc_type.__name__, self.workdir)
         self.stop()
 
     def __iter__(self):

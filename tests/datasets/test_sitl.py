@@ -67,6 +67,27 @@ def test_three_instances_start_fly_apart_and_stop(tmp_path):
     assert all(sitl._port_free(p) for p in ports)
 
 
+
+@pytest.mark.sitl
+@pytest.mark.skipif(bool(sitl.missing_reason()), reason=sitl.missing_reason() or "-")
+def test_a_failed_block_keeps_the_firmware_output(caplog):
+    """A link that stays silent is explained by the firmware's own output: the temporary folder
+    holding it outlives a ``with`` block that raised (its path logged); a clean block removes it."""
+    import shutil
+
+    with sitl.SitlFleet(1, speedup=5.0) as fleet:
+        clean = fleet.workdir
+    assert not clean.exists()
+    with pytest.raises(RuntimeError, match="the flight failed"), sitl.SitlFleet(1, speedup=5.0) as fleet:
+        kept = fleet.workdir
+        raise RuntimeError("the flight failed")
+    try:
+        assert fleet.instances == [] and kept.is_dir()
+        assert list(kept.glob("sitl*/sitl.out")), sorted(kept.rglob("*"))
+        assert str(kept) in caplog.text and "RuntimeError" in caplog.text
+    finally:
+        shutil.rmtree(kept, ignore_errors=True)
+
 def test_missing_firmware_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setenv(sitl.ENV_DIR, str(tmp_path))
     monkeypatch.setattr(sitl, "sitl_dir", lambda: None)
