@@ -10,11 +10,10 @@ from __future__ import annotations
 import logging
 import math
 import random
-import select
-import socket
 import threading
 
 from skyfix.crps.messages import TOPIC_OF, RelativeObs, SwarmCodec
+from skyfix.datasets.sim.relay import UdpRelay
 
 log = logging.getLogger(__name__)
 
@@ -56,51 +55,6 @@ class LossyLink:
 
     def close(self) -> None:
         self.link.close()
-
-
-class UdpRelay:
-    """A loopback UDP relay between a ground station and a vehicle; ``blocked()`` True drops both ways."""
-
-    def __init__(self, vehicle_addr: tuple[str, int], blocked) -> None:
-        self.vehicle_addr, self.blocked = vehicle_addr, blocked
-        self.gcs_side = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.gcs_side.bind(("127.0.0.1", 0))
-        self.vehicle_side = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.vehicle_side.bind(("127.0.0.1", 0))
-        self._gcs_addr: tuple[str, int] | None = None
-        self.dropped = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True, name="skyfix-mavlink-relay")
-        self._thread.start()
-
-    @property
-    def url(self) -> str:
-        return f"udpout:127.0.0.1:{self.gcs_side.getsockname()[1]}"
-
-    def _run(self) -> None:
-        socks = [self.gcs_side, self.vehicle_side]
-        while not self._stop.is_set():
-            ready, _, _ = select.select(socks, [], [], 0.1)
-            for sock in ready:
-                try:
-                    data, addr = sock.recvfrom(65535)
-                except OSError:
-                    return
-                if sock is self.gcs_side:
-                    self._gcs_addr = addr
-                if self.blocked():
-                    self.dropped += 1
-                    continue
-                if sock is self.gcs_side:
-                    self.vehicle_side.sendto(data, self.vehicle_addr)
-                elif self._gcs_addr is not None:
-                    self.gcs_side.sendto(data, self._gcs_addr)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2.0)
-        self.gcs_side.close()
-        self.vehicle_side.close()
 
 
 class Faults:

@@ -11,10 +11,10 @@ import time
 
 import pytest
 from test_swarm_transport import wait_for
-from udp_relay import UdpRelay
 
 from skyfix.crps.service import Service, ServiceConfig
 from skyfix.crps.transport import Endpoints, InProcessBus
+from skyfix.datasets.sim.relay import UdpRelay
 from skyfix.fusion.log_mcap import iter_messages
 
 
@@ -24,9 +24,10 @@ def test_mavlink_cut_for_3_s_mid_flight(tmp_path):
     from skyfix.drivers.vehicle import Vehicle
 
     sim = Simulator(SimulatorConfig(vehicles=1, seed=3)).start()
-    relay = UdpRelay(sim.addresses[0])
+    cut = threading.Event()  # set: the MAVLink link is cut both ways
+    relay = UdpRelay(sim.addresses[0], blocked=cut.is_set)
     pilot = Vehicle.connect(sim.url(0), timeout_s=10.0)
-    cfg = ServiceConfig("d1", f"udpout:127.0.0.1:{relay.port}", Endpoints((), ()), os.urandom(32),
+    cfg = ServiceConfig("d1", relay.url, Endpoints((), ()), os.urandom(32),
                         log_path=tmp_path / "d1.mcap")
     service = Service(cfg, transport=InProcessBus().attach("skyfix", "d1"))
     runner = threading.Thread(target=service.run, daemon=True)
@@ -49,11 +50,11 @@ def test_mavlink_cut_for_3_s_mid_flight(tmp_path):
 
         err_before, sigma_before = error_m()
         n_before = service.counters["estimates"]
-        relay.cut.set()
+        cut.set()
         time.sleep(3.0)
         err_cut, sigma_cut = error_m()
         n_cut = service.counters["estimates"] - n_before
-        relay.cut.clear()
+        cut.clear()
         t_back = time.time()
         assert wait_for(lambda: service.counters["mavlink_connects"] >= 2, 15.0), service.counters
         assert wait_for(lambda: service.node.latest["d1"].time_s > t_back + 1.0, 10.0)

@@ -12,9 +12,9 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import pytest
-from udp_relay import UdpRelay
 
 from skyfix.datasets.sim import Simulator, SimulatorConfig
+from skyfix.datasets.sim.relay import UdpRelay
 from skyfix.drivers.mav import mavlink
 from skyfix.drivers.vehicle import Vehicle
 from skyfix.errors import SkyfixTimeout
@@ -30,8 +30,8 @@ def _acks_dropped() -> Callable[[bytes], bool]:
 @pytest.fixture
 def relayed():
     with Simulator(SimulatorConfig(vehicles=1, speed=2.0, seed=3)) as sim:
-        relay = UdpRelay(sim.addresses[0], drop_from_autopilot=_acks_dropped())
-        v = Vehicle.connect(f"udpout:127.0.0.1:{relay.port}", timeout_s=5.0)
+        relay = UdpRelay(sim.addresses[0], drop_from_vehicle=_acks_dropped())
+        v = Vehicle.connect(relay.url, timeout_s=5.0)
         try:
             v.wait_until(lambda s: s.position is not None and s.home is not None, 10.0, what="telemetry")
             yield sim, v, relay
