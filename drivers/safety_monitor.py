@@ -32,7 +32,7 @@ CONFIRMING_TYPES = ("COMMAND_ACK", "HEARTBEAT", "EXTENDED_SYS_STATE")
 
 
 def _confirming(msg) -> bool:
-    return msg.get_type() in ("COMMAND_ACK", "HEARTBEAT")
+    return msg.get_type() in CONFIRMING_TYPES
 
 
 class SafetyMonitor:
