@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib
 import json
 import sys
 from pathlib import Path
@@ -48,29 +47,24 @@ def _variant(text: str) -> tuple[str, dict]:
 
 def _replay(log_path: Path, settings: dict) -> tuple[np.ndarray, np.ndarray]:
     """(time_s, east/north m in the log's frame) of the lost drone's replayed fix under ``settings``."""
-    replay_mod = importlib.import_module("skyfix.fusion.replay")
     from skyfix.fusion.config import FusionConfig
     from skyfix.fusion.log_mcap import read_mcap_log
+    from skyfix.fusion.replay import replay
 
     settings = dict(settings)
     scales = {k: settings.pop(k) for k in LOG_SCALES if k in settings}
-    header, records = read_mcap_log(log_path)
-    records = list(records)
-    for r in records:
+    header, _ = read_mcap_log(log_path)
+
+    def edit(r: dict) -> dict:
         if "vel_sigma_scale" in scales and r["op"] == "velocity" and r["args"]["drone_id"] == LOST:
-            r["args"] = dict(r["args"], sigma_mps=r["args"]["sigma_mps"] * scales["vel_sigma_scale"])
+            return dict(r, args=dict(r["args"], sigma_mps=r["args"]["sigma_mps"] * scales["vel_sigma_scale"]))
         if "rel_cov_scale" in scales and r["op"] == "relative":
             obs = r["args"]["obs"]
-            r["args"] = {"obs": dataclasses.replace(obs, cov_enu_m2=obs.cov_enu_m2 * scales["rel_cov_scale"])}
+            return dict(r, args={"obs": dataclasses.replace(obs, cov_enu_m2=obs.cov_enu_m2 * scales["rel_cov_scale"])})
+        return r
+
     config = dataclasses.replace(FusionConfig.from_dict(header["config"]), **settings)
-    # the replay builds its engine from the log's header: hand it these records and this config
-    saved = replay_mod.read_mcap_log, replay_mod.FusionConfig
-    replay_mod.read_mcap_log = lambda _path: (header, iter(records))
-    replay_mod.FusionConfig = type("Fixed", (), {"from_dict": staticmethod(lambda _d: config)})
-    try:
-        result = replay_mod.replay(log_path, show_progress=False)
-    finally:
-        replay_mod.read_mcap_log, replay_mod.FusionConfig = saved
+    result = replay(log_path, show_progress=False, config=config, edit=edit if scales else None)
     t, enu, _ = result.fused[LOST].arrays()
     return t, enu[:, :2]
 

@@ -52,9 +52,13 @@ class ReplayResult:
 
 
 def replay(log_path: str | Path, *, every_update: int = 1,
-           on_estimate: Callable[[Estimate], None] | None = None, show_progress: bool = True) -> ReplayResult:
+           on_estimate: Callable[[Estimate], None] | None = None, show_progress: bool = True,
+           config: FusionConfig | None = None, edit: Callable[[dict], dict] | None = None) -> ReplayResult:
     """Feed every record of ``log_path`` (JSON lines, or MCAP by the .mcap suffix) to a new engine
     built from its header.
+
+    What-if replays: ``config`` replaces the settings the log was recorded with, and ``edit(record)``
+    returns each record as it should be fed (e.g. a measurement's covariance scaled).
 
     After every ``every_update``-th smoother update recorded in the log, the estimate of
     each localised drone is taken (and passed to ``on_estimate``). Inputs the engine
@@ -72,7 +76,8 @@ def replay(log_path: str | Path, *, every_update: int = 1,
     """
     header, records = (read_mcap_log if Path(log_path).suffix == ".mcap" else read_log)(log_path)
     origin = tuple(float(x) for x in header["origin"])
-    engine = FusionEngine(origin, lag_s=float(header["lag_s"]), config=FusionConfig.from_dict(header["config"]))
+    engine = FusionEngine(origin, lag_s=float(header["lag_s"]),
+                          config=config if config is not None else FusionConfig.from_dict(header["config"]))
     fused: dict[str, Track] = {}
     gnss: dict[str, list] = {}
     truth: dict[str, list] = {}
@@ -80,6 +85,8 @@ def replay(log_path: str | Path, *, every_update: int = 1,
     n_records = n_rejected = n_updates = 0
     for record in progress(records, desc="replay", unit="rec") if show_progress else records:
         n_records += 1
+        if edit is not None:
+            record = edit(record)
         op = record["op"]
         if op == "truth":
             truth.setdefault(record["drone"], []).append((record["t"], record["lat"], record["lon"], record["alt"]))

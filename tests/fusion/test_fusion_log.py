@@ -130,3 +130,36 @@ def test_a_drone_silent_longer_than_the_lag_has_no_estimate_and_the_replay_goes_
     result = replay(path, show_progress=False)
     assert result.n_rejected_inputs == 0
     assert len(result.fused["A"].arrays()[0]) >= 30 and "B" in result.fused
+
+
+def test_what_if_replay_with_other_settings_and_edited_records(tmp_path):
+    """replay(config=..., edit=...) feeds the same log to an engine with other settings or altered inputs:
+    B's observations of A with 100 times their variance leave A (GNSS lost at 10 s) less certain; a larger
+    wandering GNSS error leaves B less certain; the plain replay is untouched by either."""
+    import dataclasses
+
+    from skyfix.fusion.config import FusionConfig
+
+    path = tmp_path / "run.jsonl"
+    record(path)
+    plain = replay(path, show_progress=False)
+
+    def coarse(rec: dict) -> dict:
+        if rec["op"] != "relative":
+            return rec
+        obs = rec["args"]["obs"]
+        return dict(rec, args={"obs": dataclasses.replace(obs, cov_enu_m2=obs.cov_enu_m2 * 100.0)})
+
+    edited = replay(path, show_progress=False, edit=coarse)
+    header, _ = read_log(path)
+    wander = dataclasses.replace(FusionConfig.from_dict(header["config"]), gnss_gm_h_sigma_m=3.0)
+    other = replay(path, show_progress=False, config=wander)
+
+    def last_sigma(result, drone: str) -> float:
+        return [e for e in result.estimates if e.drone_id == drone][-1].sigma_horizontal_m
+
+    # A's variance is B's wandering GNSS part (1.5 m, the same in both) plus the observations' noise averaged
+    # over many: ~0.01 m2 as recorded, a hundred times that edited; so it must grow by well over 0.5 m2
+    assert last_sigma(edited, "A") ** 2 - last_sigma(plain, "A") ** 2 > 0.5
+    assert last_sigma(other, "B") > 1.2 * last_sigma(plain, "B")
+    assert last_sigma(replay(path, show_progress=False), "A") == last_sigma(plain, "A")
