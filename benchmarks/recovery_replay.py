@@ -65,12 +65,20 @@ def _replay(log_path: Path, settings: dict) -> tuple[np.ndarray, np.ndarray]:
 
     config = dataclasses.replace(FusionConfig.from_dict(header["config"]), **settings)
     result = replay(log_path, show_progress=False, config=config, edit=edit if scales else None)
-    t, enu, _ = result.fused[LOST].arrays()
-    return t, enu[:, :2]
+    t, enu, cov = result.fused[LOST].arrays()
+    return t, enu[:, :2], np.sqrt(np.linalg.eigvalsh(cov[:, :2, :2])[:, -1])
 
 
-def score(run: Path, variants: list[tuple[str, dict]]) -> dict[str, tuple[float, float]]:
-    """Per variant (and 'as recorded'): (fix error at touchdown vs the swarm's GNSS frame, predicted landing), m."""
+def _honesty(t: np.ndarray, err_h: np.ndarray, ts: np.ndarray, sigma_h: np.ndarray, use: np.ndarray) -> float:
+    """Mean (horizontal error / stated sigma_h)^2 over the rows ``use`` (sigma_h: the larger axis' 1-sigma, so
+    1-2 is honest, as recovery_diagnose.py's), the replayed sigma taken at the rows' times."""
+    sigma = np.interp(t[use], ts, sigma_h)
+    return float(np.mean(np.sum(err_h[use] ** 2, axis=1) / sigma**2)) if use.any() else float("nan")
+
+
+def score(run: Path, variants: list[tuple[str, dict]]) -> dict[str, tuple[float, float, float]]:
+    """Per variant (and 'as recorded'): (fix error at touchdown vs the swarm's GNSS frame, predicted landing, m;
+    mean (error / stated sigma)^2 against the truth from the loss while airborne)."""
     rows = rd._trajectory(run)
     t = rd._columns(rows, ("t_s",))[:, 0]
     truth = rd._columns(rows, (f"{LOST}_east_m", f"{LOST}_north_m"))
@@ -79,18 +87,22 @@ def score(run: Path, variants: list[tuple[str, dict]]) -> dict[str, tuple[float,
     airborne = np.flatnonzero(rd._columns(rows, (f"{LOST}_alt_rel_m",))[:, 0] > 0.3)
     td = int(airborne[-1])
     landed = truth[td] - truth[0]
+    t_loss = rd._loss_time_s(run)
+    recovering = np.zeros(len(t), bool) if t_loss is None else (t >= t_loss) & (np.arange(len(t)) <= td)
     out = {}
     offset = None
     for name, settings in [("as recorded", {})] + variants:
-        ts, fix = _replay(run / f"{LOST}.mcap", settings)
+        ts, fix, sigma_h = _replay(run / f"{LOST}.mcap", settings)
         at_td = np.array([np.interp(t[td], ts, fix[:, i]) for i in range(2)])
         if offset is None:  # the log's frame is the lost drone's: its offset from the world's, from the flown fix
             ok = np.isfinite(flown[:, 0]) & (t >= ts[0]) & (t <= ts[-1])
             offset = np.median(flown[ok] - np.stack([np.interp(t[ok], ts, fix[:, i]) for i in range(2)], 1), axis=0)
-            out["deviation"] = (float(np.linalg.norm(at_td + offset - flown[td])), float("nan"))
+            out["deviation"] = (float(np.linalg.norm(at_td + offset - flown[td])), float("nan"), float("nan"))
         moved = at_td + offset - flown[td]
+        err_h = np.stack([np.interp(t, ts, fix[:, i]) for i in range(2)], 1) + offset - truth
+        use = recovering & (t >= ts[0]) & (t <= ts[-1])
         out[name] = (float(np.linalg.norm(at_td + offset - truth[td] - common[td])),
-                     float(np.linalg.norm(landed - moved)))
+                     float(np.linalg.norm(landed - moved)), _honesty(t, err_h, ts, sigma_h, use))
     return out
 
 
@@ -111,15 +123,17 @@ def main(argv: list[str] | None = None) -> int:
     for run in runs:
         found = score(run, args.variant)
         worst_dev = max(worst_dev, found.pop("deviation")[0])
-        print(f"{run.parent.name}: " + "; ".join(f"{n} {found[n][0]:.2f} m, landing {found[n][1]:.2f} m"
-                                                for n in names), flush=True)
+        print(f"{run.parent.name}: " + "; ".join(f"{n} {found[n][0]:.2f} m, landing {found[n][1]:.2f} m, "
+                                                f"(err/sigma)^2 {found[n][2]:.2f}" for n in names), flush=True)
         for n in names:
             table[n].append(found[n])
     print(f"the replay as recorded against the flown fix at touchdown: up to {worst_dev:.2f} m apart")
     for n in names:
         v = np.array(table[n])
         print(f"{n:>24}: fix at touchdown vs the swarm's GNSS frame median {np.median(v[:, 0]):.2f} m; "
-              f"predicted landing median {np.median(v[:, 1]):.2f} m, mean {v[:, 1].mean():.2f} m")
+              f"predicted landing median {np.median(v[:, 1]):.2f} m, mean {v[:, 1].mean():.2f} m; stated sigma "
+              f"from the loss, median of mean (error / sigma_h)^2 against the truth {np.nanmedian(v[:, 2]):.2f} "
+              "(honest: 1-2)")
     return 0
 
 

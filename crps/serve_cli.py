@@ -37,10 +37,15 @@ def config_from_args(args):
     rate = float(args.rate)
     if not 0.5 <= rate <= 50.0:
         raise InputError(f"--rate must be 0.5-50 Hz, got {args.rate}")
+    shared = {}
+    if args.gnss_common_share is not None:
+        shared["gnss_common_share"] = float(args.gnss_common_share)
+        if not 0.0 <= shared["gnss_common_share"] < 1.0:
+            raise InputError(f"--gnss-common-share must be in [0, 1), got {args.gnss_common_share}")
     gate = safety_gate(args.fence, args.max_alt_m, args.max_speed_mps, args.fence_action)
     return ServiceConfig(args.id, args.mavlink, Endpoints.parse(args.swarm), read_key(args.swarm_key_file),
                          swarm=args.swarm_name, roster=roster, origin=origin, log_path=args.log,
-                         live=args.live, estimate_hz=rate, inject=args.inject, safety=gate)
+                         live=args.live, estimate_hz=rate, inject=args.inject, safety=gate, **shared)
 
 
 def safety_gate(fence_path: Path | None, max_alt_m: float | None, max_speed_mps: float | None, action: str):
@@ -121,6 +126,11 @@ def register(subparsers) -> None:
     p.add_argument("--live", default=None, metavar="[HOST:]PORT",
                    help="stream the log's topics over the Foxglove WebSocket protocol (default host 127.0.0.1)")
     p.add_argument("--rate", type=float, default=10.0, help="fusion and estimate rate, Hz (default 10)")
+    p.add_argument("--gnss-common-share", type=float, default=None, metavar="SHARE",
+                   help="share (0 to <1) of a receiver's wandering GNSS error that the swarm's receivers have in common "
+                        "(the same satellites through the same sky); fused as shared, it is not averaged away when "
+                        "neighbours position this drone (default 0.9, skyfix.crps.service.GNSS_COMMON_SHARE; 0: each "
+                        "receiver's error its own)")
     p.add_argument("--inject", action="store_true",
                    help="while the drone's own GNSS is lost, inject the fused position as GPS_INPUT")
     p.add_argument("--fence", type=Path, default=None, metavar="GEOJSON",

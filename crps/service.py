@@ -46,17 +46,27 @@ GNSS_OK_FIX_TYPE = 3
 
 
 
-def fusion_config(roster: tuple[str, ...] | None, lag_s: float) -> FusionConfig:
+#: share of a receiver's wandering GNSS error that the swarm's receivers have in common (FusionConfig.gnss_common_share):
+#: drones tens of metres apart see the same satellites through the same atmosphere (AGI's GPS error budget: ~90 %
+#: of a standalone receiver's range-error variance). Fused as independent, two helpers' fixes halved that shared
+#: error's variance: the drone they placed stated a sigma 2.4x too small in variance against the truth
+#: (benchmarks/recovery_replay.py, ten recorded recoveries); 0 for receivers whose errors are their own
+GNSS_COMMON_SHARE = 0.9
+
+
+def fusion_config(roster: tuple[str, ...] | None, lag_s: float, gnss_common_share: float = GNSS_COMMON_SHARE
+                  ) -> FusionConfig:
     """The node's fusion settings: ``roster`` the trusted observers; a relative source is silent, and no
     longer among an estimate's sources, only when nothing came for the engine's usual time-out AFTER the
     lag. Peers' camera observations reach the node a frame's pipeline late (seconds on a loaded companion)
     and are still fused while inside the lag; the plain 2 s time-outs called such a helper silent between
     two of its frames and kept it on 5 s of probation, unfused. GPS_RAW_INT's time_usec is its send time
     (ArduPilot: fix time + time since): a fix up to one 5 Hz receiver period old (``gnss_fix_age_max_s``);
-    the same fix re-sent is dropped."""
+    the same fix re-sent is dropped. ``gnss_common_share``: see :data:`GNSS_COMMON_SHARE`."""
     base = FusionConfig()
     return FusionConfig(roster=tuple(roster or ()), relative_timeout_s=float(lag_s) + base.relative_timeout_s,
-                        contributing_window_s=float(lag_s) + base.contributing_window_s, gnss_fix_age_max_s=0.2)
+                        contributing_window_s=float(lag_s) + base.contributing_window_s, gnss_fix_age_max_s=0.2,
+                        gnss_common_share=float(gnss_common_share))
 
 
 @dataclass(frozen=True)
@@ -76,6 +86,7 @@ class ServiceConfig:
     inject_hz: float = 5.0  # GPS_INPUT rate, per wall second (ArduPilot calls a GPS unhealthy beyond ~245 ms gaps)
     lag_s: float = 2.0      # fusion's smoothing window, s of the clock (late camera observations within it count)
     max_lag_s: float | None = None  # above lag_s: the window grows up to this while camera observations come late
+    gnss_common_share: float = GNSS_COMMON_SHARE  # the swarm's receivers' shared error (FusionConfig.gnss_common_share)
     # 1-sigma error (m/s) of the autopilot's velocity while it flies on the injected fix: its EKF, with no other
     # velocity source, echoes that fix (node.ECHO_VELOCITY_SIGMA_MPS); None: its velocity does not depend on the
     # injected position (optical flow, or a simulator reporting its true velocity)
@@ -272,7 +283,7 @@ class Service:
             if origin is None:
                 return
             # the swarm's roster is the fusion's roster of trusted observers
-            config = fusion_config(self.cfg.roster, self.cfg.lag_s)
+            config = fusion_config(self.cfg.roster, self.cfg.lag_s, self.cfg.gnss_common_share)
             self.node = Node(self.cfg.drone_id, origin, lag_s=self.cfg.lag_s, config=config, max_lag_s=self.cfg.max_lag_s,
                              make_sink=self.outputs.fusion_sink)
             log.info("fusion origin %.7f, %.7f, %.2f m", *origin)

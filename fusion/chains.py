@@ -62,6 +62,17 @@ class StateChains:
         self._next_index = 0
         self.window: GraphWindow | None = None
         self.now_s = -math.inf
+        # the receivers' shared error (FusionConfig.gnss_common_share > 0): a chain of its own index, steps
+        # [first, last] (None: no chain yet); each receiver's error state is then c plus its own part
+        share = cfg.gnss_common_share
+        self.common_index: int | None = None
+        self._common_span: list[int] | None = None
+        self.common_sigma_m = self.gm_sigma_m * math.sqrt(share)
+        self.own_sigma_m = self.gm_sigma_m * math.sqrt(1.0 - share)
+        self._phi_own = math.exp(-cfg.state_dt_s / cfg.gnss_gm_tau_s)
+        self._phi_common = math.exp(-cfg.state_dt_s / cfg.gnss_common_tau_s)
+        self._own_step_sigma_m = np.sqrt(self.own_sigma_m**2 * (1.0 - self._phi_own**2)
+                                         + self.common_sigma_m**2 * (1.0 - self._phi_common**2))
 
     def checked_time(self, name: str, value) -> float:
         """``value`` as a measurement time (s); InputError when older than the window keeps or more
@@ -118,7 +129,11 @@ class StateChains:
         else:
             window.prior(drone.index, 1, k, b0, b_cov)
         r = drone.r_frame_from_local
-        window.prior(drone.index, 2, k, np.zeros(3), r @ np.diag(self.gm_sigma_m**2) @ r.T)
+        if self.config.gnss_common_share > 0:
+            self.ensure_common(k)
+            window.own_error_prior(drone.index, self.common_index, k, r @ np.diag(self.own_sigma_m**2) @ r.T)
+        else:
+            window.prior(drone.index, 2, k, np.zeros(3), r @ np.diag(self.gm_sigma_m**2) @ r.T)
         if self._q_sigma is not None:
             window.prior(drone.index, 3, k, np.zeros(3), np.diag(self._q_sigma**2))
         if p_sigma_m is not None:
@@ -163,6 +178,38 @@ class StateChains:
         return drone.intervals
 
 
+    def ensure_common(self, k: int) -> None:
+        """Create the shared GNSS error chain's states up to step k (forwards or backwards); a chain that left
+        the window (no drone kept it) starts again from its stationary distribution."""
+        window = self.window
+        span = self._common_span
+        if span is not None and span[1] < window.oldest_alive_step():
+            span = None
+        if span is None:
+            self.common_index = self.new_index()
+            window.new_state(self.common_index, k, None, None, np.zeros(3))
+            window.prior(self.common_index, 2, k, np.zeros(3), np.diag(self.common_sigma_m**2))
+            span = self._common_span = [k, k]
+        ci, phi = self.common_index, self._phi_common
+        span[0] = max(span[0], window.oldest_alive_step())
+        while span[1] < k:
+            window.new_state(ci, span[1] + 1, None, None, phi * window.value(ci, 2, span[1]))
+            window.gauss_markov(ci, span[1], phi, self.common_sigma_m)
+            span[1] += 1
+        while span[0] > k:
+            if span[0] - 1 < window.oldest_alive_step():
+                raise InputError("measurement is older than the fusion lag")
+            window.new_state(ci, span[0] - 1, None, None, window.value(ci, 2, span[0]))
+            window.gauss_markov(ci, span[0] - 1, phi, self.common_sigma_m)
+            span[0] -= 1
+
+    def _error_step(self, drone: DroneState, k: int, phi: float) -> None:
+        """The receiver error's step k -> k+1 (its own chain, or its own part about the shared chain)."""
+        if self.config.gnss_common_share > 0:
+            self.window.gauss_markov_shared(drone.index, self.common_index, k, self._phi_own, self._own_step_sigma_m)
+        else:
+            self.window.gauss_markov(drone.index, k, phi, self.gm_sigma_m)
+
     def ensure(self, drone: DroneState, k: int) -> None:
         """Create the drone's states up to step k (forwards or backwards), each tied to its neighbour."""
         window, cfg = self.window, self.config
@@ -170,6 +217,8 @@ class StateChains:
         bias_walk = (drone.bias_walk_mps_per_sqrt_s or cfg.bias_walk_mps_per_sqrt_s) * math.sqrt(cfg.state_dt_s)
         phi = math.exp(-cfg.state_dt_s / cfg.gnss_gm_tau_s)
         i = drone.index
+        if cfg.gnss_common_share > 0:
+            self.ensure_common(k)
         while drone.last_k < k:
             prev = drone.last_k
             p_prev, b_prev = window.value(i, 0, prev), window.value(i, 1, prev)
@@ -179,7 +228,7 @@ class StateChains:
             window.new_state(i, prev + 1, p_prev + step, b_prev, phi * window.value(i, 2, prev),
                              None if self._q0 is None else window.value(i, 3, prev))
             window.motion(i, prev, walk, bias_walk, self._q_walk)
-            window.gauss_markov(i, prev, phi, self.gm_sigma_m)
+            self._error_step(drone, prev, phi)
             drone.last_k = prev + 1
         while drone.first_k > k:
             nxt = drone.first_k
@@ -188,7 +237,7 @@ class StateChains:
             window.new_state(i, nxt - 1, window.value(i, 0, nxt), window.value(i, 1, nxt), window.value(i, 2, nxt),
                              None if self._q0 is None else window.value(i, 3, nxt))
             window.motion(i, nxt - 1, walk, bias_walk, self._q_walk)
-            window.gauss_markov(i, nxt - 1, phi, self.gm_sigma_m)
+            self._error_step(drone, nxt - 1, phi)
             drone.first_k = nxt - 1
 
 

@@ -57,6 +57,15 @@ class FusionConfig:
     gnss_gm_h_sigma_m: float = 1.5      # wandering error per horizontal axis (multipath, atmosphere, orbits)
     gnss_gm_v_sigma_m: float = 2.5      # wandering error, vertical
     gnss_gm_tau_s: float = 60.0         # its correlation time
+    # Share of that wandering variance every receiver of the engine has in common (orbits, clocks, ionosphere,
+    # troposphere: one sky over receivers tens of metres apart; AGI's GPS error budget puts ~90 % of a standalone
+    # receiver's range-error variance there, multipath and receiver noise the rest). 0: each receiver's error its
+    # own. Above 0 a receiver's error state is n = c + o: c one Gauss-Markov chain all of this engine's drones share
+    # (sigma sqrt(share) x gnss_gm_*_sigma_m, gnss_common_tau_s), o its own (the rest of the variance,
+    # gnss_gm_tau_s). A drone placed by its neighbours' fixes then keeps their shared error in its covariance
+    # instead of averaging it away as if each neighbour's receiver erred on its own.
+    gnss_common_share: float = 0.0
+    gnss_common_tau_s: float = 1800.0   # the shared part changes with the atmosphere: tens of minutes
     gnss_white_min_sigma_m: float = 0.3  # white part at least this (receiver noise)
     # How much older than its stamp a fix may be (s). 0: stamped with its own time. MAVLink GPS_RAW_INT's
     # time_usec is the send time (ArduPilot: the fix's time plus the time since it): up to one receiver period,
@@ -99,13 +108,15 @@ class FusionConfig:
                 continue
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value == value:
                 raise InputError(f"FusionConfig.{f.name} must be a number, got {value!r}")
-            if value <= 0 and f.name not in ("log_fsync_s", "gnss_fix_age_max_s"):
+            if value <= 0 and f.name not in ("log_fsync_s", "gnss_fix_age_max_s", "gnss_common_share"):
                 raise InputError(f"FusionConfig.{f.name} must be > 0, got {value!r}")
         for name in ("gate_probability", "drift_gate_probability"):
             if not getattr(self, name) < 1.0:
                 raise InputError(f"FusionConfig.{name} must be in (0, 1), got {getattr(self, name)}")
         if self.gnss_fix_age_max_s < 0:
             raise InputError(f"FusionConfig.gnss_fix_age_max_s must be >= 0, got {self.gnss_fix_age_max_s}")
+        if not 0.0 <= self.gnss_common_share < 1.0:
+            raise InputError(f"FusionConfig.gnss_common_share must be in [0, 1), got {self.gnss_common_share}")
         if not self.readmit_fraction <= 1.0:
             raise InputError(f"FusionConfig.readmit_fraction must be in (0, 1], got {self.readmit_fraction}")
         if len(self.roster) > self.max_drones:

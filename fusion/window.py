@@ -6,7 +6,9 @@ drone per grid step k (time ``epoch + k * dt``):
 - ``p`` position of the drone,
 - ``b`` bias of the drone's autopilot velocity,
 - ``n`` (optional) the drone's GNSS error, negated: a fix measures ``p - n`` (so GNSS is a
-  ``BetweenFactorPoint3(n, p)``), and n follows a first-order Gauss-Markov process,
+  ``BetweenFactorPoint3(n, p)``), and n follows a first-order Gauss-Markov process, or (with a
+  common error, ``FusionConfig.gnss_common_share``) n = c + o: o the receiver's own Gauss-Markov
+  part, c one chain of ``n`` variables shared by every drone, held under an index of its own,
 - ``q`` (optional) the velocity's scale-factor and heading errors ``(s, psi_rad, 0)``: the
   measured velocity is ``(1 + s) R_up(psi) v_true + b`` (the third component is held at
   zero by its prior and walk). Its velocity factor is a ``gtsam.CustomFactor`` (four keys,
@@ -196,6 +198,21 @@ class GraphWindow:
         factor = gtsam.JacobianFactor(keys[0], -phi * _EYE, keys[1], _EYE, np.zeros(3),
                                       gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigma_m) * np.sqrt(1.0 - phi * phi)))
         self._add(gtsam.LinearContainerFactor(factor, self._zeros(keys)), k)
+
+    def gauss_markov_shared(self, drone_index: int, common_index: int, k: int, phi: float,
+                            step_sigma_m: np.ndarray) -> None:
+        """A receiver error n = c + o whose own part o is Gauss-Markov and c the chain of ``common_index``:
+        n_k+1 - phi n_k - (1 - phi) c_k+1 = w, ``step_sigma_m`` (3,) per axis (o's step noise, plus the
+        common chain's own step, which this three-key form takes as part of w)."""
+        keys = (self.key(drone_index, 2, k), self.key(drone_index, 2, k + 1), self.key(common_index, 2, k + 1))
+        factor = gtsam.JacobianFactor(keys[0], -phi * _EYE, keys[1], _EYE, keys[2], -(1.0 - phi) * _EYE, np.zeros(3),
+                                      gtsam.noiseModel.Diagonal.Sigmas(np.asarray(step_sigma_m, float)))
+        self._add(gtsam.LinearContainerFactor(factor, self._zeros(keys)), k)
+
+    def own_error_prior(self, drone_index: int, common_index: int, k: int, cov_m2: np.ndarray) -> None:
+        """The receiver's own error n_k - c_k ~ N(0, ``cov_m2``) (its stationary distribution)."""
+        self._add(gtsam.BetweenFactorPoint3(self.key(common_index, 2, k), self.key(drone_index, 2, k),
+                                            gtsam.Point3(0.0, 0.0, 0.0), gtsam.noiseModel.Gaussian.Covariance(cov_m2)), k)
 
     def gnss(self, drone_index: int, k: int, enu_m: np.ndarray, cov_m2: np.ndarray) -> None:
         """A GNSS fix of p_k - n_k (the drone's position plus its receiver's error), robust."""

@@ -1,12 +1,14 @@
 """A peer's fused fix rides on its receiver's wandering error: fused as correlated, the drone it
 positions (through relative observations) is honest about that error; fused as independent 2 Hz
-fixes, the engine averages down a bias it cannot average and is over-confident."""
+fixes, the engine averages down a bias it cannot average and is over-confident. Receivers near each
+other share most of that error: modelled as their own, two helpers' errors are averaged as if half
+of it cancelled (FusionConfig.gnss_common_share)."""
 
 import numpy as np
 import pytest
 from fusion_sim import FRAME, ORIGIN
 
-from skyfix.fusion import FusionEngine
+from skyfix.fusion import FusionConfig, FusionEngine
 from skyfix.types import GeoFix, RelativeObservation
 
 TARGET = np.array([0.0, 0.0, 50.0])     # no GNSS: positioned by the helpers only
@@ -15,13 +17,19 @@ PEER_SIGMA_M = np.array([1.5, 1.5, 2.5])  # a peer on a consumer receiver states
 DURATION_S = 24.0
 
 
-def _fly(seed: int, correlated: bool) -> tuple[float, float]:
+def _fly(seed: int, correlated: bool, shared_sigma_m: np.ndarray | None = None,
+         config: FusionConfig | None = None) -> tuple[float, float, float]:
     """Helpers' fixes (2 Hz) carry their receivers' error (nearly constant over a run much shorter than its
     minute of correlation) and their velocities (5 Hz); each sees the target every 0.4 s (2 % range, 0.2 deg).
-    Returns the target's final horizontal error (m) and its 3-D NEES."""
+    ``shared_sigma_m``: the error both receivers share (per axis), the rest of PEER_SIGMA_M's variance their own.
+    Returns the target's final horizontal error (m), its 3-D NEES and its stated sigma east (m)."""
     rng = np.random.default_rng(seed)
-    bias = {h: rng.normal(0.0, 1.0, 3) * PEER_SIGMA_M for h in HELPERS}
-    engine = FusionEngine(ORIGIN, lag_s=2.0)
+    if shared_sigma_m is None:
+        bias = {h: rng.normal(0.0, 1.0, 3) * PEER_SIGMA_M for h in HELPERS}
+    else:
+        common, own_sigma = rng.normal(0.0, 1.0, 3) * shared_sigma_m, np.sqrt(PEER_SIGMA_M**2 - shared_sigma_m**2)
+        bias = {h: common + rng.normal(0.0, 1.0, 3) * own_sigma for h in HELPERS}
+    engine = FusionEngine(ORIGIN, lag_s=2.0, config=config)
     for i in range(int(DURATION_S / 0.2) + 1):
         t = round(0.2 * i, 6)
         engine.add_velocity("a", t, rng.normal(0.0, 0.1, 3), 0.2)
@@ -44,12 +52,13 @@ def _fly(seed: int, correlated: bool) -> tuple[float, float]:
             engine.update()
     est = engine.estimate("a")
     err = est.enu_m - TARGET
-    return float(np.hypot(*err[:2])), float(err @ np.linalg.solve(est.cov_enu_m2, err))
+    return (float(np.hypot(*err[:2])), float(err @ np.linalg.solve(est.cov_enu_m2, err)),
+            float(np.sqrt(est.cov_enu_m2[0, 0])))
 
 
 @pytest.mark.parametrize("correlated", [True, False])
 def test_a_peers_wandering_error_is_not_averaged_away(correlated):
-    runs = np.array([_fly(seed, correlated) for seed in range(5 if correlated else 3)])
+    runs = np.array([_fly(seed, correlated)[:2] for seed in range(5 if correlated else 3)])
     err_h, nees = runs[:, 0], runs[:, 1]
     # the target's error is the helpers' receiver errors, ~1.5 m / sqrt(2) per axis: the same either way
     assert np.sqrt(np.mean(err_h**2)) < 3.0
@@ -58,3 +67,23 @@ def test_a_peers_wandering_error_is_not_averaged_away(correlated):
         assert 0.9 < np.mean(nees) < 6.6
     else:
         assert np.mean(nees) > 10.0  # what the lost drone's fusion did before: over-confident (seen: 21)
+
+
+@pytest.mark.parametrize("share", [0.0, 0.9])
+def test_an_error_the_helpers_share_is_not_averaged_away(share):
+    """Both helpers' receivers share 90 % of their error variance (as receivers tens of metres apart do: the
+    same sky); each helper's fixes fused as correlated. Modelled as each receiver's own, the two helpers'
+    errors average as if independent: the target's stated sigma falls to ~1.5 / sqrt(2) m per horizontal axis,
+    below the shared error's 1.42 m alone, and its NEES comes out ~1.9x too large. With the shared part in the
+    model the NEES is a 3-dof chi-square's."""
+    shared = np.sqrt(0.9) * PEER_SIGMA_M
+    runs = np.array([_fly(seed, True, shared, FusionConfig(gnss_common_share=share)) for seed in range(20)])
+    err_h, nees, sigma_east = runs[:, 0], runs[:, 1], runs[:, 2]
+    assert np.sqrt(np.mean(err_h**2)) < 3.0  # ~1.6 m per axis, both models: weighting alone cannot remove it
+    if share:
+        assert np.all(sigma_east >= shared[0])
+        # 20 runs of a 3-dof chi-square: mean 3, 99 % of such means fall in 1.6-4.6
+        assert 1.6 < np.mean(nees) < 4.6
+    else:
+        assert np.all(sigma_east < shared[0])
+        assert np.mean(nees) > 4.6
