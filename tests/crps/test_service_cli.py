@@ -41,6 +41,7 @@ def serve(*extra: str, key_file, url="udpin:127.0.0.1:14999", swarm=None) -> lis
     ({"extra": ("--log", "out.txt")}, "--log must name an .mcap file"),
     ({"extra": ("--id", "bad id!")}, "--id must be 1-32 letters"),
     ({"extra": ("--fence", "missing.geojson")}, "--fence missing.geojson: not a readable GeoJSON"),
+    ({"extra": ("--gnss-common-share", "1")}, "--gnss-common-share must be in [0, 1), got 1.0"),
 ])
 def test_bad_arguments_one_line_exit_2(tmp_path, key_file, capsys, change, expected):
     if change.get("key") == "missing":
@@ -145,3 +146,18 @@ def test_fence_file_becomes_the_safety_gate(tmp_path):
     path.write_text(json.dumps({"type": "Point", "coordinates": [149.16, -35.36]}))
     with pytest.raises(InputError, match="Point is not a polygon"):
         safety_gate(path, None, None, "rtl")
+
+
+def test_gnss_common_share_reaches_the_fusion(key_file):
+    import argparse
+
+    from skyfix.crps.serve_cli import config_from_args, register
+    from skyfix.crps.service import GNSS_COMMON_SHARE, fusion_config
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    default = config_from_args(parser.parse_args(serve(key_file=key_file)))
+    chosen = config_from_args(parser.parse_args(serve("--gnss-common-share", "0", key_file=key_file)))
+    assert default.gnss_common_share == GNSS_COMMON_SHARE == 0.9 and chosen.gnss_common_share == 0.0
+    assert fusion_config(None, 2.0, chosen.gnss_common_share).gnss_common_share == 0.0
+    assert fusion_config(None, 2.0).gnss_common_share == GNSS_COMMON_SHARE
