@@ -25,6 +25,9 @@ class FusionConfig:
     reported accuracy beyond that wandering part is white (at least ``gnss_white_min_sigma_m``).
     Defaults describe a consumer receiver (1.5 m horizontal per axis, 2.5 m vertical, about a
     minute of correlation); for a receiver whose errors are white set the GM sigmas small.
+    Receivers near each other share most of that error (``gnss_common_share``, off by default):
+    each receiver's state is then a shared chain plus its own part, so neighbours' fixes that
+    position a drone do not average their common error away.
 
     Trust: relative observations are accepted only from observers on ``roster`` (drone ids);
     an empty roster admits a drone that has reported its own GNSS, velocity, altitude or
