@@ -87,6 +87,8 @@ def fly_one(seed: int, healthy: bool, args: argparse.Namespace) -> dict:
               "output": None if args.no_files else args.output / f"seed_{seed}" / kind}
     if args.speed is not None:
         kwargs["speed"] = args.speed
+    if args.fusion_common_share is not None:
+        kwargs["fusion_common_share"] = args.fusion_common_share
     t0 = time.monotonic()
     stage = [""]
 
@@ -109,7 +111,8 @@ def fly_one(seed: int, healthy: bool, args: argparse.Namespace) -> dict:
 def fly_seed(seed: int, args: argparse.Namespace) -> dict:
     """The recovery and its healthy-GNSS baseline for one seed."""
     rev, dirty = revision()
-    return {"seed": seed, "speed": args.speed, "gnss": args.gnss, "revision": rev, "uncommitted": dirty,
+    return {"seed": seed, "speed": args.speed, "gnss": args.gnss, "fusion_common_share": args.fusion_common_share,
+            "revision": rev, "uncommitted": dirty,
             "recovery": fly_one(seed, False, args), "baseline": fly_one(seed, True, args)}
 
 
@@ -236,6 +239,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--gnss", choices=("realistic", "independent", "mild"), default="realistic",
                     help="the receivers' errors (skyfix.datasets.gnss_error): realistic (default), independent "
                          "(the stress case: nothing shared) or mild")
+    ap.add_argument("--fusion-common-share", type=float, default=None, metavar="SHARE",
+                    help="every node's fusion takes this share of a receiver's error as shared by the swarm "
+                         "(default: skyfix serve's, 0.9; 0: each receiver's error its own, as before 2026-11-30)")
     ap.add_argument("--speed", type=float, default=None,
                     help="simulated seconds per wall second (default: RecoveryConfig's)")
     ap.add_argument("-o", "--output", type=Path, default=Path("benchmarks/out/recovery"),
@@ -248,6 +254,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING if args.verbose else logging.ERROR, format="    %(name)s: %(message)s")
     if args.speed is not None and not (args.speed > 0 and math.isfinite(args.speed)):
         ap.error(f"--speed must be > 0, got {args.speed}")
+    if args.fusion_common_share is not None and not 0.0 <= args.fusion_common_share < 1.0:
+        ap.error(f"--fusion-common-share must be in [0, 1), got {args.fusion_common_share}")
     if args.quick:  # its own folder: quick runs never mix into the judged set
         args.no_files, args.output = True, args.output / "quick"
         args.seeds = args.seeds or [0, 1]
@@ -262,9 +270,11 @@ def main(argv: list[str] | None = None) -> int:
             (args.output / f"seed_{seed}.json").write_text(json.dumps(record, indent=1))
             print_run(record)
     records = sorted((json.loads(p.read_text()) for p in args.output.glob("seed_*.json")), key=lambda r: r["seed"])
-    other = [r["seed"] for r in records if r.get("gnss", "mild") != args.gnss]
-    if other:  # never judge a mix of error models
-        print(f"seeds {other} in {args.output} were flown with another --gnss model than {args.gnss}: not judged")
+    other = [r["seed"] for r in records if r.get("gnss", "mild") != args.gnss
+             or r.get("fusion_common_share") != args.fusion_common_share]
+    if other:  # never judge a mix of error models, or of fusion models
+        print(f"seeds {other} in {args.output} were flown with another --gnss model than {args.gnss} or another "
+              f"--fusion-common-share than {args.fusion_common_share}: not judged")
         records = [r for r in records if r["seed"] not in other]
     revisions = sorted({r.get("revision", "unknown") for r in records})
     print(f"all seeds in {args.output} ({len(records)}, gnss {args.gnss}, revision(s) {', '.join(revisions)}):")
@@ -277,7 +287,8 @@ def main(argv: list[str] | None = None) -> int:
     for name, ok, figures in goals:
         print(f"  goal {name}: {'MET' if ok else 'NOT MET'} ({figures})")
     print(f"load average at end: {os.getloadavg()[0]:.1f}")
-    print(f"{headline} [gnss {args.gnss}, revision {', '.join(revisions)}]")
+    share = "" if args.fusion_common_share is None else f", fusion common share {args.fusion_common_share:g}"
+    print(f"{headline} [gnss {args.gnss}{share}, revision {', '.join(revisions)}]")
     if len(records) < (2 if args.quick else args.runs):
         return 2
     return 0 if all(ok for _, ok, _ in goals) else 1

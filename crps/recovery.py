@@ -73,6 +73,7 @@ class RecoveryConfig:
     loss_time_s: float | None = None      # GNSS loss, s after the survey starts; None: drawn from the seed
     wind_mps: float = 3.0                 # mean wind speed (direction from the seed), gusts 20 % of it
     gnss: GnssErrorModel = REALISTIC      # every simulated receiver's errors (GNSS_MODELS)
+    fusion_common_share: float | None = None  # every node's fusion: receivers' shared error share (None: serve's)
     healthy: bool = False                 # no GNSS loss: the same drone flies RTL at the loss time (baseline)
     fault_response: str = "return_home"
     helper_dropout_s: float | None = None  # the first assigned helper goes silent this long after the loss
@@ -286,6 +287,8 @@ class _Run:
                 url, time_of = self.faults.mavlink_url(i, self.sim.url(j)), self.time_of
             # the simulator reports its true velocity (+ noise), not an estimator's echo of the injected fix
             echo = {} if j is None else {"injected_velocity_sigma_mps": None}
+            if cfg.fusion_common_share is not None:
+                echo["gnss_common_share"] = cfg.fusion_common_share
             self.cameras.append(cam)
             scfg = ServiceConfig(drone_id, url, Endpoints((), ()), self.key, roster=IDS, inject=True,
                                  estimate_hz=5.0 * cfg.speed, inject_hz=5.0 * cfg.speed, help=setup, **echo,
