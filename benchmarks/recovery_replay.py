@@ -7,7 +7,9 @@ once as recorded and once per variant (``--variant NAME:KEY=VALUE[,KEY=VALUE]``,
 :class:`~skyfix.fusion.FusionConfig` field, or ``rel_cov_scale`` / ``vel_sigma_scale``, which scale
 the helpers' observation covariances / the lost drone's velocity sigma in the log), and prints
 per seed and as medians: the fix's horizontal error at touchdown against the swarm's GNSS frame
-(truth plus the error all receivers share), and the landing error it predicts.
+(truth plus the error all receivers share), the landing error it predicts, and how honest the replayed
+sigma is from the loss to touchdown (mean (error / sigma_h)^2 against the truth, sigma_h the larger
+horizontal axis' 1-sigma: 1-2 honest, as ``recovery_diagnose.py`` scores the flown fix).
 
 The prediction holds the flown trajectory fixed: the drone lands where its fix says home is, so a
 fix at touchdown moved by d moves the landing by -d (the recorded runs land within ~0.1 m of their
