@@ -204,8 +204,11 @@ class StateChains:
             span[0] -= 1
 
     def _error_step(self, drone: DroneState, k: int, phi: float) -> None:
-        """The receiver error's step k -> k+1 (its own chain, or its own part about the shared chain)."""
-        if self.config.gnss_common_share > 0:
+        """The receiver error's step k -> k+1: its own part about the shared chain, or (no sharing, or a step the
+        shared chain does not hold: a drone carried forward across a silence while a newer chain started, steps
+        that the next update marginalises) its whole error as one Gauss-Markov chain."""
+        span = self._common_span
+        if self.config.gnss_common_share > 0 and span is not None and span[0] <= k + 1 <= span[1]:
             self.window.gauss_markov_shared(drone.index, self.common_index, k, self._phi_own, self._own_step_sigma_m)
         else:
             self.window.gauss_markov(drone.index, k, phi, self.gm_sigma_m)
