@@ -1,15 +1,14 @@
 """GPS-loss recovery of one drone by two others, end to end on the simulator: what ``skyfix demo`` flies.
 
-Three simulated ArduPilot copters (:mod:`skyfix.datasets.sim`: wind, correlated GNSS errors on
-every receiver) each run a :class:`skyfix.crps.service.Service` (the ``skyfix serve`` node: MAVLink
-over loopback UDP, fusion, signed swarm messages over the in-process bus, GPS_INPUT injection,
-the help protocol via :class:`skyfix.crps.help_loop.HelpLoop`). Each surveys its own strip; one
-loses its GNSS receiver at a random moment. Its service holds, asks for help, the others fly to
-vantage points, point their gimbal cameras (:class:`skyfix.datasets.sim.world_camera.WorldCamera`,
-rendered from the simulator's truth) at it, detect and range it in the pixels and send relative
-observations; its fusion positions it from them, the injected fix takes it home (RTL) and it lands.
-The harness only flies the missions, schedules the faults and scores against the truth; no
-observation is computed from the truth. Times are simulated seconds (the swarm's clock).
+Three simulated ArduPilot copters (:mod:`skyfix.datasets.sim`: wind, correlated GNSS errors on every receiver)
+each run a :class:`skyfix.crps.service.Service` (the ``skyfix serve`` node: MAVLink over loopback UDP, fusion,
+signed swarm messages over the in-process bus, GPS_INPUT injection, the help protocol via
+:class:`skyfix.crps.help_loop.HelpLoop`). Each surveys its own strip; one loses its GNSS receiver at a random
+moment. Its service holds, asks for help, the others fly to vantage points, point their gimbal cameras
+(:class:`skyfix.datasets.sim.world_camera.WorldCamera`, rendered from the simulator's truth) at it, detect and
+range it in the pixels and send relative observations; its fusion positions it from them, the injected fix takes
+it home (RTL) and it lands. The harness only flies the missions, schedules the faults and scores against the
+truth; no observation is computed from the truth. Times are simulated seconds (the swarm's clock).
 """
 
 from __future__ import annotations
@@ -286,9 +285,8 @@ class _Run:
                                   on_frame=self.recorder.frame_scorer(i, cam, self.target_key))
                 url, time_of = self.faults.mavlink_url(i, self.sim.url(j)), self.time_of
             # the simulator reports its true velocity (+ noise), not an estimator's echo of the injected fix
-            echo = {} if j is None else {"injected_velocity_sigma_mps": None}
-            if cfg.fusion_common_share is not None:
-                echo["gnss_common_share"] = cfg.fusion_common_share
+            echo = ({} if j is None else {"injected_velocity_sigma_mps": None}) | (
+                {} if cfg.fusion_common_share is None else {"gnss_common_share": cfg.fusion_common_share})
             self.cameras.append(cam)
             scfg = ServiceConfig(drone_id, url, Endpoints((), ()), self.key, roster=IDS, inject=True,
                                  estimate_hz=5.0 * cfg.speed, inject_hz=5.0 * cfg.speed, help=setup, **echo,
