@@ -203,7 +203,7 @@ class StateChains:
             window.gauss_markov(ci, span[0] - 1, phi, self.common_sigma_m)
             span[0] -= 1
 
-    def _error_step(self, drone: DroneState, k: int, phi: float) -> None:
+    def _error_step(self, drone: DroneState, k: int) -> None:
         """The receiver error's step k -> k+1: its own part about the shared chain, or (no sharing, or a step the
         shared chain does not hold: a drone carried forward across a silence while a newer chain started, steps
         that the next update marginalises) its whole error as one Gauss-Markov chain."""
@@ -211,14 +211,14 @@ class StateChains:
         if self.config.gnss_common_share > 0 and span is not None and span[0] <= k + 1 <= span[1]:
             self.window.gauss_markov_shared(drone.index, self.common_index, k, self._phi_own, self._own_step_sigma_m)
         else:
-            self.window.gauss_markov(drone.index, k, phi, self.gm_sigma_m)
+            self.window.gauss_markov(drone.index, k, self._phi_own, self.gm_sigma_m)
 
     def ensure(self, drone: DroneState, k: int) -> None:
         """Create the drone's states up to step k (forwards or backwards), each tied to its neighbour."""
         window, cfg = self.window, self.config
         walk = cfg.max_speed_mps * cfg.state_dt_s
         bias_walk = (drone.bias_walk_mps_per_sqrt_s or cfg.bias_walk_mps_per_sqrt_s) * math.sqrt(cfg.state_dt_s)
-        phi = math.exp(-cfg.state_dt_s / cfg.gnss_gm_tau_s)
+        phi = self._phi_own
         i = drone.index
         if cfg.gnss_common_share > 0:
             self.ensure_common(k)
@@ -231,7 +231,7 @@ class StateChains:
             window.new_state(i, prev + 1, p_prev + step, b_prev, phi * window.value(i, 2, prev),
                              None if self._q0 is None else window.value(i, 3, prev))
             window.motion(i, prev, walk, bias_walk, self._q_walk)
-            self._error_step(drone, prev, phi)
+            self._error_step(drone, prev)
             drone.last_k = prev + 1
         while drone.first_k > k:
             nxt = drone.first_k
@@ -240,7 +240,7 @@ class StateChains:
             window.new_state(i, nxt - 1, window.value(i, 0, nxt), window.value(i, 1, nxt), window.value(i, 2, nxt),
                              None if self._q0 is None else window.value(i, 3, nxt))
             window.motion(i, nxt - 1, walk, bias_walk, self._q_walk)
-            self._error_step(drone, nxt - 1, phi)
+            self._error_step(drone, nxt - 1)
             drone.first_k = nxt - 1
 
 
