@@ -206,7 +206,7 @@ class HelpLoop:
 
     # -- decisions -> autopilot ------------------------------------------------------------------
     def _my_status(self, now_s: float, state, gnss) -> HelperStatus:
-        fix = self.svc.node.fix(self.id, now_s)
+        fix = self.svc.node.fix(self.id, now_s, frame=True)  # placed against the others: the shared error left out
         battery = state.battery.remaining_pct / 100.0 if state is not None and state.battery is not None \
             and math.isfinite(state.battery.remaining_pct) else 0.0
         if fix is None:

@@ -94,11 +94,13 @@ class Decision:
 
 def _helper_based(est: Estimate | None, now_s: float, cfg: RequesterConfig, flying_on_it: bool = False) -> bool:
     """A fused estimate that rests on helpers' observations and is tight and fresh enough to fly on
-    (``flying_on_it``: to keep flying on, the looser bound ``fused_sigma_h_keep_m``)."""
+    (``flying_on_it``: to keep flying on, the looser bound ``fused_sigma_h_keep_m``). Its sigma in the swarm's
+    GNSS frame counts: home and the helpers carry the receivers' shared error too, so that error, however large
+    the receivers' stated accuracy makes it, never keeps a drone from flying home on its helpers."""
     sigma_max_m = cfg.fused_sigma_h_keep_m if flying_on_it else cfg.fused_sigma_h_max_m
     return (est is not None and now_s - est.time_s <= cfg.fix_max_age_s
             and any(s.startswith("relative:") for s in est.sources)
-            and est.sigma_horizontal_m <= sigma_max_m)
+            and est.sigma_frame_horizontal_m <= sigma_max_m)
 
 
 @dataclass
@@ -181,7 +183,8 @@ class RequesterRole:
 
     def _near_home(self, fused: Estimate | None, alt_rel_m: float | None, now_s: float) -> bool:
         """Whether a drone returning home that lost its helper fix should land where ``fused`` puts it: near
-        home and low, or high and within ``land_sure_within_m`` of home counting the fix's sigma (a fix that
+        home and low, or high and within ``land_sure_within_m`` of home counting the fix's sigma in the swarm's
+        GNSS frame, where home is (a fix that
         grew loose in a link drop, 4-6 m off, or a fast drone still metres out is not landed on at height: the
         helpers see it again)."""
         if fused is None:
@@ -192,7 +195,7 @@ class RequesterRole:
             return float(dist_m) <= cfg.land_near_home_m
         # a stale estimate's sigma is not its present uncertainty (a MAVLink drop stops the estimates): not sure
         fresh = now_s - fused.time_s <= cfg.fix_max_age_s
-        return fresh and float(dist_m) + cfg.land_sigma_k * fused.sigma_horizontal_m <= cfg.land_sure_within_m
+        return fresh and float(dist_m) + cfg.land_sigma_k * fused.sigma_frame_horizontal_m <= cfg.land_sure_within_m
 
     def _setpoint(self, fused: Estimate | None) -> tuple[float, float, float] | None:
         if self.mode is Mode.HOLD and self.last_good is not None:

@@ -296,6 +296,23 @@ class StateChains:
         return drone.cov_cache
 
 
+    def position_covariances(self, drone: DroneState, k: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """The drone's position covariance (3, 3) at step k, and Cov(p - c): the same position in the swarm's
+        GNSS frame, where the receivers' shared error c has moved it (home, neighbours and every fix sit in that
+        frame); None without a shared chain at k."""
+        window, span = self.window, self._common_span
+        cov = window.covariance(drone.index, 0, k)
+        if self.common_index is None or span is None or not span[0] <= k <= span[1]:
+            return cov, None
+        return cov, window.difference_covariance(window.key(drone.index, 0, k), window.key(self.common_index, 2, k))
+
+    def common_tail_keys(self, steps: set[int]) -> list[int]:
+        """Keys of the shared error chain at ``steps`` (the drones' settled steps), for the update's tail."""
+        span = self._common_span
+        if self.common_index is None or span is None:
+            return []
+        return [self.window.key(self.common_index, 2, k) for k in sorted(steps) if span[0] <= k <= span[1]]
+
     def predict(self, drone: DroneState, t_s: float, gnss: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
         """Fused prediction of the drone's position at t_s (without the measurement at hand);
         with ``gnss``, of what its receiver would report (position plus receiver error)."""

@@ -355,9 +355,9 @@ class FusionEngine:
             self._log.record("update")
         # Joint covariance (27 x 27 for 3 drones) of every drone's settled step, kept per drone below: gates
         # read it until the next update, however often answers are asked (older steps: gtsam's Marginals).
-        tail = [self._window.key(drone.index, kind, self._chains.settled_step(drone))
-                for drone in self._drones.values() if drone.anchored for kind in range(3)]
-        self._window.update(tail)
+        settled = {drone.index: self._chains.settled_step(drone) for drone in self._drones.values() if drone.anchored}
+        tail = [self._window.key(i, kind, k) for i, k in settled.items() for kind in range(3)]
+        self._window.update(tail + self._chains.common_tail_keys(set(settled.values())))
         oldest = self._window.oldest_alive_step()
         for drone_id, drone in self._drones.items():
             drone.cov_cache = None
@@ -386,16 +386,16 @@ class FusionEngine:
             raise InputError(f"time_s={t_s} is before drone {drone_id!r}'s window (oldest {oldest_s:.3f} s, lag_s "
                              f"{self.lag_s:g}); record estimates as they come or replay the log")
         k = min(max(window.step_of(t_s), drone.first_k), self._chains.settled_step(drone))
-        p_k = window.value(drone.index, 0, k)
-        cov_k = window.covariance(drone.index, 0, k)
+        cov_k, frame_k = self._chains.position_covariances(drone, k)
         shift, shift_var = self._chains.shift(drone, t_s, k)
-        enu = p_k - shift  # shift moves from t to the grid; the estimate goes the other way
+        enu = window.value(drone.index, 0, k) - shift  # shift moves from t to the grid; the estimate goes back
         cov = cov_k + EYE3 * shift_var
         vel, vel_cov = self._chains.velocity_estimate(drone, t_s, k)
         lat, lon, alt = (float(c) for c in self.frame.to_geodetic(*enu))
         return Estimate(drone_id=_drone_id(drone_id), time_s=t_s, lat_deg=lat, lon_deg=lon, alt_m=alt,
                         enu_m=enu, cov_enu_m2=0.5 * (cov + cov.T), vel_enu_mps=vel, vel_cov_enu_m2ps2=vel_cov,
-                        sources=self._contributing(drone), health=self._health(drone))
+                        sources=self._contributing(drone), health=self._health(drone),
+                        cov_frame_enu_m2=None if frame_k is None else 0.5 * (frame_k + frame_k.T) + EYE3 * shift_var)
 
     def health(self, drone_id: str) -> dict[str, SourceHealth]:
         """State of every source of ``drone_id`` at the engine's current time."""

@@ -158,6 +158,16 @@ class GraphWindow:
         idx = np.concatenate([np.arange(r, r + 3) for r in rows])
         return self._tail_cov[np.ix_(idx, idx)]
 
+    def difference_covariance(self, key_a: int, key_b: int) -> np.ndarray | None:
+        """Covariance (3, 3) of ``a - b`` for two optimised variables, their cross terms included (from the
+        last update's tail, else gtsam's joint marginal); None if either is not in the solved window."""
+        if key_a not in self._optimised or key_b not in self._optimised:
+            return None
+        joint = self.joint_covariance([key_a, key_b])
+        if joint is None:
+            joint = self._solved_marginals().jointMarginalCovariance(gtsam.KeyVector([key_a, key_b])).fullMatrix()
+        return joint[:3, :3] + joint[3:, 3:] - joint[:3, 3:] - joint[3:, :3]
+
     def covariance(self, drone_index: int, kind: int, k: int) -> np.ndarray:
         """Marginal covariance (3, 3) of an optimised variable after the last update."""
         key = self.key(drone_index, kind, k)
@@ -166,9 +176,13 @@ class GraphWindow:
         row = self._tail_index.get(key)
         if row is not None:
             return self._tail_cov[row:row + 3, row:row + 3].copy()
-        if self._marginals is None:  # slow path: a smoothed state inside the window
+        return np.asarray(self._solved_marginals().marginalCovariance(key))  # slow path: a smoothed state
+
+    def _solved_marginals(self) -> gtsam.Marginals:
+        """gtsam's marginals of the window as last solved (built on first use after an update)."""
+        if self._marginals is None:
             self._marginals = gtsam.Marginals(self._graph, self._values)
-        return np.asarray(self._marginals.marginalCovariance(key))
+        return self._marginals
 
     # -- factors -----------------------------------------------------------------------
     def _add(self, factor, min_step: int, new: bool = True, measurement: bool = False) -> None:

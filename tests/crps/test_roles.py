@@ -21,24 +21,29 @@ RANGE_SIGMA_REL = 0.02   # 2 % of range, 1-sigma (crps ranging on tracks)
 BEARING_SIGMA_RAD = 2e-3
 
 
-def fly(role, rng, t_loss, t_back, t_end, observe_from_s, dt=0.2, back_off_m=(0.0, 0.0, 0.0)):
-    """Three hovering drones in a real FusionEngine; 'a' has no GNSS fix in [t_loss, t_back); the
+def fly(role, rng, t_loss, t_back, t_end, observe_from_s, dt=0.2, back_off_m=(0.0, 0.0, 0.0),
+        gnss_sigma_m=GNSS_SIGMA_M, shared_sigma_m=0.0, config=None, estimates=None):
+    """Three hovering drones in a real FusionEngine (``config``); 'a' has no GNSS fix in [t_loss, t_back); the
     helpers observe it (noisy range and bearing) from ``observe_from_s`` while it asks for help; its
-    GNSS comes back ``back_off_m`` (ENU) off. Decisions and messages by time."""
-    eng = FusionEngine((LAT0, LON0, ALT0), lag_s=2.0)
+    GNSS comes back ``back_off_m`` (ENU) off. Each receiver's error: ``gnss_sigma_m`` per axis, of which
+    ``shared_sigma_m`` is one error all three share (held over the run: the atmosphere's tens of minutes).
+    Decisions and messages by time; 'a''s estimates appended to ``estimates`` if given."""
+    eng = FusionEngine((LAT0, LON0, ALT0), lag_s=2.0, config=config)
     log = []
-    bias = {d: rng.normal(0, GNSS_SIGMA_M, 3) for d in POS}
+    own_sigma_m = np.sqrt(gnss_sigma_m**2 - shared_sigma_m**2)
+    common = rng.normal(0, 1.0, 3) * shared_sigma_m
+    bias = {d: rng.normal(0, own_sigma_m, 3) for d in POS}
     keep = np.exp(-dt / GNSS_TAU_S)
     for t in np.arange(0.0, t_end, dt):
         t = round(float(t), 6)
         for d, p in POS.items():
-            bias[d] = keep * bias[d] + rng.normal(0, GNSS_SIGMA_M * np.sqrt(1 - keep**2), 3)
+            bias[d] = keep * bias[d] + rng.normal(0, own_sigma_m * np.sqrt(1 - keep**2), 3)
             eng.add_velocity(d, t, rng.normal(0, 0.05, 3), 0.1)
             fix_type = 0 if d == "a" and t_loss <= t < t_back else 3
             off = np.asarray(back_off_m) if d == "a" and t >= t_back else 0.0
-            lat, lon, alt = FRAME.to_geodetic(*(p + bias[d] + off + rng.normal(0, 0.1, 3)))
-            eng.add_gnss(d, t, float(lat), float(lon), float(alt), h_sigma_m=GNSS_SIGMA_M,
-                         v_sigma_m=GNSS_SIGMA_M, fix_type=fix_type)
+            lat, lon, alt = FRAME.to_geodetic(*(p + common + bias[d] + off + rng.normal(0, 0.1, 3)))
+            eng.add_gnss(d, t, float(lat), float(lon), float(alt), h_sigma_m=gnss_sigma_m,
+                         v_sigma_m=gnss_sigma_m, fix_type=fix_type)
         if t >= observe_from_s and role.protocol.active:
             for h in ("h1", "h2"):
                 los = POS["a"] - POS[h]
@@ -50,7 +55,10 @@ def fly(role, rng, t_loss, t_back, t_end, observe_from_s, dt=0.2, back_off_m=(0.
                 eng.add_relative(RelativeObservation(h, "a", t, u / np.linalg.norm(u), r * (1 + rng.normal(0, 0.02)),
                                                      cov, float(lat), float(lon), float(alt)))
         eng.update()
-        decision, out = role.step(t, eng.health("a").get("gnss"), eng.estimate("a"), ["h1", "h2"])
+        est = eng.estimate("a")
+        if estimates is not None:
+            estimates.append(est)
+        decision, out = role.step(t, eng.health("a").get("gnss"), est, ["h1", "h2"])
         log.append((t, decision, out))
     return log
 
@@ -81,6 +89,26 @@ def test_gnss_loss_hold_request_return_home_and_back_to_normal():
     assert d_ok.setpoint is None
     cancel = next(b for b in out_ok if isinstance(b, HelpRequest))
     assert not cancel.active and cancel.epoch == 1
+
+
+def test_a_large_error_the_receivers_share_does_not_keep_the_drone_from_flying_home_on_its_helpers():
+    """Receivers of 3.5 m per axis (the engine told so), 90 % of the variance shared by all three drones: the
+    helped drone's absolute sigma stays above the 3 m fly-on bound (the shared error alone is 3.3 m, and no
+    helper can see it), yet against home and its helpers, which carry that error too, it is placed to well
+    under a metre: it flies home on them (before: held until its 90 s ran out, then landed where it was)."""
+    from skyfix.fusion import FusionConfig
+
+    cfg = FusionConfig(gnss_gm_h_sigma_m=3.5, gnss_gm_v_sigma_m=3.5, gnss_common_share=0.9)
+    role, estimates = RequesterRole("a", at(100.0, -50.0)), []
+    log = fly(role, np.random.default_rng(3), t_loss=6.0, t_back=1e9, t_end=16.0, observe_from_s=9.0,
+              gnss_sigma_m=3.6, shared_sigma_m=np.sqrt(0.9) * 3.5, config=cfg, estimates=estimates)
+    t_rth, d_rth, _ = first(log, lambda e: e[1].mode is Mode.RETURN_HOME)
+    assert 9.0 <= t_rth <= 12.0 and d_rth.reason == "positioned by helpers"
+    assert all(d.mode is Mode.RETURN_HOME for t, d, _ in log if t >= t_rth)
+    helped = [e for (t, _, _), e in zip(log, estimates, strict=True) if t >= t_rth]
+    assert all(e.sigma_horizontal_m > 3.0 for e in helped)  # honest: the shared error is in it
+    # the helpers' own errors (sqrt(0.1) x 3.5 m per axis, two of them) and the ranging: ~0.9 m
+    assert all(e.sigma_frame_horizontal_m < 1.5 for e in helped)
 
 
 @pytest.mark.parametrize(("response", "setpoint"), [(FaultResponse.CONTINUE, None), (FaultResponse.LAND, "here")])

@@ -4,6 +4,8 @@ fixes, the engine averages down a bias it cannot average and is over-confident. 
 other share most of that error: modelled as their own, two helpers' errors are averaged as if half
 of it cancelled (FusionConfig.gnss_common_share)."""
 
+import math
+
 import numpy as np
 import pytest
 from fusion_sim import FRAME, ORIGIN
@@ -18,12 +20,14 @@ DURATION_S = 24.0
 
 
 def _fly(seed: int, correlated: bool, shared_sigma_m: np.ndarray | None = None,
-         config: FusionConfig | None = None) -> tuple[float, float, float]:
+         config: FusionConfig | None = None) -> tuple[float, float, float, float]:
     """Helpers' fixes (2 Hz) carry their receivers' error (nearly constant over a run much shorter than its
     minute of correlation) and their velocities (5 Hz); each sees the target every 0.4 s (2 % range, 0.2 deg).
     ``shared_sigma_m``: the error both receivers share (per axis), the rest of PEER_SIGMA_M's variance their own.
-    Returns the target's final horizontal error (m), its 3-D NEES and its stated sigma east (m)."""
+    Returns the target's final horizontal error (m), its 3-D NEES, its stated sigma east (m) and the NEES of its
+    error in the swarm's GNSS frame (against the target moved by the shared error; NaN without that model)."""
     rng = np.random.default_rng(seed)
+    common = np.zeros(3)
     if shared_sigma_m is None:
         bias = {h: rng.normal(0.0, 1.0, 3) * PEER_SIGMA_M for h in HELPERS}
     else:
@@ -51,9 +55,11 @@ def _fly(seed: int, correlated: bool, shared_sigma_m: np.ndarray | None = None,
         if i % 5 == 4:
             engine.update()
     est = engine.estimate("a")
-    err = est.enu_m - TARGET
+    err, err_frame = est.enu_m - TARGET, est.enu_m - (TARGET + common)
+    nees_frame = math.nan if est.cov_frame_enu_m2 is None else err_frame @ np.linalg.solve(est.cov_frame_enu_m2,
+                                                                                             err_frame)
     return (float(np.hypot(*err[:2])), float(err @ np.linalg.solve(est.cov_enu_m2, err)),
-            float(np.sqrt(est.cov_enu_m2[0, 0])))
+            float(np.sqrt(est.cov_enu_m2[0, 0])), float(nees_frame))
 
 
 @pytest.mark.parametrize("correlated", [True, False])
@@ -75,18 +81,23 @@ def test_an_error_the_helpers_share_is_not_averaged_away(share):
     same sky; not the 90 % the fusion is told); each helper's fixes fused as correlated. Modelled as each receiver's own, the two helpers'
     errors average as if independent: the target's stated sigma falls to ~1.5 / sqrt(2) m per horizontal axis,
     below the shared error's 1.38 m alone, and its NEES comes out ~1.9x too large. With the shared part in the
-    model the NEES is a 3-dof chi-square's."""
+    model the NEES is a 3-dof chi-square's. In the swarm's GNSS frame (where home and the helpers' fixes sit) the
+    target is placed far better than that: the helpers' own errors and the observations' only."""
     shared = np.sqrt(0.85) * PEER_SIGMA_M
     runs = np.array([_fly(seed, True, shared, FusionConfig(gnss_common_share=share)) for seed in range(20)])
-    err_h, nees, sigma_east = runs[:, 0], runs[:, 1], runs[:, 2]
+    err_h, nees, sigma_east, nees_frame = runs.T
     assert np.sqrt(np.mean(err_h**2)) < 3.0  # ~1.6 m per axis, both models: weighting alone cannot remove it
     if share:
         assert np.all(sigma_east >= shared[0])
         # 20 runs of a 3-dof chi-square: mean 3, 99 % of such means fall in 1.6-4.6
         assert 1.6 < np.mean(nees) < 4.6
+        # the world's own parts (sqrt(0.15) x 1.5 m) averaged over two helpers: ~0.4 m, honest in that frame too
+        # (the model's own part, sqrt(0.1) x 1.5 m, is a little smaller than the world's: mean seen 2.9)
+        assert 1.6 < np.mean(nees_frame) < 4.6
     else:
         assert np.all(sigma_east < shared[0])
         assert np.mean(nees) > 4.6
+        assert np.isnan(nees_frame).all()  # no shared error modelled: no frame of its own
 
 
 
