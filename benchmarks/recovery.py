@@ -167,9 +167,22 @@ def print_run(r: dict) -> None:
           f"closest approach {_f(rec['min_separation_m'], '.1f')} m, "
           f"target detected in {_f(None if rec['detection_share'] is None else 100 * rec['detection_share'], '.0f')} % "
           f"of helper frames searched with it in view, fused-fix NEES {_f(rec['figures'].get('recovery_mean_nees_3dof'))} "
-          f"(3 = honest), {_f(rec['figures'].get('helper_frames_dropped'), '.0f')} frame slots skipped, "
+          f"(3 = honest; {_f(rec['figures'].get('recovery_mean_nees_frame_3dof'))} in the swarm's GNSS frame), "
+          f"{_f(rec['figures'].get('helper_frames_dropped'), '.0f')} frame slots skipped, "
           f"{alarms} false GNSS alarm(s) on healthy receivers; {rec['outcome']} "
           f"(wall {rec['wall_s']:.0f} + {base['wall_s']:.0f} s)", flush=True)
+
+
+def print_honesty(recoveries: list[dict]) -> None:
+    """Not a goal: the median over runs of the lost drone's mean NEES while recovering, against the truth with
+    its stated covariance and against the swarm's GNSS frame with the covariance it states for that frame (the
+    one its decisions read); 3 is honest, more is over-confident."""
+    def median(key: str) -> float:
+        v = np.array([np.nan if r["figures"].get(key) is None else r["figures"][key] for r in recoveries], float)
+        return float(np.nanmedian(v)) if np.isfinite(v).any() else math.nan
+
+    print(f"  honesty (3 = honest): median NEES {median('recovery_mean_nees_3dof'):.2f} against the truth, "
+          f"{median('recovery_mean_nees_frame_3dof'):.2f} in the swarm's GNSS frame")
 
 
 def judge(records: list[dict], runs_wanted: int) -> tuple[list[tuple[str, bool, str]], str]:
@@ -286,6 +299,7 @@ def main(argv: list[str] | None = None) -> int:
     goals, headline = judge(records, 2 if args.quick else args.runs)
     for name, ok, figures in goals:
         print(f"  goal {name}: {'MET' if ok else 'NOT MET'} ({figures})")
+    print_honesty([r["recovery"] for r in records])
     print(f"load average at end: {os.getloadavg()[0]:.1f}")
     share = "" if args.fusion_common_share is None else f", fusion common share {args.fusion_common_share:g}"
     print(f"{headline} [gnss {args.gnss}{share}, revision {', '.join(revisions)}]")

@@ -68,7 +68,8 @@ class Recorder:
         if fix is not None:
             e, n, u = (float(c) for c in self.sim.world.to_enu(fix.lat_deg, fix.lon_deg, fix.alt_m))
             row.update({"fused_east_m": e, "fused_north_m": n, "fused_up_m": u,
-                        "fused_sigma_h_m": fix.sigma_horizontal_m, "fused_cov_enu_m2": fix.cov_enu_m2})
+                        "fused_sigma_h_m": fix.sigma_horizontal_m, "fused_cov_enu_m2": fix.cov_enu_m2,
+                        "fused_cov_frame_enu_m2": svc.node.fix(svc.cfg.drone_id, t, frame=True).cov_enu_m2})
         if self.common is not None and t >= 0.0:
             c = self.common.at(t)
             row.update({"common_east_m": float(c[0]), "common_north_m": float(c[1]), "common_up_m": float(c[2])})
@@ -100,13 +101,16 @@ class Recorder:
         return [r for r in self._after_loss() if r["mode"] not in ("", "normal") and "fused_east_m" in r
                 and r[f"{d}_alt_rel_m"] > 1.0]
 
-    def _errors(self) -> tuple[np.ndarray, np.ndarray]:
-        """(N, 3) fused - true ENU errors while recovering, (N, 3, 3) their covariances."""
+    def _errors(self, frame: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 3) fused - true ENU errors while recovering, (N, 3, 3) their covariances (``frame``: in the swarm's
+        GNSS frame, errors less the shared GNSS error, covariances the fusion's in that frame)."""
         d, rows = self.ids[self.lost], self._recovering()
         if not rows:
             return np.zeros((0, 3)), np.zeros((0, 3, 3))
         err = np.array([[r["fused_east_m"] - r[f"{d}_east_m"], r["fused_north_m"] - r[f"{d}_north_m"],
                          r["fused_up_m"] - r[f"{d}_up_m"]] for r in rows])
+        if frame:
+            return err - self.common_errors(), np.array([r["fused_cov_frame_enu_m2"] for r in rows])
         return err, np.array([r["fused_cov_enu_m2"] for r in rows])
 
     def max_recovery_error_m(self) -> float:
@@ -171,6 +175,7 @@ class Recorder:
     def figures(self) -> dict[str, float]:
         err, cov = self._errors()
         nees = [float(e @ np.linalg.solve(c, e)) for e, c in zip(err, cov, strict=True)]
+        nees_frame = [float(e @ np.linalg.solve(c, e)) for e, c in zip(*self._errors(frame=True), strict=True)]
         with self._lock:
             frames = list(self.frames)
         final = self._final()
@@ -181,6 +186,7 @@ class Recorder:
                 "recovery_error_rms_h_m": float(np.sqrt(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2)))
                 if len(err) else math.nan,
                 "recovery_mean_nees_3dof": float(np.mean(nees)) if nees else math.nan,
+                "recovery_mean_nees_frame_3dof": float(np.mean(nees_frame)) if nees_frame else math.nan,
                 "helper_frames": float(len(frames)), "helper_frames_in_view": float(sum(f[4] for f in frames)),
                 "helper_frames_searched_in_view": float(sum(f[4] and f[5] for f in frames)),
                 "helper_frames_detected": float(sum(f[3] for f in frames))}
@@ -200,9 +206,10 @@ class Recorder:
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:
-    keys = [k for k in (rows[0] if rows else {"t_s": 0}) if k != "fused_cov_enu_m2"]
+    matrices = ("fused_cov_enu_m2", "fused_cov_frame_enu_m2")  # report.json has the figures drawn from them
+    keys = [k for k in (rows[0] if rows else {"t_s": 0}) if k not in matrices]
     for r in rows:  # rows before the first fix lack the fused columns
-        keys += [k for k in r if k not in keys and k != "fused_cov_enu_m2"]
+        keys += [k for k in r if k not in keys and k not in matrices]
     with open(path, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore")
         writer.writeheader()

@@ -166,4 +166,11 @@ def test_fix_moved_on_a_held_velocity_states_what_braking_could_change():
     # at the estimate's own time: the estimate's own covariance, nothing added
     assert np.allclose(node.fix("a", t_last).cov_enu_m2, node.latest["a"].cov_enu_m2)
     assert fix.sigma_horizontal_m > node.latest["a"].sigma_horizontal_m + 3.0
+    # in the swarm's GNSS frame (the node fuses the receivers' shared error): the same growth on a covariance
+    # without that error, which a lone drone's own receiver cannot tell from its position
+    est = node.latest["a"]
+    assert est.cov_frame_enu_m2 is not None and est.sigma_frame_horizontal_m < est.sigma_horizontal_m
+    assert np.allclose(node.fix("a", t_last, frame=True).cov_enu_m2, est.cov_frame_enu_m2)
+    assert np.allclose(node.fix("a", now, frame=True).cov_enu_m2 - est.cov_frame_enu_m2,
+                       fix.cov_enu_m2 - est.cov_enu_m2)
     node.close()
