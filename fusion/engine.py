@@ -353,8 +353,8 @@ class FusionEngine:
             return
         if self._log is not None:
             self._log.record("update")
-        # Joint covariance (27 x 27 for 3 drones) of every drone's settled step, kept per drone below: gates
-        # read it until the next update, however often answers are asked (older steps: gtsam's Marginals).
+        # Joint covariance (27 x 27 for 3 drones; + the shared error there) of every drone's settled step, kept per
+        # drone below: gates read it until the next update, however often asked (older steps: gtsam's Marginals).
         settled = {drone.index: self._chains.settled_step(drone) for drone in self._drones.values() if drone.anchored}
         tail = [self._window.key(i, kind, k) for i, k in settled.items() for kind in range(3)]
         self._window.update(tail + self._chains.common_tail_keys(set(settled.values())))
