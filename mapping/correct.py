@@ -31,6 +31,23 @@ __all__ = ["Undistortion"]
 
 _INTERPOLATION = {"nearest": cv2.INTER_NEAREST, "linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC,
                   "lanczos": cv2.INTER_LANCZOS4}
+_TAPS_PX = {"nearest": 1, "linear": 1, "cubic": 2, "lanczos": 4}  # rows an interpolation reads beyond its sample
+BAND_ROWS = 64  # output rows remapped at a time (benchmarks/lens.py: 64-128 fastest on 1200 x 900 photos)
+
+
+def _source_rows(map_y: np.ndarray, band_rows: int, height: int) -> tuple[tuple[int, int, int, int], ...]:
+    """Per band of ``band_rows`` output rows: (first, end) output row and (first, end) raw row its samples read,
+    the widest interpolation's taps included (clamped to the raw image)."""
+    taps = max(_TAPS_PX.values())
+    out = []
+    for y0 in range(0, map_y.shape[0], band_rows):
+        y1 = min(map_y.shape[0], y0 + band_rows)
+        band = map_y[y0:y1]
+        lo, hi = np.nanmin(band), np.nanmax(band)
+        lo = int(np.clip(np.floor(lo) - taps, 0, height)) if np.isfinite(lo) else 0
+        hi = int(np.clip(np.ceil(hi) + taps + 1, 0, height)) if np.isfinite(hi) else height
+        out.append((y0, y1, min(lo, hi), hi))
+    return tuple(out)
 
 
 def _pinhole(camera: Camera) -> Camera:
@@ -130,6 +147,7 @@ class Undistortion:
     def __post_init__(self) -> None:
         for arr in (self.map_x, self.map_y, self.valid):
             arr.setflags(write=False)
+        object.__setattr__(self, "_bands", _source_rows(self.map_y, BAND_ROWS, self.source.height))
 
     @classmethod
     def from_cameras(cls, source: Camera, output: Camera, focal_scale: float | None = None,
@@ -201,4 +219,15 @@ class Undistortion:
         border_mode = cv2.BORDER_REPLICATE if border == "replicate" else cv2.BORDER_CONSTANT
         # Float tables, not OpenCV's fixed-point ones (1/32 px): exact, and with OpenCV 5's
         # vectorised float path as fast on 3 channels and ~1.7x faster on 1 or 4 (BGRX).
-        return cv2.remap(img, self.map_x, self.map_y, _INTERPOLATION[interpolation], borderMode=border_mode)
+        if not img.flags.c_contiguous or img.dtype == bool:
+            return cv2.remap(img, self.map_x, self.map_y, _INTERPOLATION[interpolation], borderMode=border_mode)
+        # Band by band, each band's raw rows read once in order first: the curved reads of a lens table then
+        # hit the cache instead of memory that the hardware prefetcher, which follows straight runs, did not
+        # fetch (a 1200 x 900 BGRX photo just decoded: 5.4 ms in one remap, 2.6 ms so; the same pixels).
+        out = np.empty(self.map_x.shape + img.shape[2:], img.dtype)
+        for y0, y1, lo, hi in self._bands:
+            if hi > lo:
+                cv2.sumElems(img[lo:hi].reshape(hi - lo, -1))
+            cv2.remap(img, self.map_x[y0:y1], self.map_y[y0:y1], _INTERPOLATION[interpolation], dst=out[y0:y1],
+                      borderMode=border_mode)
+        return out
