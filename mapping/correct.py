@@ -43,9 +43,12 @@ def _source_rows(map_y: np.ndarray, band_rows: int, height: int) -> tuple[tuple[
     for y0 in range(0, map_y.shape[0], band_rows):
         y1 = min(map_y.shape[0], y0 + band_rows)
         band = map_y[y0:y1]
-        lo, hi = np.nanmin(band), np.nanmax(band)
-        lo = int(np.clip(np.floor(lo) - taps, 0, height)) if np.isfinite(lo) else 0
-        hi = int(np.clip(np.ceil(hi) + taps + 1, 0, height)) if np.isfinite(hi) else height
+        band = band[np.isfinite(band)]  # a table may mark rays it cannot map with NaN
+        if band.size:
+            lo = int(np.clip(np.floor(band.min()) - taps, 0, height))
+            hi = int(np.clip(np.ceil(band.max()) + taps + 1, 0, height))
+        else:
+            lo, hi = 0, height
         out.append((y0, y1, min(lo, hi), hi))
     return tuple(out)
 
