@@ -95,3 +95,13 @@ def test_banded_apply_equals_one_remap(crop, interpolation, border):
         assert got.dtype == want.dtype and got.shape == want.shape
         assert np.array_equal(got, want)
     assert len(tables._bands) > 1  # 203 rows: several bands of 64
+
+
+def test_band_rows_of_a_table_with_unmappable_samples():
+    """NaN marks a sample a table cannot map: a band of them reads every raw row (nothing to narrow it to),
+    a band with some keeps its finite samples' rows plus the widest interpolation's taps."""
+    from skyfix.mapping.correct import _source_rows
+
+    map_y = np.full((6, 4), np.nan, np.float32)
+    map_y[3:, :] = [[10.2], [11.0], [12.7]]
+    assert _source_rows(map_y, 3, 100) == ((0, 3, 0, 100), (3, 6, 6, 17))
