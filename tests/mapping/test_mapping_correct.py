@@ -104,4 +104,4 @@ def test_band_rows_of_a_table_with_unmappable_samples():
 
     map_y = np.full((6, 4), np.nan, np.float32)
     map_y[3:, :] = [[10.2], [11.0], [12.7]]
-    assert _source_rows(map_y, 3, 100) == ((0, 3, 0, 100), (3, 6, 6, 17))
+    assert _source_rows(map_y, 3, 100) == ((0, 3, 0, 100), (3, 6, 6, 18))  # floor(10.2) - 4, ceil(12.7) + 4 + 1
