@@ -203,12 +203,16 @@ class StateChains:
             window.gauss_markov(ci, span[0] - 1, phi, self.common_sigma_m)
             span[0] -= 1
 
+    def _common_holds(self, k: int) -> bool:
+        """Whether the shared error chain has a state at step k (never, without sharing)."""
+        span = self._common_span
+        return span is not None and span[0] <= k <= span[1]
+
     def _error_step(self, drone: DroneState, k: int) -> None:
         """The receiver error's step k -> k+1: its own part about the shared chain, or (no sharing, or a step the
         shared chain does not hold: a drone carried forward across a silence while a newer chain started, steps
         that the next update marginalises) its whole error as one Gauss-Markov chain."""
-        span = self._common_span
-        if self.config.gnss_common_share > 0 and span is not None and span[0] <= k + 1 <= span[1]:
+        if self._common_holds(k + 1):
             self.window.gauss_markov_shared(drone.index, self.common_index, k, self._phi_own, self._own_step_sigma_m)
         else:
             self.window.gauss_markov(drone.index, k, self._phi_own, self.gm_sigma_m)
@@ -300,18 +304,15 @@ class StateChains:
         """The drone's position covariance (3, 3) at step k, and Cov(p - c): the same position in the swarm's
         GNSS frame, where the receivers' shared error c has moved it (home, neighbours and every fix sit in that
         frame); None without a shared chain at k."""
-        window, span = self.window, self._common_span
+        window = self.window
         cov = window.covariance(drone.index, 0, k)
-        if self.common_index is None or span is None or not span[0] <= k <= span[1]:
+        if not self._common_holds(k):
             return cov, None
         return cov, window.difference_covariance(window.key(drone.index, 0, k), window.key(self.common_index, 2, k))
 
     def common_tail_keys(self, steps: set[int]) -> list[int]:
         """Keys of the shared error chain at ``steps`` (the drones' settled steps), for the update's tail."""
-        span = self._common_span
-        if self.common_index is None or span is None:
-            return []
-        return [self.window.key(self.common_index, 2, k) for k in sorted(steps) if span[0] <= k <= span[1]]
+        return [self.window.key(self.common_index, 2, k) for k in sorted(steps) if self._common_holds(k)]
 
     def predict(self, drone: DroneState, t_s: float, gnss: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
         """Fused prediction of the drone's position at t_s (without the measurement at hand);
