@@ -194,7 +194,7 @@ class Node:
             ) -> GeoFix | None:
         """Newest estimate of ``drone_id`` moved to ``now_s`` with its fused velocity (None before the
         first); ``time_stamp_s`` stamps the GeoFix (default ``now_s``); ``frame``: its covariance in the
-        swarm's GNSS frame (:attr:`skyfix.fusion.Estimate.frame_cov_enu_m2`)."""
+        swarm's GNSS frame (:attr:`skyfix.fusion.Estimate.decision_cov_enu_m2`)."""
         est = self.latest.get(str(drone_id))
         if est is None:
             return None
@@ -202,7 +202,7 @@ class Node:
         enu = est.enu_m + est.vel_enu_mps * dt
         lat, lon, alt = (float(c) for c in self.frame.to_geodetic(*enu))
         # the velocity is held over dt, but the drone may accelerate: + (a dt^2 / 2)^2 per axis
-        cov = (est.frame_cov_enu_m2 if frame else est.cov_enu_m2) + est.vel_cov_enu_m2ps2 * dt * dt + np.eye(3) * (0.5 * EXTRAPOLATION_ACCEL_MPS2 * dt * dt) ** 2
+        cov = (est.decision_cov_enu_m2 if frame else est.cov_enu_m2) + est.vel_cov_enu_m2ps2 * dt * dt + np.eye(3) * (0.5 * EXTRAPOLATION_ACCEL_MPS2 * dt * dt) ** 2
         return GeoFix(lat, lon, alt, cov, now_s if time_stamp_s is None else time_stamp_s, "skyfix.fusion")
 
     def close(self) -> None:

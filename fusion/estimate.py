@@ -46,11 +46,12 @@ class Estimate:
     @property
     def sigma_frame_horizontal_m(self) -> float:
         """:attr:`sigma_horizontal_m` in the swarm's GNSS frame (``cov_frame_enu_m2``), metres (1-sigma)."""
-        return horizontal_sigma_m(self.frame_cov_enu_m2)
+        return horizontal_sigma_m(self.decision_cov_enu_m2)
 
     @property
-    def frame_cov_enu_m2(self) -> np.ndarray:
-        """``cov_frame_enu_m2`` where the engine models a shared error, else ``cov_enu_m2`` (m^2, ENU)."""
+    def decision_cov_enu_m2(self) -> np.ndarray:
+        """What decisions against home and neighbours read (m^2, ENU): ``cov_frame_enu_m2`` where the engine
+        models a shared error, else ``cov_enu_m2`` (then the two frames are one)."""
         return self.cov_enu_m2 if self.cov_frame_enu_m2 is None else self.cov_frame_enu_m2
 
     def to_dict(self) -> dict:
