@@ -18,6 +18,7 @@ original aspect ratio, whose pixels all sample inside the raw image.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -31,14 +32,14 @@ __all__ = ["Undistortion"]
 
 _INTERPOLATION = {"nearest": cv2.INTER_NEAREST, "linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC,
                   "lanczos": cv2.INTER_LANCZOS4}
-_TAPS_PX = {"nearest": 1, "linear": 1, "cubic": 2, "lanczos": 4}  # rows an interpolation reads beyond its sample
+_TAPS_PX = 4  # rows the widest interpolation (Lanczos, 8x8) reads beyond its sample
 BAND_ROWS = 64  # output rows remapped at a time (benchmarks/lens.py: 64-128 fastest on 1200 x 900 photos)
 
 
 def _source_rows(map_y: np.ndarray, band_rows: int, height: int) -> tuple[tuple[int, int, int, int], ...]:
     """Per band of ``band_rows`` output rows: (first, end) output row and (first, end) raw row its samples read,
     the widest interpolation's taps included (clamped to the raw image)."""
-    taps = max(_TAPS_PX.values())
+    taps = _TAPS_PX
     out = []
     for y0 in range(0, map_y.shape[0], band_rows):
         y1 = min(map_y.shape[0], y0 + band_rows)
@@ -150,7 +151,11 @@ class Undistortion:
     def __post_init__(self) -> None:
         for arr in (self.map_x, self.map_y, self.valid):
             arr.setflags(write=False)
-        object.__setattr__(self, "_bands", _source_rows(self.map_y, BAND_ROWS, self.source.height))
+
+    @cached_property
+    def _bands(self) -> tuple[tuple[int, int, int, int], ...]:
+        """:func:`_source_rows` of the table, computed on the first :meth:`apply`."""
+        return _source_rows(self.map_y, BAND_ROWS, self.source.height)
 
     @classmethod
     def from_cameras(cls, source: Camera, output: Camera, focal_scale: float | None = None,
