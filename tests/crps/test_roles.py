@@ -22,18 +22,19 @@ BEARING_SIGMA_RAD = 2e-3
 
 
 def fly(role, rng, t_loss, t_back, t_end, observe_from_s, dt=0.2, back_off_m=(0.0, 0.0, 0.0),
-        gnss_sigma_m=GNSS_SIGMA_M, shared_sigma_m=0.0, config=None, estimates=None):
+        gnss_sigma_m=GNSS_SIGMA_M, shared_sigma_m=0.0, config=None, estimates=None, gnss_tau_s=GNSS_TAU_S):
     """Three hovering drones in a real FusionEngine (``config``); 'a' has no GNSS fix in [t_loss, t_back); the
     helpers observe it (noisy range and bearing) from ``observe_from_s`` while it asks for help; its
     GNSS comes back ``back_off_m`` (ENU) off. Each receiver's error: ``gnss_sigma_m`` per axis, of which
-    ``shared_sigma_m`` is one error all three share (held over the run: the atmosphere's tens of minutes).
+    ``shared_sigma_m`` is one error all three share (held over the run: the atmosphere's tens of minutes), the
+    rest each receiver's own, wandering with ``gnss_tau_s``.
     Decisions and messages by time; 'a''s estimates appended to ``estimates`` if given."""
     eng = FusionEngine((LAT0, LON0, ALT0), lag_s=2.0, config=config)
     log = []
     own_sigma_m = np.sqrt(gnss_sigma_m**2 - shared_sigma_m**2)
     common = rng.normal(0, 1.0, 3) * shared_sigma_m
     bias = {d: rng.normal(0, own_sigma_m, 3) for d in POS}
-    keep = np.exp(-dt / GNSS_TAU_S)
+    keep = np.exp(-dt / gnss_tau_s)
     for t in np.arange(0.0, t_end, dt):
         t = round(float(t), 6)
         for d, p in POS.items():
@@ -101,7 +102,8 @@ def test_a_large_error_the_receivers_share_does_not_keep_the_drone_from_flying_h
     cfg = FusionConfig(gnss_gm_h_sigma_m=3.5, gnss_gm_v_sigma_m=3.5, gnss_common_share=0.9)
     role, estimates = RequesterRole("a", at(100.0, -50.0)), []
     log = fly(role, np.random.default_rng(3), t_loss=6.0, t_back=1e9, t_end=16.0, observe_from_s=9.0,
-              gnss_sigma_m=3.6, shared_sigma_m=np.sqrt(0.9) * 3.5, config=cfg, estimates=estimates)
+              gnss_sigma_m=3.6, shared_sigma_m=np.sqrt(0.9) * 3.5, config=cfg, estimates=estimates,
+              gnss_tau_s=20.0)  # a flying antenna's multipath (datasets.gnss_error), not the engine's 60 s
     t_rth, d_rth, _ = first(log, lambda e: e[1].mode is Mode.RETURN_HOME)
     assert 9.0 <= t_rth <= 12.0 and d_rth.reason == "positioned by helpers"
     assert all(d.mode is Mode.RETURN_HOME for t, d, _ in log if t >= t_rth)
