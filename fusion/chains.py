@@ -174,7 +174,9 @@ class StateChains:
 
     def intervals(self, drone: DroneState) -> IntervalVelocity:
         if drone.intervals is None:
-            drone.intervals = IntervalVelocity(self.window.epoch_s, self.window.dt_s, self.config.velocity_timeout_s)
+            c = self.config
+            drone.intervals = IntervalVelocity(self.window.epoch_s, self.window.dt_s, c.velocity_timeout_s,
+                                               c.velocity_gap_accel_mps2, c.velocity_gap_max_s)
         return drone.intervals
 
 

@@ -42,6 +42,11 @@ class FusionConfig:
     velocity_model_sigma_mps: float = 0.02  # interpolation between samples (jerk), added to the white sigma
     bias_initial_sigma_mps: float = 0.3
     bias_walk_mps_per_sqrt_s: float = 0.01
+    # A velocity gap longer than velocity_timeout_s (a telemetry link down for seconds) is bridged by the line
+    # between the samples on either side, as uncertain as a drone changing its velocity at this acceleration
+    # (1-sigma, m/s^2: ArduPilot's default WPNAV_ACCEL) allows; gaps longer than velocity_gap_max_s are not bridged.
+    velocity_gap_accel_mps2: float = 2.5
+    velocity_gap_max_s: float = 10.0
     # Optional scale-factor and heading-error states of the velocity (the main errors of an
     # autopilot's dead reckoning without GNSS: optical flow scaled by a wrong height, a compass
     # or gyro heading error). Observable in turns; off by default (a Python factor per interval).

@@ -6,8 +6,14 @@ mean over a state interval is first-order (forward Euler): in a 180-degree turn 
 then lags GNSS for seconds. Here samples are joined piecewise-linearly and integrated
 exactly over [t_j, t_j+1] (trapezoid rule): exact for constant acceleration. An
 interval is emitted once a sample at or after its end has arrived (one sample of
-delay), never twice; intervals across a gap longer than ``max_gap_s`` are skipped
-(the fusion window then bounds the motion by its weak walk only).
+delay), never twice. Across a gap longer than ``max_gap_s`` (a telemetry link that dropped for
+seconds) the samples on either side are still joined linearly, but each interval's sigma grows so that
+the gap's intervals together allow a displacement of ``gap_accel_mps2 * G**2 / 4`` over a gap of G s:
+twice the most a drone that changes its velocity at that acceleration can end up from the linear join
+(``a G^2 / 8``, the change made in the gap's first half). Skipping them instead left the drone's states
+across the gap tied only by the window's weak speed bound: once the link was back, its newest state sat
+where the last camera observation had put it, metres behind a drone flying on (the intervals' mean is
+what moves it). Gaps longer than ``gap_max_s`` are skipped.
 """
 
 from __future__ import annotations
@@ -21,10 +27,13 @@ import numpy as np
 class IntervalVelocity:
     """Per-drone sample buffer that turns velocity samples into per-interval means."""
 
-    def __init__(self, epoch_s: float, dt_s: float, max_gap_s: float) -> None:
+    def __init__(self, epoch_s: float, dt_s: float, max_gap_s: float, gap_accel_mps2: float = 2.5,
+                 gap_max_s: float = 10.0) -> None:
         self.epoch_s = epoch_s
         self.dt_s = dt_s
         self.max_gap_s = max_gap_s
+        self.gap_accel_mps2 = gap_accel_mps2
+        self.gap_max_s = gap_max_s
         self._t: list[float] = []
         self._v: list[np.ndarray] = []
         self._sigma: list[np.ndarray] = []
@@ -75,13 +84,16 @@ class IntervalVelocity:
         lo = bisect.bisect_right(t, t0 + 1e-9) - 1   # last sample at or before t0
         hi = bisect.bisect_left(t, t1 - 1e-9)        # first sample at or after t1
         knots_t = [t0] + t[lo + 1:hi] + [t1]
-        if max(t[k + 1] - t[k] for k in range(lo, hi)) > self.max_gap_s:
+        gap_s = max(t[k + 1] - t[k] for k in range(lo, hi))
+        if gap_s > self.gap_max_s:
             return None
         values = [self._at(x, lo, hi) for x in knots_t]
         integral = np.zeros(3)
         for a in range(len(knots_t) - 1):
             integral += 0.5 * (values[a] + values[a + 1]) * (knots_t[a + 1] - knots_t[a])
         sigma = np.max(np.array(self._sigma[lo:hi + 1]), axis=0)
+        if gap_s > self.max_gap_s:  # N = gap / dt intervals of this sigma sum to a displacement sd of a G^2 / 4
+            sigma = np.maximum(sigma, self.gap_accel_mps2 * gap_s**1.5 / (4.0 * math.sqrt(self.dt_s)))
         return integral / (t1 - t0), sigma
 
     def _at(self, x: float, lo: int, hi: int) -> np.ndarray:

@@ -22,16 +22,24 @@ def test_interval_velocity_is_exact_for_constant_acceleration_at_any_phase():
         assert np.allclose(mean, accel * (j + 0.5) * 0.1, atol=1e-12)  # mean of a linear ramp: the midpoint
 
 
-def test_interval_velocity_waits_for_the_interval_end_and_skips_gaps():
-    iv = IntervalVelocity(epoch_s=0.0, dt_s=0.1, max_gap_s=0.5)
+def test_interval_velocity_waits_for_the_interval_end_bridges_gaps_and_skips_long_ones():
+    iv = IntervalVelocity(epoch_s=0.0, dt_s=0.1, max_gap_s=0.5, gap_accel_mps2=2.0, gap_max_s=3.0)
     iv.start_at(0)
     v = np.ones(3)
-    assert iv.add(0.0, v, v) == []
-    assert [j for j, _, _ in iv.add(0.1, v, v)] == [0]
-    assert [j for j, _, _ in iv.add(0.2, v, v)] == [1]
-    assert iv.add(0.2, v, v) == []                       # duplicate stamp
-    assert [j for j, _, _ in iv.add(1.0, v, v)] == []    # 0.8 s gap: intervals 2-9 skipped
-    assert [j for j, _, _ in iv.add(1.1, v, v)] == [10]
+    assert iv.add(0.0, v, 0.1 * v) == []
+    assert [j for j, _, _ in iv.add(0.1, v, 0.1 * v)] == [0]
+    assert [j for j, _, _ in iv.add(0.2, v, 0.1 * v)] == [1]
+    assert iv.add(0.2, v, 0.1 * v) == []                       # duplicate stamp
+    # a 0.8 s gap, 1 -> 3 m/s: intervals 2-9 on the line between the samples, each with the sigma that makes
+    # the eight together allow a G^2 / 4 displacement (2 * 0.64 / 4 = 0.32 m, twice the a G^2 / 8 worst case)
+    out = iv.add(1.0, 3 * v, 0.1 * v)
+    assert [j for j, _, _ in out] == list(range(2, 10))
+    for j, mean, sigma in out:
+        assert np.allclose(mean, 1.0 + 2.0 * ((j + 0.5) * 0.1 - 0.2) / 0.8)
+        assert np.allclose(sigma * 0.1 * np.sqrt(8), 2.0 * 0.8**2 / 4)
+    assert [(j, s.max()) for j, _, s in iv.add(1.1, 3 * v, 0.1 * v)] == [(10, 0.1)]   # past the gap: its own sigma
+    assert [j for j, _, _ in iv.add(4.2, v, 0.1 * v)] == []    # 3.1 s: longer than gap_max_s, skipped
+    assert [j for j, _, _ in iv.add(4.3, v, 0.1 * v)] == [42]
 
 
 def test_monitor_rejects_after_consecutive_failures_and_readmits_after_a_consistent_spell():
