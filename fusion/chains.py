@@ -323,11 +323,13 @@ class StateChains:
             return None
         window = self.window
         k = min(max(window.step_of(t_s), drone.first_k), self.settled_step(drone))
+        cached = self.latest_cov(drone)
+        if cached is not None:  # a step newer than the last solve holds only its initial guess (its predecessor's
+            k = min(k, cached[0])  # value, not moved by the velocity): predict from the solved one
         shift, shift_var = self.shift(drone, t_s, k)
         p = window.value(drone.index, 0, k) - shift
         if gnss:
             p = p - window.value(drone.index, 2, k)
-        cached = self.latest_cov(drone)
         if cached is None:  # nothing optimised yet: no basis for gating
             return p, EYE3 * 1e12
         k_cov, joint = cached

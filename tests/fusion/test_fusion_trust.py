@@ -195,3 +195,37 @@ def test_velocity_scale_and_heading_states_keep_dead_reckoning_on_a_circle():
     err_off, _ = fly_circle(False)
     assert err_on < 2.0 and err_off > 10.0
     assert abs(q[0] - scale) < 0.01 and abs(q[1] - psi) < np.radians(1.0)
+
+
+@pytest.mark.slow
+def test_healthy_gnss_on_a_fast_drone_passes_the_gate_and_is_never_rejected():
+    """The correlated scenario's drones fly at 6.5-8 m/s with healthy receivers (2 % multipath outliers of 5-20 m)
+    and updates every 0.1 s. A fix is gated against the prediction from the last solved step moved by the velocity:
+    from a step newer than the last solve (its initial guess, its predecessor's value) the prediction lagged ~0.25 s
+    (2 m along track at 8 m/s), 22 % of fixes failed the 0.999 gate and GNSS was rejected 37 times in 160 s.
+    Now the fixes that fail are about the outliers (2 %) and two in a row (a rejection) are rare."""
+    from skyfix.datasets.fusion_scenario import correlated_scenario, feed
+
+    s = correlated_scenario(60.0, seed=0, faults=False)
+    engine = FusionEngine(s.origin)
+    evs = s.events()
+    pending = next(evs)
+    degraded = rejected = fixes = 0
+    last = {d: HealthState.OK for d in s.drone_ids}
+    for tick in np.round(np.arange(1, 600) * 0.1, 6):
+        while pending is not None and pending.arrival_s <= tick + 1e-9:
+            feed(engine, pending)
+            fixes += pending.kind == "gnss"
+            pending = next(evs, None)
+        engine.update()
+        for d in s.drone_ids:
+            health = engine.health(d).get("gnss") if d in engine.drone_ids else None
+            if health is None:
+                continue
+            state = health.state
+            degraded += state is HealthState.DEGRADED and last[d] is not HealthState.DEGRADED
+            rejected += state is HealthState.REJECTED and last[d] is not HealthState.REJECTED
+            last[d] = state
+    # 2 % outliers plus the gate's own 0.1 %: ~2 % of fixes fail it (a failure is one DEGRADED spell)
+    assert degraded <= 0.05 * fixes
+    assert rejected <= 1
