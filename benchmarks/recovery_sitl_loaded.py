@@ -94,13 +94,15 @@ def at_once(k: int, root: Path, blind_s: float | None = None) -> list[dict]:
         d = root / f"flight{n + 1}"
         d.mkdir(parents=True, exist_ok=True)
         blind = [] if blind_s is None else ["--blind-s", str(blind_s)]
-        procs.append((d, subprocess.Popen([sys.executable, __file__, "--one", str(d), *blind], stdout=subprocess.PIPE,
-                                          stderr=subprocess.DEVNULL, text=True)))
+        with open(d / "stderr.log", "w") as err:  # the child keeps its own handle
+            procs.append((d, subprocess.Popen([sys.executable, __file__, "--one", str(d), *blind],
+                                              stdout=subprocess.PIPE, stderr=err, text=True)))
     out = []
     for d, p in procs:
         stdout, _ = p.communicate()
         if p.returncode != 0 or not stdout.strip():
-            raise SystemExit(f"flight in {d} failed to run (exit {p.returncode})")
+            tail = (d / "stderr.log").read_text(errors="replace").strip().splitlines()[-3:]
+            raise SystemExit(f"flight in {d} failed to run (exit {p.returncode}): " + " | ".join(tail))
         out.append(json.loads(stdout.strip().splitlines()[-1]))
     return out
 
