@@ -132,22 +132,37 @@ def test_drift_is_flagged_then_gnss_readmitted_and_estimate_pulled_back():
     assert err[(t >= 85.0)].max() < 3.0
 
 
+def _ticks(scenario, engine: FusionEngine, n_ticks: int, drop_late: bool = False):
+    """Feed ``scenario``'s events by arrival and update ``engine`` every 0.1 s, as benchmarks/fusion.py does; yields
+    (tick s, the events fed at it). ``drop_late``: an input the engine refuses as older than its lag is dropped."""
+    from skyfix.datasets.fusion_scenario import feed
+
+    evs = scenario.events()
+    pending = next(evs)
+    for tick in np.round(np.arange(1, n_ticks) * 0.1, 6):
+        fed = []
+        while pending is not None and pending.arrival_s <= tick + 1e-9:
+            try:
+                feed(engine, pending)
+            except InputError:
+                if not drop_late:
+                    raise
+            fed.append(pending)
+            pending = next(evs, None)
+        engine.update()
+        yield tick, fed
+
+
 @pytest.mark.slow
 def test_gauss_markov_gnss_stated_covariance_covers_the_truth():
     """Correlated GNSS (1.5 m, tau 60 s): consecutive fixes are not independent evidence, and
     the default engine's 3-dof NEES stays in the 95 % band most of the time."""
-    from skyfix.datasets.fusion_scenario import correlated_scenario, feed
+    from skyfix.datasets.fusion_scenario import correlated_scenario
 
     s = correlated_scenario(100.0, seed=7, faults=False)
     engine = FusionEngine(s.origin)
-    evs = s.events()
-    pending = next(evs)
     nees = []
-    for tick in np.round(np.arange(1, 1000) * 0.1, 6):
-        while pending is not None and pending.arrival_s <= tick + 1e-9:
-            feed(engine, pending)
-            pending = next(evs, None)
-        engine.update()
+    for tick, _ in _ticks(s, engine, 1000):
         if tick > 20.0 and round(tick * 10) % 5 == 0:
             for d in s.drone_ids:
                 est = engine.estimate(d)
@@ -204,20 +219,14 @@ def test_healthy_gnss_on_a_fast_drone_passes_the_gate_and_is_never_rejected():
     from a step newer than the last solve (its initial guess, its predecessor's value) the prediction lagged ~0.25 s
     (2 m along track at 8 m/s), 22 % of fixes failed the 0.999 gate and GNSS was rejected 37 times in 160 s.
     Now the fixes that fail are about the outliers (2 %) and two in a row (a rejection) are rare."""
-    from skyfix.datasets.fusion_scenario import correlated_scenario, feed
+    from skyfix.datasets.fusion_scenario import correlated_scenario
 
     s = correlated_scenario(60.0, seed=0, faults=False)
     engine = FusionEngine(s.origin)
-    evs = s.events()
-    pending = next(evs)
     degraded = rejected = fixes = 0
     last = {d: HealthState.OK for d in s.drone_ids}
-    for tick in np.round(np.arange(1, 600) * 0.1, 6):
-        while pending is not None and pending.arrival_s <= tick + 1e-9:
-            feed(engine, pending)
-            fixes += pending.kind == "gnss"
-            pending = next(evs, None)
-        engine.update()
+    for _, fed in _ticks(s, engine, 600):
+        fixes += sum(e.kind == "gnss" for e in fed)
         for d in s.drone_ids:
             health = engine.health(d).get("gnss") if d in engine.drone_ids else None
             if health is None:
@@ -238,21 +247,12 @@ def test_correlated_outage_stays_within_a_metre_in_the_benchmark_scenario():
     (2026-11-29) until the gates stopped predicting from unsolved states: that commit changed which of the lag's
     spurious GNSS rejections happened, and the ones before this outage left A 3.3 m off at its start. The benchmark's
     pooled goal (<= 0.9x the joint EKF) failed for a day without a test noticing. 0.76 m now."""
-    from skyfix.datasets.fusion_scenario import correlated_scenario, feed
+    from skyfix.datasets.fusion_scenario import correlated_scenario
 
     s = correlated_scenario(600.0, seed=0)  # the benchmark's run: its draws depend on the length
     engine = FusionEngine(s.origin)
-    evs = s.events()
-    pending = next(evs)
     err = []
-    for tick in np.round(np.arange(1, 2400) * 0.1, 6):
-        while pending is not None and pending.arrival_s <= tick + 1e-9:
-            try:
-                feed(engine, pending)
-            except InputError:  # a message later than the lag: dropped, as the benchmark does
-                pass
-            pending = next(evs, None)
-        engine.update()
+    for tick, _ in _ticks(s, engine, 2400, drop_late=True):  # a message later than the lag: dropped, as there
         if 150.0 <= tick < 240.0:
             est = engine.estimate("A")
             err.append(np.linalg.norm((est.enu_m - s.truth_enu("A", est.time_s)[0])[:2]))
