@@ -11,6 +11,8 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
+import numpy as np
+
 from skyfix.crps.help_protocol import HelpConfig, HelperStatus
 from skyfix.crps.messages import TOPIC_OF, Body, Envelope, SwarmCodec
 from skyfix.crps.roles import Decision, HelperDecision, HelperRole, RequesterConfig, RequesterRole
@@ -50,15 +52,17 @@ class HelpAgent:
 
     def step(self, now_s: float, gnss: SourceHealth | None, fused: Estimate | None, me: HelperStatus,
              peer_positions: Mapping[str, tuple[float, float, float]], *, alt_rel_m: float | None = None,
-             floor_up_m: float = -math.inf) -> AgentDecisions:
+             floor_up_m: float = -math.inf,
+             peer_velocities: Mapping[str, np.ndarray] | None = None) -> AgentDecisions:
         """Periodic work: ``gnss`` this drone's GNSS health and ``fused`` its estimate (fusion);
         ``me`` its status; ``peer_positions`` every other drone's latest (lat_deg, lon_deg, alt_m);
         ``alt_rel_m`` its autopilot's height above home (None: unknown); ``floor_up_m`` the lowest it may
-        fly as a helper (ENU up of its frame)."""
+        fly as a helper (ENU up of its frame); ``peer_velocities`` their ENU velocities (m/s) where known."""
         live = self.peers.live()
         decision, out = self.requester.step(now_s, gnss, fused, live, alt_rel_m)
         self._send(out)
-        helper, out = self.helper.step(now_s, self._as_helper(me), peer_positions, live, floor_up_m=floor_up_m)
+        helper, out = self.helper.step(now_s, self._as_helper(me), peer_positions, live, floor_up_m=floor_up_m,
+                                       velocities=peer_velocities)
         self._send(out)
         return AgentDecisions(decision, helper)
 

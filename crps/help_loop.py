@@ -188,10 +188,19 @@ class HelpLoop:
         self._status = self._my_status(now_s, state, gnss)
         peers = {p.drone_id: (p.lat_deg, p.lon_deg, p.alt_m) for p in self.svc.peers.snapshot()
                  if not p.lost and math.isfinite(p.lat_deg) and math.isfinite(p.alt_m)}
+        # a peer's newest fix moved on to now with its velocity: a drone flying home at 5 m/s is metres past its
+        # last estimate, and where it goes decides which vantage points stay clear of it
+        velocities = {}
+        for pid in peers:
+            known = self._peer_fix.get(pid)
+            if known is not None and np.all(np.isfinite(known[1])):
+                now_fix = _moved(known[0], known[1], now_s)
+                peers[pid], velocities[pid] = (now_fix.lat_deg, now_fix.lon_deg, now_fix.alt_m), known[1]
         self._height = _height(self.svc.node, self.id, now_s, state)
         floor_up_m = -math.inf if self._height is None else self._height[1] - self._height[0] + self.setup.min_alt_rel_m
         decisions = self.agent.step(now_s, gnss, fused, self._status, peers, floor_up_m=floor_up_m,
-                                    alt_rel_m=None if self._height is None else self._height[0])
+                                    alt_rel_m=None if self._height is None else self._height[0],
+                                    peer_velocities=velocities)
         if self.recovering and state is not None and state.position is not None and not state.armed \
                 and self.agent.requester.protocol.active:
             self.agent.stand_down(now_s, "landed")  # on the ground: nothing left to help with
@@ -287,6 +296,16 @@ class HelpLoop:
                 alt_rel = max(alt_rel, self.setup.min_alt_rel_m)
                 self._actions.submit("move", f"{self.id} goto vantage",
                                      lambda: vehicle.goto(lat, lon, alt_rel))
+        elif self._goto_enu is not None and self._height is not None:
+            # no vantage clear of the others: stop where it is rather than fly on to a point chosen when the target
+            # was elsewhere (a moving target may be heading for it)
+            own = self.svc.node.fix(self.id, now_s)
+            if own is not None:
+                self._goto_enu = None
+                alt_rel = max(self._height[0], self.setup.min_alt_rel_m)
+                self._event(now_s, "no vantage clear of the others: holding")
+                self._actions.submit("move", f"{self.id} hold",
+                                     lambda: vehicle.goto(own.lat_deg, own.lon_deg, alt_rel))
         self._aim(now_s, dec.helping, dec.target)
 
     def _aim(self, now_s: float, target_id: str, target_pos) -> None:

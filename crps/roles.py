@@ -238,11 +238,13 @@ class HelperRole:
 
     def step(self, now_s: float, me: HelperStatus, peers: Mapping[str, tuple[float, float, float]],
              live_peers: Iterable[str], mates_vantage: Mapping[str, np.ndarray] | None = None,
-             floor_up_m: float = -np.inf) -> tuple[HelperDecision, list[Body]]:
+             floor_up_m: float = -np.inf,
+             velocities: Mapping[str, np.ndarray] | None = None) -> tuple[HelperDecision, list[Body]]:
         """The helper decision; ``peers`` every other drone's latest position (lat, lon, alt), the
         requester's included when known (else its request's last fix is used); ``mates_vantage`` the
         other helpers' vantage points (ENU) where known, else their present positions are used; ``floor_up_m``
-        the lowest this helper may fly (ENU up)."""
+        the lowest this helper may fly (ENU up); ``velocities`` the drones' ENU velocities (m/s) where known:
+        a moving requester is judged in its own frame (:func:`skyfix.crps.vantage.vantage_point`)."""
         out: list[Body] = []
         if self.protocol.requester_id is not None and not (me.localised and me.available):
             out += self.protocol.withdraw(now_s, "own position lost" if not me.localised else "recalled")
@@ -260,6 +262,8 @@ class HelperRole:
         mates = {h: (mates_vantage or {}).get(h) for h in self.protocol.team if h != self.drone_id}
         mates = {h: v if v is not None else enu(peers[h]) for h, v in mates.items() if v is not None or h in peers}
         others = [enu(p) for h, p in peers.items() if h != req_id and h not in mates]
+        target_vel = (velocities or {}).get(req_id) if req_id in peers else None
         v = vantage_point(enu(target), enu((me.lat_deg, me.lon_deg, me.alt_m)), others, list(mates.values()),
-                          target_sigma_h_m=sigma_h, floor_up_m=floor_up_m, cfg=self.vantage_cfg)
+                          target_sigma_h_m=sigma_h, floor_up_m=floor_up_m, target_vel_enu_mps=target_vel,
+                          cfg=self.vantage_cfg)
         return HelperDecision(req_id, v, tuple(target)), out
