@@ -47,7 +47,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="detect ArUco markers of this cv2.aruco dictionary (e.g. DICT_4X4_50) instead of silhouettes")
     p.add_argument("--pose", default=None, help="helper camera pose lat,lon,alt_m[,roll,pitch,yaw[,gimbal_pitch"
                                                 "[,gimbal_yaw]]]")
-    p.add_argument("--attitude-sigma-deg", type=float, default=0.5, help="helper pointing 1-sigma (default 0.5)")
+    p.add_argument("--attitude-sigma-deg", type=float, default=None,
+                   help="helper pointing 1-sigma, deg: mostly its compass heading's error (default "
+                        "skyfix.crps.observation.POINTING_SIGMA_DEG, 2)")
     p.add_argument("--psf-sigma-px", type=float, default=0.7, help="camera blur 1-sigma in pixels (default 0.7)")
     p.add_argument("--polarity", choices=("dark", "bright", "both"), default="dark",
                    help="target darker or brighter than its background (default dark)")
@@ -111,12 +113,15 @@ def run_range(args: argparse.Namespace) -> int:
         observe,
         shape_consistent,
     )
+    from skyfix.crps.observation import POINTING_SIGMA_DEG
     from skyfix.errors import InputError
     from skyfix.geo import LocalFrame
     from skyfix.imagefile import read_image
 
     size_m = validate.positive_scalar("--size-m", args.size_m)
     validate.positive_scalar("--psf-sigma-px", args.psf_sigma_px)
+    if args.attitude_sigma_deg is None:
+        args.attitude_sigma_deg = POINTING_SIGMA_DEG
     if validate.finite_scalar("--attitude-sigma-deg", args.attitude_sigma_deg) < 0:
         raise InputError(f"--attitude-sigma-deg must be >= 0, got {args.attitude_sigma_deg}")
     image = read_image(args.image)  # a truncated JPEG/PNG is refused, not measured

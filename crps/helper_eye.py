@@ -29,7 +29,7 @@ from skyfix.camera import Camera, CameraPose
 from skyfix.crps.detection import Detection
 from skyfix.crps.fit import SilhouetteFit, SilhouetteFitConfig
 from skyfix.crps.model import DroneModel, shape_table
-from skyfix.crps.observation import locate, observe, shape_consistent
+from skyfix.crps.observation import POINTING_SIGMA_DEG, locate, observe, shape_consistent
 from skyfix.crps.prior import PriorWindow, prior_gate, prior_window
 from skyfix.crps.silhouette import SilhouetteDetector
 from skyfix.crps.track import Tracker, TrackerConfig
@@ -50,7 +50,7 @@ class EyeConfig:
     speed: float = 1.0                 # swarm-clock seconds per wall second (a simulator run faster)
     target_span_m: float = 0.5         # rotor tip to tip of the drone helped
     target_arms: int = 4
-    attitude_sigma_deg: float = 0.5    # 1-sigma pointing error of the reported gimbal attitude
+    attitude_sigma_deg: float = POINTING_SIGMA_DEG  # 1-sigma pointing error of the reported gimbal attitude
     prior_sigma_m: float = 2.0         # added to the prior's sigma: the target moves, the fix lags
     min_elevation_deg: float = 1.5     # look only above the horizon: the silhouette detector wants sky behind
     sighting_fresh_s: float = 2.0      # the gimbal follows this eye's own last sighting while it is this recent

@@ -29,6 +29,13 @@ from skyfix.errors import EstimationError, GeometryError, InputError
 from skyfix.geo import LocalFrame
 from skyfix.types import GeoFix, RelativeObservation
 
+# 1-sigma error (deg) of a helper camera's reported pointing, on both axes across the line of sight. The heading is
+# the larger part: a drone's compass-referenced heading (plus the gimbal's yaw encoder), which careful magnetometer
+# calibration brings to 1-2 deg rms (Tomasch & Winer, Tlera Corp. 2018, "Limits of absolute heading accuracy using
+# inexpensive MEMS sensors": 2 deg routinely, 1 deg in many cases, ~4 deg with a plain offset calibration); 1 uT of
+# uncompensated field from the motors' currents against a 30 uT horizontal field is already ~1.9 deg.
+POINTING_SIGMA_DEG = 2.0
+
 __all__ = ["angular_jacobian", "locate", "observe", "shape_consistent"]
 
 
@@ -89,7 +96,7 @@ def shape_consistent(camera: Camera, helper_pose: CameraPose, detection: Detecti
 
 def observe(camera: Camera, helper_pose: CameraPose, detection: Detection, target_size_m: float, *,
             model: DroneModel | None = None, observer_id: str = "", target_id: str | None = None,
-            time_s: float | None = None, attitude_sigma_deg: float = 0.5,
+            time_s: float | None = None, attitude_sigma_deg: float = POINTING_SIGMA_DEG,
             observer_cov_enu_m2: np.ndarray | None = None) -> RelativeObservation:
     """Range, bearing and covariance of ``detection`` seen by ``camera`` at ``helper_pose``.
 

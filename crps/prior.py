@@ -17,6 +17,7 @@ import numpy as np
 from skyfix import validate
 from skyfix.camera import Camera, CameraPose, world_to_pixel
 from skyfix.crps.detection import Detection
+from skyfix.crps.observation import POINTING_SIGMA_DEG
 from skyfix.errors import GeometryError, InputError
 from skyfix.geo import LocalFrame
 from skyfix.types import GeoFix
@@ -50,7 +51,7 @@ class PriorWindow:
         return (u0, v0, u1, v1) if u1 - u0 >= 8 and v1 - v0 >= 8 else None
 
 
-def prior_window(camera: Camera, helper_pose: CameraPose, prior: GeoFix, *, attitude_sigma_deg: float = 0.5,
+def prior_window(camera: Camera, helper_pose: CameraPose, prior: GeoFix, *, attitude_sigma_deg: float = POINTING_SIGMA_DEG,
                  helper_cov_enu_m2: np.ndarray | None = None, gate_chi2: float = CHI2_2DOF_99) -> PriorWindow:
     """Project ``prior`` (target position and ENU covariance) into ``camera`` at ``helper_pose``.
 

@@ -279,8 +279,10 @@ class _Run:
                     SitlClock(self.clock, cfg.speed)
             else:
                 cam = WorldCamera(self.sim, j, camera, seed=cfg.seed * 10 + i, extra_targets=extra)
+                # the eye's pointing sigma is the service's own figure, not the simulated gimbal's (a world that
+                # told the code its errors would test nothing)
                 eye = EyeConfig(frame_hz=cfg.frame_hz, speed=cfg.speed, target_span_m=cam.model.span_m,
-                                target_arms=cam.model.arms, attitude_sigma_deg=cam.gimbal_cfg.pointing_sigma_deg)
+                                target_arms=cam.model.arms)
                 setup = HelpSetup(fault_response=cfg.fault_response, camera=cam, eye=eye,
                                   on_frame=self.recorder.frame_scorer(i, cam, self.target_key))
                 url, time_of = self.faults.mavlink_url(i, self.sim.url(j)), self.time_of

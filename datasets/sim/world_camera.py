@@ -56,7 +56,9 @@ class GimbalConfig:
     tau_s: float = 0.15              # first-order lag of the attitude loop
     pitch_min_deg: float = -90.0     # mechanical stops
     pitch_max_deg: float = 30.0
-    yaw_bias_sigma_deg: float = 0.3  # heading reference error of the helper's AHRS, fixed per flight
+    # heading reference error of the helper's compass-referenced AHRS and gimbal yaw encoder, fixed per flight:
+    # 1-2 deg rms after careful magnetometer calibration (Tomasch & Winer, Tlera Corp. 2018); 0.3 before 2026-11-30
+    yaw_bias_sigma_deg: float = 1.5
     pitch_bias_sigma_deg: float = 0.15  # pitch encoder / level error, fixed per flight
     noise_sigma_deg: float = 0.05    # per-report noise on each axis
     roll_sigma_deg: float = 0.1      # residual roll of the stabilisation, not reported (fixed per flight)
