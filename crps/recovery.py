@@ -438,6 +438,9 @@ class _Run:
         figures["forged_rejected"] = float(lost.codec.dropped.get("forged", 0))
         # inputs the lost drone's fusion refused (mostly observations older than its lag: late under load)
         figures["lost_inputs_refused"] = float(lost.node.n_refused) if lost.node is not None else math.nan
+        # faults the services survived (an exception in a tick, logged with its traceback): 0 in a sound run
+        figures["service_faults"] = float(sum(s.counters["loop_faults"] + s.counters["help_faults"]
+                                              for s in self.services))
         # the largest fusion lag the lost drone's node took on (its observations' arrival delays, crps.arrival_lag)
         figures["lost_fusion_lag_max_s"] = lost.node.arrival_lag.largest_s if lost.node is not None else math.nan
         if lost.help is not None:

@@ -116,7 +116,7 @@ class Service:
         self.stop = threading.Event()
         self.inbox: queue.Queue[tuple[float, M.Envelope]] = queue.Queue(INBOX_SIZE)
         self.counters = {"mavlink_connects": 0, "mavlink_lost": 0, "inbox_overflow": 0, "sent": 0,
-                         "estimates": 0, "loop_errors": 0}
+                         "estimates": 0, "loop_errors": 0, "loop_faults": 0, "help_faults": 0}
         self._peer_fix_s: dict[str, float] = {}
         self._gnss_echo = True  # GPS_RAW_INT shows the injected fix (GPS1_TYPE=14), not a receiver
         self._gps_switched = False  # the autopilot flies on the injected GPS instance (use_injected_gps)
@@ -153,6 +153,9 @@ class Service:
                 except SkyfixError as exc:  # a service never dies of one bad input: log it, go on
                     self.counters["loop_errors"] += 1
                     log.error("main loop: %s", exc)
+                except Exception:  # noqa: BLE001 - nor of a fault of its own: the next tick may still inject
+                    self.counters["loop_faults"] += 1
+                    _log_fault("main loop", self.counters["loop_faults"])
                 next_tick += period
                 self.stop.wait(max(0.0, next_tick - time.monotonic()))
                 if time.monotonic() - next_tick > 1.0:  # far behind (machine stalled): do not burst
@@ -297,7 +300,11 @@ class Service:
         if self.help is None and self.cfg.help is not None and state is not None and state.home is not None:
             self.help = self.cfg.help.build(self)
         if self.help is not None:
-            self.help.step(now, state)
+            try:
+                self.help.step(now, state)
+            except Exception:  # noqa: BLE001 - a fault in the help logic must not stop the estimate and the injection
+                self.counters["help_faults"] += 1
+                _log_fault("help step (the estimate and the injection go on)", self.counters["help_faults"])
         if fix is None:
             return
         own = next((e for e in estimates if e.drone_id == self.cfg.drone_id), self.node.latest[self.cfg.drone_id])
@@ -436,3 +443,10 @@ def _origin_of(state) -> tuple[float, float, float] | None:
     if gps is not None and gps.fix_type >= GNSS_OK_FIX_TYPE and math.isfinite(gps.alt_ellipsoid_m):
         return gps.lat_deg, gps.lon_deg, gps.alt_ellipsoid_m
     return None
+
+
+def _log_fault(where: str, count: int) -> None:
+    """Log an unexpected exception with its traceback: the first 10, then every 100th (a fault that repeats every
+    tick must not fill the disk)."""
+    if count <= 10 or count % 100 == 0:
+        log.exception("%s failed (%d so far)", where, count)
