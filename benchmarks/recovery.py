@@ -157,6 +157,7 @@ def print_run(r: dict) -> None:
     rec, base = r["recovery"], r["baseline"]
     loss = rec["figures"].get("loss_time_s")
     alarms = false_alarms(rec, loss if loss is not None else -math.inf) + false_alarms(base, None)
+    faults = sum(x["figures"].get("service_faults") or 0 for x in (rec, base))  # absent in older runs' files
     print(f"  seed {r['seed']:>2}: GNSS lost at t={_f(loss, '.0f')} s, "
           f"landing {_f(rec['landing_error_m'])} m (healthy RTL {_f(base['landing_error_m'])} m), "
           f"loss->first fused fix {_f(rec['loss_to_first_fused_fix_s'], '.1f')} s, "
@@ -169,7 +170,7 @@ def print_run(r: dict) -> None:
           f"of helper frames searched with it in view, fused-fix NEES {_f(rec['figures'].get('recovery_mean_nees_3dof'))} "
           f"(3 = honest; {_f(rec['figures'].get('recovery_mean_nees_frame_3dof'))} in the swarm's GNSS frame), "
           f"{_f(rec['figures'].get('helper_frames_dropped'), '.0f')} frame slots skipped, "
-          f"{alarms} false GNSS alarm(s) on healthy receivers; {rec['outcome']} "
+          f"{alarms} false GNSS alarm(s) on healthy receivers, {faults:.0f} service fault(s); {rec['outcome']} "
           f"(wall {rec['wall_s']:.0f} + {base['wall_s']:.0f} s)", flush=True)
 
 
