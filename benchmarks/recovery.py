@@ -201,7 +201,7 @@ def print_ratio_spread(records: list[dict], draws: int = 4000) -> None:
     lo, hi = np.percentile(ratio, [5, 95])
     print(f"  landing ratio over the seeds resampled ({draws} draws of {len(pairs)} paired seeds): 5-95 % "
           f"{lo:.2f}-{hi:.2f}x, within {GOAL_MEDIAN_RATIO}x in {100 * np.mean(ratio <= GOAL_MEDIAN_RATIO):.0f} % "
-          "(not a goal: how much ten seeds can tell)")
+          f"(not a goal: how much {len(pairs)} seeds can tell)")
 
 
 def judge(records: list[dict], runs_wanted: int) -> tuple[list[tuple[str, bool, str]], str]:
