@@ -28,6 +28,7 @@ from pathlib import Path
 from skyfix.crps import messages as M
 from skyfix.crps.inject_policy import InjectionPolicy
 from skyfix.crps.node import ECHO_VELOCITY_SIGMA_MPS, Node
+from skyfix.crps.observation import POINTING_SIGMA_DEG
 from skyfix.crps.outputs import Outputs
 from skyfix.crps.swarm import PeerTable
 from skyfix.crps.transport import Endpoints, Transport, ZenohTransport, split_key
@@ -64,9 +65,10 @@ def fusion_config(roster: tuple[str, ...] | None, lag_s: float, gnss_common_shar
     (ArduPilot: fix time + time since): a fix up to one 5 Hz receiver period old (``gnss_fix_age_max_s``);
     the same fix re-sent is dropped. ``gnss_common_share``: see :data:`GNSS_COMMON_SHARE`."""
     base = FusionConfig()
+    # a helper's pointing error is its heading reference's, shared by all its frames (crps.observation's figure)
     return FusionConfig(roster=tuple(roster or ()), relative_timeout_s=float(lag_s) + base.relative_timeout_s,
                         contributing_window_s=float(lag_s) + base.contributing_window_s, gnss_fix_age_max_s=0.2,
-                        gnss_common_share=float(gnss_common_share))
+                        gnss_common_share=float(gnss_common_share), relative_pointing_sigma_deg=POINTING_SIGMA_DEG)
 
 
 @dataclass(frozen=True)

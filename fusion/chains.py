@@ -45,6 +45,50 @@ def nis(innovation: np.ndarray, cov: np.ndarray) -> float:
 MAX_TIME_JUMP_S = 30.0  # an input this far ahead of the engine's clock is refused (units mix-up, bad clock)
 
 
+class GaussMarkovChain:
+    """A vector Gauss-Markov chain (``sigma`` (3,) stationary 1-sigma, correlation time ``tau_s``) under an index of
+    its own in ``chains``' window (its kind-2 variables): states from its first to its last grid step, each tied to
+    its neighbour; one that left the window (no measurement kept it) starts again from its stationary
+    distribution. The receivers' shared GNSS error is one; each camera observer's pointing error another."""
+
+    def __init__(self, chains: StateChains, sigma: np.ndarray, tau_s: float) -> None:
+        self._chains = chains
+        self.sigma = np.asarray(sigma, float)
+        self.phi = math.exp(-chains.config.state_dt_s / tau_s)
+        self.index: int | None = None
+        self._span: list[int] | None = None
+
+    def ensure(self, k: int) -> int:
+        """Create the chain's states up to step k (forwards or backwards); its index."""
+        window = self._chains.window
+        span = self._span
+        if span is not None and span[1] < window.oldest_alive_step():
+            span = None
+        if span is None:
+            self.index = self._chains.new_index()
+            window.new_state(self.index, k, None, None, np.zeros(3))
+            window.prior(self.index, 2, k, np.zeros(3), np.diag(self.sigma**2))
+            span = self._span = [k, k]
+        ci, phi = self.index, self.phi
+        span[0] = max(span[0], window.oldest_alive_step())
+        while span[1] < k:
+            window.new_state(ci, span[1] + 1, None, None, phi * window.value(ci, 2, span[1]))
+            window.gauss_markov(ci, span[1], phi, self.sigma)
+            span[1] += 1
+        while span[0] > k:
+            if span[0] - 1 < window.oldest_alive_step():
+                raise InputError("measurement is older than the fusion lag")
+            window.new_state(ci, span[0] - 1, None, None, window.value(ci, 2, span[0]))
+            window.gauss_markov(ci, span[0] - 1, phi, self.sigma)
+            span[0] -= 1
+        return ci
+
+    def holds(self, k: int) -> bool:
+        """Whether the chain has a state at step k."""
+        span = self._span
+        return span is not None and span[0] <= k <= span[1]
+
+
 class StateChains:
     """The drones' state chains in one window over ``frame`` (see module docs)."""
 
@@ -65,14 +109,14 @@ class StateChains:
         # the receivers' shared error (FusionConfig.gnss_common_share > 0): a chain of its own index, steps
         # [first, last] (None: no chain yet); each receiver's error state is then c plus its own part
         share = cfg.gnss_common_share
-        self.common_index: int | None = None
-        self._common_span: list[int] | None = None
         self.common_sigma_m = self.gm_sigma_m * math.sqrt(share)
         self.own_sigma_m = self.gm_sigma_m * math.sqrt(1.0 - share)
+        self._common = GaussMarkovChain(self, self.common_sigma_m, cfg.gnss_common_tau_s)
         self._phi_own = math.exp(-cfg.state_dt_s / cfg.gnss_gm_tau_s)
-        self._phi_common = math.exp(-cfg.state_dt_s / cfg.gnss_common_tau_s)
         self._own_step_sigma_m = np.sqrt(self.own_sigma_m**2 * (1.0 - self._phi_own**2)
-                                         + self.common_sigma_m**2 * (1.0 - self._phi_common**2))
+                                         + self.common_sigma_m**2 * (1.0 - self._common.phi**2))
+        # each camera observer's pointing error (yaw, pitch; rad), FusionConfig.relative_pointing_sigma_deg > 0
+        self._pointing: dict[int, GaussMarkovChain] = {}
 
     def checked_time(self, name: str, value) -> float:
         """``value`` as a measurement time (s); InputError when older than the window keeps or more
@@ -180,35 +224,29 @@ class StateChains:
         return drone.intervals
 
 
+    @property
+    def common_index(self) -> int | None:
+        """Index of the receivers' shared GNSS error chain (None before it exists)."""
+        return self._common.index
+
     def ensure_common(self, k: int) -> None:
-        """Create the shared GNSS error chain's states up to step k (forwards or backwards); a chain that left
-        the window (no drone kept it) starts again from its stationary distribution."""
-        window = self.window
-        span = self._common_span
-        if span is not None and span[1] < window.oldest_alive_step():
-            span = None
-        if span is None:
-            self.common_index = self.new_index()
-            window.new_state(self.common_index, k, None, None, np.zeros(3))
-            window.prior(self.common_index, 2, k, np.zeros(3), np.diag(self.common_sigma_m**2))
-            span = self._common_span = [k, k]
-        ci, phi = self.common_index, self._phi_common
-        span[0] = max(span[0], window.oldest_alive_step())
-        while span[1] < k:
-            window.new_state(ci, span[1] + 1, None, None, phi * window.value(ci, 2, span[1]))
-            window.gauss_markov(ci, span[1], phi, self.common_sigma_m)
-            span[1] += 1
-        while span[0] > k:
-            if span[0] - 1 < window.oldest_alive_step():
-                raise InputError("measurement is older than the fusion lag")
-            window.new_state(ci, span[0] - 1, None, None, window.value(ci, 2, span[0]))
-            window.gauss_markov(ci, span[0] - 1, phi, self.common_sigma_m)
-            span[0] -= 1
+        """Create the shared GNSS error chain's states up to step k (forwards or backwards)."""
+        self._common.ensure(k)
 
     def _common_holds(self, k: int) -> bool:
         """Whether the shared error chain has a state at step k (never, without sharing)."""
-        span = self._common_span
-        return span is not None and span[0] <= k <= span[1]
+        return self._common.holds(k)
+
+    def ensure_pointing(self, observer: DroneState, k: int) -> int:
+        """The index of ``observer``'s pointing error chain, with a state at step k (made on first use)."""
+        chain = self._pointing.get(observer.index)
+        if chain is None:
+            sigma = math.radians(self.config.relative_pointing_sigma_deg)
+            # (yaw, pitch, unused): no observation moves the third (its Jacobian column is zero); a sigma like the
+            # others' keeps the window's information matrix well conditioned
+            chain = self._pointing[observer.index] = GaussMarkovChain(self, np.full(3, sigma),
+                                                                       self.config.relative_pointing_tau_s)
+        return chain.ensure(k)
 
     def _error_step(self, drone: DroneState, k: int) -> None:
         """The receiver error's step k -> k+1: its own part about the shared chain, or (no sharing, or a step the

@@ -88,6 +88,14 @@ class FusionConfig:
     readmit_after_s: float = 5.0        # a lost/rejected source is judged over this long before it is fused again
     readmit_fraction: float = 0.8       # ... and fused again when this fraction of its messages passed
     robust_k: float = 2.8               # Huber threshold on the whitened 3-D residual norm (95 % of inliers below)
+    # Relative observations: a camera observer's pointing error is mostly its heading reference's, the same in every
+    # frame of a flight, so averaging its frames does not average it away. Above 0: each observer carries a
+    # Gauss-Markov pointing error (yaw, pitch; this 1-sigma, deg, and relative_pointing_tau_s) that all its
+    # observations share (skyfix.fusion.pointing), and only the rest of an observation's stated covariance across
+    # the line of sight, at least relative_white_min_deg, counts as its own. 0: every observation's error its own.
+    relative_pointing_sigma_deg: float = 0.0
+    relative_pointing_tau_s: float = 600.0
+    relative_white_min_deg: float = 0.5  # centroid noise, gimbal jitter and the linearisation about the ray
     # other sources
     velocity_timeout_s: float = 1.0
     altitude_timeout_s: float = 1.0
@@ -116,11 +124,14 @@ class FusionConfig:
                 continue
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value == value:
                 raise InputError(f"FusionConfig.{f.name} must be a number, got {value!r}")
-            if value <= 0 and f.name not in ("log_fsync_s", "gnss_fix_age_max_s", "gnss_common_share"):
+            if value <= 0 and f.name not in ("log_fsync_s", "gnss_fix_age_max_s", "gnss_common_share",
+                                                       "relative_pointing_sigma_deg"):
                 raise InputError(f"FusionConfig.{f.name} must be > 0, got {value!r}")
         for name in ("gate_probability", "drift_gate_probability"):
             if not getattr(self, name) < 1.0:
                 raise InputError(f"FusionConfig.{name} must be in (0, 1), got {getattr(self, name)}")
+        if self.relative_pointing_sigma_deg < 0:
+            raise InputError(f"FusionConfig.relative_pointing_sigma_deg must be >= 0, got {self.relative_pointing_sigma_deg}")
         if self.gnss_fix_age_max_s < 0:
             raise InputError(f"FusionConfig.gnss_fix_age_max_s must be >= 0, got {self.gnss_fix_age_max_s}")
         if not 0.0 <= self.gnss_common_share < 1.0:

@@ -293,6 +293,18 @@ class GraphWindow:
         self._add(gtsam.PriorFactorPoint3(self.key(drone_index, 0, k), gtsam.Point3(*enu_m), noise), k,
                   measurement=True)
 
+    def relative_pointed(self, observer_index: int, target_index: int, pointing_index: int, k: int,
+                         offset_m: np.ndarray, cov_m2: np.ndarray, jacobian: np.ndarray) -> None:
+        """p_target,k - p_observer,k - J e_k = offset, e_k the observer's pointing error (the kind-2 variable of
+        ``pointing_index``), J = ``jacobian`` (3, 3); Gaussian (a three-variable linear relation; outliers are
+        the gate's to refuse)."""
+        keys = (self.key(observer_index, 0, k), self.key(target_index, 0, k), self.key(pointing_index, 2, k))
+        # whitened here (gtsam's three-key JacobianFactor takes a diagonal model): L^-1 (A x - b), cov = L L'
+        w = np.linalg.inv(np.linalg.cholesky(np.asarray(cov_m2, float)))
+        factor = gtsam.JacobianFactor(keys[0], -w, keys[1], w.copy(), keys[2], -w @ np.asarray(jacobian, float),
+                                      w @ np.asarray(offset_m, float), gtsam.noiseModel.Unit.Create(3))
+        self._add(gtsam.LinearContainerFactor(factor, self._zeros(keys)), k, measurement=True)
+
     def relative(self, observer_index: int, target_index: int, k: int, offset_m: np.ndarray, cov_m2: np.ndarray) -> None:
         """p_target,k - p_observer,k = offset, robust."""
         self._add(gtsam.BetweenFactorPoint3(self.key(observer_index, 0, k), self.key(target_index, 0, k),
