@@ -97,6 +97,19 @@ def _pose(spec: str | None):
     return CameraPose(**kwargs), True
 
 
+def _attitude_sigma_deg(value: float | None) -> float:
+    """``--attitude-sigma-deg``, the library's default when not given; InputError when negative or not finite."""
+    from skyfix import validate
+    from skyfix.crps.observation import POINTING_SIGMA_DEG
+    from skyfix.errors import InputError
+
+    if value is None:
+        return POINTING_SIGMA_DEG
+    if validate.finite_scalar("--attitude-sigma-deg", value) < 0:
+        raise InputError(f"--attitude-sigma-deg must be >= 0, got {value}")
+    return float(value)
+
+
 def run_range(args: argparse.Namespace) -> int:
     """The ``skyfix crps range`` command."""
     import cv2
@@ -113,17 +126,12 @@ def run_range(args: argparse.Namespace) -> int:
         observe,
         shape_consistent,
     )
-    from skyfix.crps.observation import POINTING_SIGMA_DEG
-    from skyfix.errors import InputError
     from skyfix.geo import LocalFrame
     from skyfix.imagefile import read_image
 
     size_m = validate.positive_scalar("--size-m", args.size_m)
     validate.positive_scalar("--psf-sigma-px", args.psf_sigma_px)
-    if args.attitude_sigma_deg is None:
-        args.attitude_sigma_deg = POINTING_SIGMA_DEG
-    if validate.finite_scalar("--attitude-sigma-deg", args.attitude_sigma_deg) < 0:
-        raise InputError(f"--attitude-sigma-deg must be >= 0, got {args.attitude_sigma_deg}")
+    args.attitude_sigma_deg = _attitude_sigma_deg(args.attitude_sigma_deg)
     image = read_image(args.image)  # a truncated JPEG/PNG is refused, not measured
     h, w = image.shape[:2]
     camera = _camera(args.camera, w, h)

@@ -180,7 +180,7 @@ def locate(observations: Sequence[RelativeObservation], frame: LocalFrame | None
     Example:
         Two helpers see the same marker 10 m away, one from the west and one from the
         south: each axis is measured by one helper's range (1-sigma 0.10 m) and the other's
-        bearing (0.5 deg of attitude error is 0.087 m at 10 m), together 0.066 m:
+        bearing (the default 2 deg of pointing error is 0.35 m at 10 m), together 0.097 m:
 
         >>> from skyfix.camera import Camera, CameraPose
         >>> from skyfix.geo import destination
@@ -197,7 +197,7 @@ def locate(observations: Sequence[RelativeObservation], frame: LocalFrame | None
         >>> [round(float(x), 2) + 0.0 for x in enu_m], fix.source_id
         ([0.0, 0.0, 0.0], 'crps:marker:3')
         >>> round(fix.sigma_horizontal_m, 3)
-        0.066
+        0.097
     """
     obs = list(observations)
     if not obs:

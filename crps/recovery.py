@@ -279,10 +279,7 @@ class _Run:
                     SitlClock(self.clock, cfg.speed)
             else:
                 cam = WorldCamera(self.sim, j, camera, seed=cfg.seed * 10 + i, extra_targets=extra)
-                # the eye's pointing sigma is the service's own figure, not the simulated gimbal's (a world that
-                # told the code its errors would test nothing)
-                eye = EyeConfig(frame_hz=cfg.frame_hz, speed=cfg.speed, target_span_m=cam.model.span_m,
-                                target_arms=cam.model.arms)
+                eye = EyeConfig(frame_hz=cfg.frame_hz, speed=cfg.speed, target_span_m=cam.model.span_m, target_arms=cam.model.arms)
                 setup = HelpSetup(fault_response=cfg.fault_response, camera=cam, eye=eye,
                                   on_frame=self.recorder.frame_scorer(i, cam, self.target_key))
                 url, time_of = self.faults.mavlink_url(i, self.sim.url(j)), self.time_of
@@ -438,9 +435,7 @@ class _Run:
         figures["forged_rejected"] = float(lost.codec.dropped.get("forged", 0))
         # inputs the lost drone's fusion refused (mostly observations older than its lag: late under load)
         figures["lost_inputs_refused"] = float(lost.node.n_refused) if lost.node is not None else math.nan
-        # faults the services survived (an exception in a tick, logged with its traceback): 0 in a sound run
-        figures["service_faults"] = float(sum(s.counters["loop_faults"] + s.counters["help_faults"]
-                                              for s in self.services))
+        figures["service_faults"] = float(sum(s.faults for s in self.services))  # exceptions survived: 0 when sound
         # the largest fusion lag the lost drone's node took on (its observations' arrival delays, crps.arrival_lag)
         figures["lost_fusion_lag_max_s"] = lost.node.arrival_lag.largest_s if lost.node is not None else math.nan
         if lost.help is not None:

@@ -135,6 +135,11 @@ class Service:
         self.transport.subscribe(self._on_datagram)
         self._mav_thread = threading.Thread(target=self._mavlink_loop, daemon=True, name="skyfix-serve-mavlink")
 
+    @property
+    def faults(self) -> int:
+        """Unexpected exceptions this service survived (logged with their tracebacks); 0 in a sound run."""
+        return self.counters["loop_faults"] + self.counters["help_faults"]
+
     # -- life cycle ---------------------------------------------------------------------------
     def run(self) -> None:
         """The main loop; returns after :attr:`stop` is set, everything closed."""

@@ -45,7 +45,6 @@ from skyfix.fusion.estimate import Estimate
 from skyfix.fusion.gnss import GnssFusion, gnss_quality
 from skyfix.fusion.health import SourceHealth, SourceMonitor
 from skyfix.fusion.log import MeasurementLog
-from skyfix.fusion.pointing import pointing_jacobian, white_part
 from skyfix.fusion.trust import ObserverTrust
 from skyfix.fusion.window import GraphWindow
 from skyfix.geo import LocalFrame
@@ -314,18 +313,8 @@ class FusionEngine:
         self._chains.ensure(target, k)
         s_obs, v_obs = self._chains.shift(observer, t, k)
         s_tgt, v_tgt = self._chains.shift(target, t, k)
-        shared_deg = self.config.relative_pointing_sigma_deg
-        if shared_deg > 0:  # the observer's pointing error, shared by its frames, is a state of its own
-            # linearised about the predicted line of sight, not the measured one: that one carries the very error
-            # (r beta^2 off, 0.2 m at 6 deg and 35 m, against frames averaged to centimetres)
-            los = offset if p_tgt is None else p_tgt[0] - p_obs[0]
-            white = white_part(cov, los, math.radians(shared_deg), math.radians(self.config.relative_white_min_deg))
-            self._window.relative_pointed(observer.index, target.index, self._chains.ensure_pointing(observer, k), k,
-                                          offset + s_tgt - s_obs, white + EYE3 * (v_obs + v_tgt),
-                                          pointing_jacobian(los))
-        else:
-            self._window.relative(observer.index, target.index, k, offset + s_tgt - s_obs,
-                                  cov + EYE3 * (v_obs + v_tgt))
+        los = offset if p_tgt is None else p_tgt[0] - p_obs[0]  # the predicted line of sight, where known
+        self._chains.relative(observer, target, k, offset + s_tgt - s_obs, cov, v_obs + v_tgt, los)
 
     def set_lag(self, lag_s: float) -> None:
         """A new smoothing window (s, >= 3 state steps), for inputs that arrive later (or sooner) than before.
