@@ -8,21 +8,21 @@ target, ``below_target_m`` lower so the target is seen against the sky, but neve
 feasible when it keeps ``min_separation_m`` from every other drone (plus three sigma of the
 target's horizontal uncertainty from the target) and from the other helpers' vantage points,
 and the straight leg from the helper to it keeps that from the target and the other drones;
-the chosen one minimises a weighted sum of: distance from the preferred range, time to
-fly there (as metres at the helper's speed), ``1 - geometry_quality`` of the lines of sight of all helpers seen from the target, and the
+the chosen one minimises a weighted sum of: distance from the preferred range, time to fly there (as metres at
+the helper's speed), ``1 - geometry_quality`` of the lines of sight of all helpers seen from the target, and the
 shortfall of the target's elevation above the candidate's horizon under ``want_elevation_deg``: a target
 low over the ground (landing) is kept against the sky from a closer, lower point while one exists.
 
-A moving target (``target_vel_enu_mps``: a lost drone flying home at 5 m/s) is judged in its own frame: the
-candidates are offsets from it, the helper flying at ``helper_speed_mps`` reaches an offset at the time that
-velocity allows (an offset ahead of a target as fast as the helper is never reached and is not chosen; when none
-can be reached, a target flying away, the helper follows towards the nearest offset in the target's frame), the way
-there is a straight line *relative to the target* that must keep the separation from it, and the point to fly to
-is where that offset will be on arrival (at most ``lead_max_s`` ahead), and an offset must stay clear of the
-target's track for ``stop_horizon_s`` (a helper whose autopilot brakes at its goal point is not left in the
-target's way: an autopilot slows down at every goal it is sent, so a helper trailing its goal lags behind). Judged as if it stood still, a helper
-chose offsets ahead of a target flying home, flew with it but never got there, and the target closed in from
-behind: 4.1 m in one benchmark seed.
+A moving target (``target_vel_enu_mps``: a lost drone flying home at 5 m/s) is judged in its own frame:
+- the candidates are offsets from it; a helper at ``helper_speed_mps`` reaches one in the time that velocity
+  allows (never one ahead of a target as fast as itself; when none can be reached, a target flying away, it
+  follows towards the nearest offset in the target's frame);
+- the way there is a straight line *relative to the target* that keeps the separation from it;
+- an offset stays clear of the target's track for ``stop_horizon_s`` (an autopilot brakes at every goal it is
+  sent, so a helper trailing its goal must not be left in the target's way);
+- the point to fly to is where the offset will be on arrival (led at most ``lead_max_s``).
+Judged as if it stood still, a helper chose points ahead of a target flying home, flew with it without ever
+arriving, and was caught up from behind: 4.1 m in one benchmark seed.
 """
 
 from __future__ import annotations

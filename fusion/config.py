@@ -125,7 +125,7 @@ class FusionConfig:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value == value:
                 raise InputError(f"FusionConfig.{f.name} must be a number, got {value!r}")
             if value <= 0 and f.name not in ("log_fsync_s", "gnss_fix_age_max_s", "gnss_common_share",
-                                                       "relative_pointing_sigma_deg"):
+                                             "relative_pointing_sigma_deg"):
                 raise InputError(f"FusionConfig.{f.name} must be > 0, got {value!r}")
         for name in ("gate_probability", "drift_gate_probability"):
             if not getattr(self, name) < 1.0:
