@@ -35,6 +35,7 @@ from skyfix.crps import messages as M
 from skyfix.crps.help_agent import HelpAgent
 from skyfix.crps.help_protocol import HelpConfig, HelperStatus
 from skyfix.crps.helper_eye import EyeConfig, HelperEye
+from skyfix.crps.node import EXTRAPOLATION_ACCEL_MPS2
 from skyfix.crps.roles import FaultResponse, HelperDecision, Mode, RequesterConfig
 from skyfix.crps.vantage import VantageConfig
 from skyfix.drivers.modes import role_mode
@@ -55,6 +56,10 @@ LANDED_MAX_ALT_M = 1.0
 LANDED_STILL_MPS = 0.1
 LANDED_FOR_S = 5.0
 GOTO_MOVE_M = 2.0       # a vantage point that moved this far is sent again
+# a peer's newest estimate is moved on with its velocity for at most this long (s): estimates come at 10 Hz, so an
+# older one means they stopped (20 % loss rarely hides more than a few in a row) while the peer's heartbeats may go
+# on; held for minutes, a 5 m/s velocity would put the peer hundreds of metres from its last estimate
+PEER_MOVE_MAX_S = 3.0
 _ROLE_OF = {Mode.HOLD: "hold", Mode.RETURN_HOME: "rtl", Mode.LAND: "land", Mode.CONTINUE: "mission"}
 
 
@@ -194,8 +199,10 @@ class HelpLoop:
         for pid in peers:
             known = self._peer_fix.get(pid)
             if known is not None and np.all(np.isfinite(known[1])):
-                now_fix = _moved(known[0], known[1], now_s)
-                peers[pid], velocities[pid] = (now_fix.lat_deg, now_fix.lon_deg, now_fix.alt_m), known[1]
+                now_fix, vel = _peer_now(known[0], known[1], now_s)
+                peers[pid] = (now_fix.lat_deg, now_fix.lon_deg, now_fix.alt_m)
+                if vel is not None:
+                    velocities[pid] = vel
         self._height = _height(self.svc.node, self.id, now_s, state)
         floor_up_m = -math.inf if self._height is None else self._height[1] - self._height[0] + self.setup.min_alt_rel_m
         decisions = self.agent.step(now_s, gnss, fused, self._status, peers, floor_up_m=floor_up_m,
@@ -315,9 +322,9 @@ class HelpLoop:
             return
         own = self.svc.node.fix(self.id, now_s)
         known = self._peer_fix.get(target_id)
-        vel = known[1] if known is not None else np.zeros(3)
+        vel = None
         if known is not None:
-            prior = _moved(known[0], vel, now_s)
+            prior, vel = _peer_now(known[0], known[1], now_s)
         elif target_pos is not None:
             prior = GeoFix(*target_pos, np.diag([25.0, 25.0, 9.0]), now_s, f"request:{target_id}")
         else:
@@ -325,7 +332,7 @@ class HelpLoop:
         # a fix a few metres off at 30 m puts the target at the frame's edge and the next fix further off:
         # the camera follows what it sees, while the search window stays the requester's fix
         seen = self.eye.sighting(target_id, now_s)
-        aim = prior if seen is None else _moved(seen, vel, now_s)
+        aim = prior if seen is None else _moved(seen, np.zeros(3) if vel is None else vel, now_s)
         if own is not None:
             az_deg, dist_m = geo.inverse(own.lat_deg, own.lon_deg, aim.lat_deg, aim.lon_deg)
             pitch_deg = math.degrees(math.atan2(aim.alt_m - own.alt_m, max(float(dist_m), 1e-3)))
@@ -371,6 +378,19 @@ def _moved(fix: GeoFix, vel_enu_mps: np.ndarray, now_s: float) -> GeoFix:
     frame = geo.LocalFrame(fix.lat_deg, fix.lon_deg, fix.alt_m)
     lat, lon, alt = (float(c) for c in frame.to_geodetic(*(vel_enu_mps * max(0.0, now_s - fix.time_s))))
     return GeoFix(lat, lon, alt, fix.cov_enu_m2, now_s, fix.source_id)
+
+
+def _peer_now(fix: GeoFix, vel_enu_mps: np.ndarray, now_s: float) -> tuple[GeoFix, np.ndarray | None]:
+    """A peer's newest estimate moved to ``now_s`` at its velocity (ENU m/s), and the velocity to plan with.
+
+    An estimate older than :data:`PEER_MOVE_MAX_S` is moved that far and no further, and its velocity is not
+    passed on (None): nothing says the peer still flies it. The covariance grows with the estimate's age as
+    :meth:`skyfix.crps.node.Node.fix`'s does (a drone braking or turning at its autopilot's acceleration)."""
+    age_s = max(0.0, now_s - fix.time_s)
+    moved = _moved(fix, vel_enu_mps, min(now_s, fix.time_s + PEER_MOVE_MAX_S))
+    grown = moved.cov_enu_m2 + np.eye(3) * (0.5 * EXTRAPOLATION_ACCEL_MPS2 * age_s * age_s) ** 2
+    out = GeoFix(moved.lat_deg, moved.lon_deg, moved.alt_m, grown, now_s, fix.source_id)
+    return out, (vel_enu_mps if age_s <= PEER_MOVE_MAX_S else None)
 
 
 def _requester_mode(flavour: str, role: str) -> str:
