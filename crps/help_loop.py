@@ -231,7 +231,11 @@ class HelpLoop:
         # 2 m, the bound before the floor came down to 1.5 m, it withdrew as "recalled" in the target's descent)
         airborne = state is not None and state.armed and state.position is not None \
             and state.position.alt_rel_m > 0.5 * self.setup.min_alt_rel_m
-        localised = gnss is not None and gnss.state is HealthState.OK and fix.sigma_horizontal_m <= 3.0
+        # localised while its GNSS is fused: DEGRADED is a fused fix with a quality flag or one innovation outlier
+        # dropped (a helper braking hard at its vantage point). Withdrawing on it (then barred for exclude_s) cost
+        # the demo flight both helpers for 10 s each; the requester, too, holds only on LOST or REJECTED
+        localised = gnss is not None and gnss.state in (HealthState.OK, HealthState.DEGRADED) \
+            and fix.sigma_horizontal_m <= 3.0
         return HelperStatus(fix.lat_deg, fix.lon_deg, fix.alt_m, battery, localised=localised,
                             available=self.eye is not None and airborne)
 
@@ -284,7 +288,10 @@ class HelpLoop:
                     self._resume = vehicle.state.mode
                 self._want = None
             else:
-                self._event(now_s, f"released by {self.helping}, back to {self._resume or 'its mission'}")
+                why = next((w for _, w, _ in reversed(self.agent.helper.protocol.events) if w.startswith("released")),
+                           "released")
+                self._event(now_s, f"{why.replace('released', 'released by ' + str(self.helping), 1)}, back to "
+                                   f"{self._resume or 'its mission'}")
                 self._want, self._want_sent_wall_s = self._resume, -math.inf
                 self._goto_enu = None
             self.helping = dec.helping
