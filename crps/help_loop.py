@@ -256,8 +256,11 @@ class HelpLoop:
             self._want = None if role is None else _requester_mode(self._flavour(), role)
             self._want_sent_wall_s = -math.inf
         if dec.helpers != self.helpers:
+            gone = [h for h in self.helpers if h not in dec.helpers]
+            why = {h: w for _, w, h in self.agent.requester.protocol.events if h in gone}  # the newest per helper
+            left = "; ".join(f"{h} {why.get(h, 'released')}" for h in gone)
             self.helpers = dec.helpers
-            self._event(now_s, f"helpers assigned: {', '.join(dec.helpers) or 'none'}")
+            self._event(now_s, f"helpers assigned: {', '.join(dec.helpers) or 'none'}" + (f" ({left})" if left else ""))
 
     def _landed_backstop(self, now_s: float, state) -> None:
         """Disarm a drone its autopilot has landed in LAND but not disarmed (LANDED_* above)."""
