@@ -36,6 +36,7 @@ from skyfix.crps.help_agent import HelpAgent
 from skyfix.crps.help_protocol import HelpConfig, HelperStatus
 from skyfix.crps.helper_eye import EyeConfig, HelperEye
 from skyfix.crps.node import EXTRAPOLATION_ACCEL_MPS2
+from skyfix.crps.return_speed import ReturnSpeed
 from skyfix.crps.roles import FaultResponse, HelperDecision, Mode, RequesterConfig
 from skyfix.crps.vantage import VantageConfig
 from skyfix.drivers.modes import role_mode
@@ -79,6 +80,9 @@ class HelpSetup:
     # behind it, down to ~2 m (the eye looks 1.5 deg above its horizon: 0.5-0.9 m at 20-35 m)
     min_alt_rel_m: float = 1.5
     on_frame: object | None = None    # HelperEye's on_frame (a harness scoring the camera), else None
+    # the requester returns no faster than its helpers fly (VantageConfig.helper_speed_mps): ArduPilot's RTL_SPEED
+    # for the recovery (crps/return_speed.py); None: the autopilot's own return speed
+    return_speed_mps: float | None = 5.0
 
     def build(self, service) -> HelpLoop:
         return HelpLoop(service, self)
@@ -157,6 +161,7 @@ class HelpLoop:
         self._height: tuple[float, float] | None = None  # (autopilot's height above home m, own fused ENU up m)
         self._still_since_s: float | None = None  # landing: on the ground and still since (clock s)
         self._actions = _Actions(f"skyfix-help-{self.id}")
+        self._speed = ReturnSpeed(setup.return_speed_mps, self._actions.submit)
 
     @property
     def recovering(self) -> bool:
@@ -173,6 +178,10 @@ class HelpLoop:
         if self.eye is not None:
             self.eye.close()
         self._actions.close()
+        try:  # the worker has stopped: written back here, the autopilot keeps what it stores
+            self._speed.restore(self.svc.vehicle, now=True)
+        except SkyfixError as exc:
+            log.warning("%s: RTL_SPEED not restored: %s", self.id, exc)
 
     # -- service hooks ---------------------------------------------------------------------------
     def receive(self, env: M.Envelope, now_s: float) -> None:
@@ -212,6 +221,7 @@ class HelpLoop:
                 and self.agent.requester.protocol.active:
             self.agent.stand_down(now_s, "landed")  # on the ground: nothing left to help with
             self._event(now_s, "landed: helpers released")
+            self._speed.restore(self.svc.vehicle)
         self._as_requester(now_s, decisions.requester)
         self._landed_backstop(now_s, state)
         self._as_helper(now_s, decisions.helper)
@@ -249,8 +259,15 @@ class HelpLoop:
         self.svc.outputs.json("/help/event", {"time_s": now_s, "drone": self.id, "event": text}, now_s)
 
     def _as_requester(self, now_s: float, dec) -> None:
+        note = self._speed.take_note()
+        if note is not None:
+            self._event(now_s, note)
         if dec.mode is not self.mode:
             self._event(now_s, f"{dec.mode.value} ({dec.reason})")
+            if self.mode is Mode.NORMAL:
+                self._speed.limit(self.svc.vehicle, self._flavour())
+            elif dec.mode is Mode.NORMAL:
+                self._speed.restore(self.svc.vehicle)
             self.mode = dec.mode
             role = _ROLE_OF.get(dec.mode)
             self._want = None if role is None else _requester_mode(self._flavour(), role)

@@ -52,7 +52,7 @@ class Guidance:
             if np.hypot(*(target[:2] - est[:2])) < 1.0:
                 self._rtl_phase = "land"
                 self._land_xy = self.home_enu_m[:2].copy()
-            return self._pos_control(target)
+            return self._pos_control(target, self.rtl_speed_mps())
         if b == "takeoff" or (self._takeoff_alt_up_m is not None and b == "guided"):
             goal = self._takeoff_alt_up_m if self._takeoff_alt_up_m is not None else est[2]
             xy = self._hold_enu_m[:2] if self._hold_enu_m is not None else est[:2]

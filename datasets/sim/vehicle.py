@@ -46,7 +46,7 @@ ARDUPILOT_PARAMS: dict[str, float] = {
     "EK3_SRC1_POSXY": 3, "EK3_SRC1_VELXY": 3, "EK3_SRC1_POSZ": 1, "VISO_TYPE": 0,
     "EK3_SRC2_POSXY": 0, "EK3_SRC2_VELXY": 0, "EK3_SRC2_POSZ": 1, "EK3_SRC2_VELZ": 0, "EK3_SRC2_YAW": 0,
     "WPNAV_SPEED": 500, "WPNAV_SPEED_UP": 250, "WPNAV_SPEED_DN": 150, "WPNAV_RADIUS": 200,
-    "RTL_ALT": 1500, "LAND_SPEED": 50, "DISARM_DELAY": 10, "FS_EKF_ACTION": 1,
+    "RTL_ALT": 1500, "RTL_SPEED": 0, "LAND_SPEED": 50, "DISARM_DELAY": 10, "FS_EKF_ACTION": 1,
     "BATT_CAPACITY": 5200, "BATT_LOW_MAH": 0, "ARMING_CHECK": 1,
     "SIM_GPS1_ENABLE": 1, "SIM_GPS1_GLTCH_X": 0, "SIM_GPS1_GLTCH_Y": 0, "SIM_GPS1_GLTCH_Z": 0,
     "SIM_WIND_SPD": 0, "SIM_WIND_DIR": 180,
@@ -56,7 +56,7 @@ ARDUPILOT_PARAMS: dict[str, float] = {
 INT_PARAMS: frozenset[str] = frozenset({
     "SYSID_THISMAV", "GPS1_TYPE", "GPS_TYPE", "GPS2_TYPE", "GPS_AUTO_SWITCH", "GPS_PRIMARY", "EK3_SRC1_POSXY",
     "EK3_SRC1_VELXY", "EK3_SRC1_POSZ", "VISO_TYPE", "EK3_SRC2_POSXY", "EK3_SRC2_VELXY", "EK3_SRC2_POSZ",
-    "EK3_SRC2_VELZ", "EK3_SRC2_YAW", "RTL_ALT", "FS_EKF_ACTION", "BATT_CAPACITY",
+    "EK3_SRC2_VELZ", "EK3_SRC2_YAW", "RTL_ALT", "RTL_SPEED", "FS_EKF_ACTION", "BATT_CAPACITY",
     "ARMING_CHECK", "SIM_GPS1_ENABLE", "SIM_GPS_DISABLE", "DISARM_DELAY",
     "MAV_SYS_ID", "EKF2_GPS_CTRL", "EKF2_EV_CTRL", "EKF2_HGT_REF", "SIM_GPS_BLOCK"})
 #: ArduPilot 4.6+ parameter names -> the names of earlier firmware (``legacy_params``).
@@ -225,6 +225,13 @@ class SimVehicle(PositionEstimator, Guidance):
         if self.flavour == "px4":
             return self.param("MPC_XY_CRUISE")
         return self.param("WPNAV_SPEED") / 100.0
+
+    def rtl_speed_mps(self) -> float | None:
+        """ArduPilot's RTL_SPEED (cm/s; 0: the cruise speed) in m/s, None for the cruise speed (PX4: always)."""
+        if self.flavour == "px4" or "RTL_SPEED" not in self.params:
+            return None
+        cms = self.param("RTL_SPEED")
+        return cms / 100.0 if cms > 0 else None
 
     def climb_speeds_mps(self) -> tuple[float, float]:
         if self.flavour == "px4":

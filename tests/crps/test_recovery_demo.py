@@ -9,6 +9,7 @@ runs once per session, as tests/test_readme_commands.py runs it).
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import math
 import re
@@ -45,10 +46,10 @@ def test_demo_brings_the_lost_drone_home_and_writes_its_files(readme_demo):
     # a readable timeline: every release says why, on both sides
     assert all(re.search(r"released by d2 \(.+\)", e) for e in events if "released by d2" in e), events
     assigned = [e.split("helpers assigned: ")[1] for e in events if e.startswith("d2: helpers assigned: ")]
-    for before, now in zip(assigned, assigned[1:]):
-        kept = now.split(" (")[0]
-        gone = set(before.split(" (")[0].split(", ")) - set(kept.split(", ")) - {"none"}
-        assert all(f"{h} " in now.split(" (", 1)[1] for h in gone) if gone else True, (before, now)
+    for before, now in itertools.pairwise(assigned):  # a helper that left is named with its reason
+        kept, _, why = now.partition(" (")
+        for helper in set(before.partition(" (")[0].split(", ")) - set(kept.split(", ")) - {"none"}:
+            assert f"{helper} " in why, (before, now)
     rows = list(csv.DictReader(open(tmp_path / "trajectory.csv")))
     assert rows and {"d1_east_m", "d2_east_m", "d3_east_m", "fused_east_m"} <= set(rows[-1]) | set(rows[len(rows) // 2])
     assert (tmp_path / "trajectory.png").stat().st_size > 20_000

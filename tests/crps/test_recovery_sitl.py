@@ -49,26 +49,35 @@ def flight():
     from skyfix.crps.recovery import RecoveryConfig, run_recovery
     from skyfix.drivers.injection import ARDUPILOT_INJECTED_GPS2_PARAMS
 
-    # the simulated copters' 5 m/s survey and return speed (ArduPilot's own default is 10 m/s): the same flow
-    params = {**ARDUPILOT_INJECTED_GPS2_PARAMS, "WPNAV_SPEED": 500}
+    # ArduPilot's own speeds (WPNAV_SPEED 1000 cm/s: surveys and returns at 10 m/s, twice the simulated helpers'):
+    # the lost drone's service lowers RTL_SPEED to the helpers' 5 m/s for the recovery (crps/return_speed.py)
+    params = dict(ARDUPILOT_INJECTED_GPS2_PARAMS)
     with sitl.SitlFleet(1, speedup=SPEED, homes=[HOME], params=params) as fleet:
         fleet[0].release_start_wait()  # the truth link (second port) may connect before the drone's service
         cfg = RecoveryConfig(seed=0, speed=SPEED, lost_vehicle_url=fleet[0].url,
                              lost_vehicle_truth_url=fleet[0].url_secondary, lost_vehicle_home=HOME[:3],
                              loss_time_s=12.0, max_after_loss_s=100.0)  # home and landed ~60 s after the loss
         result = run_recovery(cfg)
+        # the services have stopped: what the autopilot keeps of its return speed (a new link to its first port)
+        from skyfix.drivers.vehicle import Vehicle
+
+        check = Vehicle.connect(fleet[0].url, timeout_s=10.0)
+        try:
+            rtl_speed_after = check.get_param("RTL_SPEED", timeout_s=2.0)
+        finally:
+            check.close()
     story = "\n".join(f"{t:7.1f} s  {what}" for t, what in result.timeline)
     print(f"SITL recovery: outcome {result.outcome}, landed {result.landing_error_m:.2f} m from home, first fix "
           f"{result.loss_to_first_fused_fix_s:.1f} s, max error {result.max_recovery_error_h_m:.2f} m, separation "
           f"{result.min_separation_m:.1f} m, detected {100 * result.detection_share:.0f} %, final height "
           f"{result.figures.get('final_alt_rel_m', math.nan):.1f} m")  # -rP shows it
-    return result, story
+    return result, story, rtl_speed_after
 
 
 def test_sitl_lost_drone_lands_safely_near_home_on_the_helpers_cameras(flight):
     """What must hold every time: landed (not airborne, not lost) within SAFE_LANDING_M of home, the first fused
     fix within 15 s, helpers >= 10 m away, and it was their cameras (the target detected in their frames)."""
-    result, story = flight
+    result, story, _ = flight
     assert result.outcome in ("home", "landed_elsewhere"), story
     assert result.landing_error_m <= SAFE_LANDING_M, story
     assert result.loss_to_first_fused_fix_s <= 15.0, story
@@ -80,7 +89,19 @@ def test_sitl_lost_drone_returns_home_within_3_m(flight):
     """The issue's goals: home and disarmed, <= 3 m from home (the injected fix's error at touchdown plus the
     firmware's own landing spread, 0.2 m on perfect positions, judged on SIM_STATE), <= 5 m error while
     recovering."""
-    result, story = flight
+    result, story, _ = flight
     assert result.outcome == "home", story
     assert result.landing_error_m <= 3.0, story
     assert result.max_recovery_error_h_m <= 5.0, story
+
+
+def test_sitl_lost_drone_returns_no_faster_than_its_helpers(flight):
+    """Stock ArduPilot returns at 10 m/s; the lost drone's service lowered RTL_SPEED to the helpers' 5 m/s before
+    its return (the helpers keep it in view) and wrote the old value back once it had landed, or at the latest
+    when it stopped."""
+    result, story, rtl_speed_after = flight
+    events = [what for _, what in result.timeline]
+    limited = [i for i, e in enumerate(events) if "return speed limited to the helpers' 5 m/s" in e and "was 1000" in e]
+    returning = [i for i, e in enumerate(events) if "return_home" in e]
+    assert limited and returning and limited[0] < returning[0], story
+    assert rtl_speed_after == 0, story  # written back as found
