@@ -19,7 +19,7 @@ import logging
 import math
 from collections.abc import Callable
 
-from skyfix.errors import InputError
+from skyfix.errors import InputError, SkyfixError
 
 log = logging.getLogger(__name__)
 
@@ -63,11 +63,15 @@ class ReturnSpeed:
 
     def _limit(self, vehicle) -> None:
         want_cms = int(round(self.speed_mps * 100.0))
-        old = int(vehicle.get_param("RTL_SPEED"))
-        return_cms = old if old > 0 else float(vehicle.get_param("WPNAV_SPEED"))
-        if return_cms <= want_cms:
-            return
-        vehicle.set_param("RTL_SPEED", want_cms)
+        try:
+            old = int(vehicle.get_param("RTL_SPEED"))
+            return_cms = old if old > 0 else float(vehicle.get_param("WPNAV_SPEED"))
+            if return_cms <= want_cms:
+                return
+            vehicle.set_param("RTL_SPEED", want_cms)
+        except SkyfixError as exc:  # the link down as the hold starts: the return flies at the autopilot's speed
+            self.note = f"return speed not limited: {exc}"
+            raise
         if self._saved is None:
             self._saved = old
         self.note = (f"return speed limited to the helpers' {self.speed_mps:g} m/s (RTL_SPEED {want_cms} cm/s, "

@@ -88,3 +88,20 @@ def test_px4_is_left_alone_and_says_so():
 def test_a_return_speed_must_be_a_positive_number(bad):
     with pytest.raises(InputError, match="return speed"):
         ReturnSpeed(bad, _now)
+
+
+def test_an_autopilot_without_the_parameter_leaves_the_speed_and_says_why():
+    """A PX4 reached as if it were ArduPilot: RTL_SPEED is not there; the failure is the timeline's, not a crash."""
+    from skyfix.errors import SkyfixError
+
+    with Simulator(SimulatorConfig(vehicles=1, speed=SPEED, seed=7, flavour="px4")) as sim:
+        v = Vehicle.connect(sim.url(0), timeout_s=5.0)
+        try:
+            speed = ReturnSpeed(5.0, _now)
+            with pytest.raises(SkyfixError):  # the help loop's worker logs it and goes on
+                speed.limit(v, "ardupilot")
+            assert speed.take_note().startswith("return speed not limited: ")
+            speed.restore(v)  # nothing was changed: nothing written
+            assert speed.take_note() is None
+        finally:
+            v.close()
