@@ -35,7 +35,7 @@ from skyfix.crps import messages as M
 from skyfix.crps.help_agent import HelpAgent
 from skyfix.crps.help_protocol import HelpConfig, HelperStatus
 from skyfix.crps.helper_eye import EyeConfig, HelperEye
-from skyfix.crps.node import EXTRAPOLATION_ACCEL_MPS2
+from skyfix.crps.node import held_velocity_cov_m2
 from skyfix.crps.return_speed import ReturnSpeed
 from skyfix.crps.roles import FaultResponse, HelperDecision, Mode, RequesterConfig
 from skyfix.crps.vantage import VantageConfig
@@ -415,8 +415,8 @@ def _peer_now(fix: GeoFix, vel_enu_mps: np.ndarray, now_s: float) -> tuple[GeoFi
     :meth:`skyfix.crps.node.Node.fix`'s does (a drone braking or turning at its autopilot's acceleration)."""
     age_s = max(0.0, now_s - fix.time_s)
     moved = _moved(fix, vel_enu_mps, min(now_s, fix.time_s + PEER_MOVE_MAX_S))
-    grown = moved.cov_enu_m2 + np.eye(3) * (0.5 * EXTRAPOLATION_ACCEL_MPS2 * age_s * age_s) ** 2
-    out = GeoFix(moved.lat_deg, moved.lon_deg, moved.alt_m, grown, now_s, fix.source_id)
+    out = GeoFix(moved.lat_deg, moved.lon_deg, moved.alt_m, moved.cov_enu_m2 + held_velocity_cov_m2(age_s), now_s,
+                 fix.source_id)
     return out, (vel_enu_mps if age_s <= PEER_MOVE_MAX_S else None)
 
 

@@ -39,6 +39,12 @@ log = logging.getLogger(__name__)
 #: leaves a held 5 m/s velocity 5 m wrong after 2 s. Taken as zero, a MAVLink drop's stale velocity (no autopilot
 #: velocity for seconds) moved the fix 13 m past home with a 2.4 m sigma (two fault tests at once under load).
 EXTRAPOLATION_ACCEL_MPS2 = 2.5
+
+
+def held_velocity_cov_m2(dt_s: float) -> np.ndarray:
+    """(3, 3) ENU m^2 a position moved on ``dt_s`` at a held velocity gains: the drone may accelerate at
+    :data:`EXTRAPOLATION_ACCEL_MPS2` meanwhile, (a dt^2 / 2)^2 per axis."""
+    return np.eye(3) * (0.5 * EXTRAPOLATION_ACCEL_MPS2 * dt_s * dt_s) ** 2
 #: Velocity 1-sigma of GLOBAL_POSITION_INT's velocity, m/s (an EKF's output, not raw Doppler).
 TELEMETRY_VELOCITY_SIGMA_MPS = 0.2
 #: While the autopilot flies on the position skyfix injects, an EKF that takes no other velocity source
@@ -201,8 +207,8 @@ class Node:
         dt = max(0.0, now_s - est.time_s)
         enu = est.enu_m + est.vel_enu_mps * dt
         lat, lon, alt = (float(c) for c in self.frame.to_geodetic(*enu))
-        # the velocity is held over dt, but the drone may accelerate: + (a dt^2 / 2)^2 per axis
-        cov = (est.decision_cov_enu_m2 if frame else est.cov_enu_m2) + est.vel_cov_enu_m2ps2 * dt * dt + np.eye(3) * (0.5 * EXTRAPOLATION_ACCEL_MPS2 * dt * dt) ** 2
+        cov = (est.decision_cov_enu_m2 if frame else est.cov_enu_m2) + est.vel_cov_enu_m2ps2 * dt * dt \
+            + held_velocity_cov_m2(dt)
         return GeoFix(lat, lon, alt, cov, now_s if time_stamp_s is None else time_stamp_s, "skyfix.fusion")
 
     def close(self) -> None:
