@@ -89,6 +89,21 @@ class Recorder:
         return float(math.hypot(last[f"{d}_east_m"] - self.home_enu[self.lost, 0],
                                 last[f"{d}_north_m"] - self.home_enu[self.lost, 1]))
 
+    def return_speed_max_mps(self, window_s: float = 2.0) -> float:
+        """The lost drone's largest true horizontal speed while it flies home (mode return_home), m/s: its
+        displacement over ``window_s`` (an external autopilot's truth arrives on its own clock, so consecutive
+        samples' spacing is not its motion's). NaN: no such window."""
+        d = self.ids[self.lost]
+        rows = [r for r in self._after_loss() if r["mode"] == "return_home"]
+        t = np.array([r["t_s"] for r in rows])
+        xy = np.array([[r[f"{d}_east_m"], r[f"{d}_north_m"]] for r in rows]).reshape(-1, 2)
+        ends = np.searchsorted(t, t + window_s)
+        ok = ends < len(t)
+        if not ok.any():
+            return math.nan
+        starts = np.flatnonzero(ok)
+        return float(np.max(np.linalg.norm(xy[ends[ok]] - xy[starts], axis=1) / (t[ends[ok]] - t[starts])))
+
     def first_fused_fix_s(self) -> float:
         """Loss to the first estimate of the lost drone resting on a helper's observation, s (NaN: none)."""
         for r in self._after_loss():
@@ -183,6 +198,7 @@ class Recorder:
         return {**final, "max_recovery_error_gnss_frame_h_m": self.max_recovery_error_gnss_frame_m(),
                 "common_gnss_error_max_h_m": float(common_h.max()) if len(common_h) else math.nan,
                 "fix_error_after_loss_max_h_m": self.max_fix_error_after_loss_m(),
+                "return_speed_max_mps": self.return_speed_max_mps(),
                 "recovery_error_rms_h_m": float(np.sqrt(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2)))
                 if len(err) else math.nan,
                 "recovery_mean_nees_3dof": float(np.mean(nees)) if nees else math.nan,

@@ -70,7 +70,8 @@ def flight():
     print(f"SITL recovery: outcome {result.outcome}, landed {result.landing_error_m:.2f} m from home, first fix "
           f"{result.loss_to_first_fused_fix_s:.1f} s, max error {result.max_recovery_error_h_m:.2f} m, separation "
           f"{result.min_separation_m:.1f} m, detected {100 * result.detection_share:.0f} %, final height "
-          f"{result.figures.get('final_alt_rel_m', math.nan):.1f} m")  # -rP shows it
+          f"{result.figures.get('final_alt_rel_m', math.nan):.1f} m, fastest 2 s on the way home "
+          f"{result.figures.get('return_speed_max_mps', math.nan):.1f} m/s")  # -rP shows it
     return result, story, rtl_speed_after
 
 
@@ -104,4 +105,7 @@ def test_sitl_lost_drone_returns_no_faster_than_its_helpers(flight):
     limited = [i for i, e in enumerate(events) if "return speed limited to the helpers' 5 m/s" in e and "was 1000" in e]
     returning = [i for i, e in enumerate(events) if "return_home" in e]
     assert limited and returning and limited[0] < returning[0], story
+    # and the firmware flew it: SIM_STATE's truth on the way home, 5 m/s plus its speed control's overshoot
+    # (unlimited it would fly 10 m/s)
+    assert result.figures["return_speed_max_mps"] <= 6.0, (result.figures["return_speed_max_mps"], story)
     assert rtl_speed_after == 0, story  # written back as found
