@@ -257,8 +257,12 @@ def diagnose(run: Path, world: LocalFrame) -> tuple[str, np.ndarray, np.ndarray 
         lines.append(f"  {LOST} with perfect cameras and fusion (its fix off the swarm's GNSS frame by the observers' "
                      f"own fixes' mean over the last 8 s, nothing else) it would have landed {math.hypot(*perfect):.2f} m "
                      f"from home ({math.hypot(*landed):.2f} m as flown)")
+        # and had the observers' own fixes been on the swarm's GNSS frame (cameras and fusion as they were)
+        observers = landed + own_h
+        lines.append(f"  {LOST} with perfect observer fixes (the observers' own fixes' mean over the last 8 s taken "
+                     f"out of its fix) it would have landed {math.hypot(*observers):.2f} m from home")
         end = np.array([np.linalg.norm(implied_h), np.linalg.norm(own_h), np.linalg.norm(implied_h - own_h),
-                        at_obs, math.hypot(*rel), math.hypot(*landed), math.hypot(*perfect)])
+                        at_obs, math.hypot(*rel), math.hypot(*landed), math.hypot(*perfect), math.hypot(*observers)])
     return "\n".join(lines), np.array(records).reshape(-1, 5), end
 
 
@@ -333,7 +337,8 @@ def main(argv: list[str] | None = None) -> int:
               f"part {med[2]:.2f} m; the fused fix from the swarm's GNSS frame at the last observation {med[3]:.2f} m, "
               f"at touchdown {med[4]:.2f} m")
         print(f"median landing over {len(ends)} runs: {med[5]:.2f} m as flown, {med[6]:.2f} m with perfect cameras and "
-              f"fusion (the observers' own receiver errors alone)")
+              f"fusion (the observers' own receiver errors alone), {med[7]:.2f} m with perfect observer fixes (their "
+              f"cameras and the fusion as they were)")
     if honest:
         base = [b for _, b in honest if b is not None]
         print(f"stated sigma from the loss, median over {len(honest)} runs of mean (error_h / sigma_h)^2 (honest: 1-2): "

@@ -13,7 +13,7 @@ drone) and acts on its decisions through :mod:`skyfix.drivers`:
   drone by :func:`skyfix.crps.vantage.vantage_point`), aims the gimbal at the requester's
   newest fix, and its :class:`skyfix.crps.helper_eye.HelperEye` turns camera frames into
   relative observations that are signed and published here; on release it resumes the mode
-  it left (its mission).
+  it left (its mission) once the leg there keeps clear of the others (:mod:`skyfix.crps.rejoin`).
 
 Autopilot commands block for their acknowledgement, so they run on one worker thread; the
 wanted mode is re-commanded until the autopilot reports it (a lost command, a link drop).
@@ -36,6 +36,7 @@ from skyfix.crps.help_agent import HelpAgent
 from skyfix.crps.help_protocol import HelpConfig, HelperStatus
 from skyfix.crps.helper_eye import EyeConfig, HelperEye
 from skyfix.crps.node import held_velocity_cov_m2
+from skyfix.crps.rejoin import Rejoin, RejoinConfig
 from skyfix.crps.return_speed import ReturnSpeed
 from skyfix.crps.roles import FaultResponse, HelperDecision, Mode, RequesterConfig
 from skyfix.crps.vantage import VantageConfig
@@ -162,6 +163,9 @@ class HelpLoop:
         self._still_since_s: float | None = None  # landing: on the ground and still since (clock s)
         self._actions = _Actions(f"skyfix-help-{self.id}")
         self._speed = ReturnSpeed(setup.return_speed_mps, self._actions.submit)
+        sep_m = (setup.vantage or VantageConfig()).min_separation_m
+        self._rejoin = Rejoin(self._actions.submit, RejoinConfig(separation_m=sep_m))
+        self._others: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}  # ENU now, velocity (fresh) or None
 
     @property
     def recovering(self) -> bool:
@@ -212,6 +216,9 @@ class HelpLoop:
                 peers[pid] = (now_fix.lat_deg, now_fix.lon_deg, now_fix.alt_m)
                 if vel is not None:
                     velocities[pid] = vel
+        frame = self.svc.node.frame
+        self._others = {pid: (np.asarray(frame.to_enu(*p), float), velocities.get(pid)) for pid, p in peers.items()
+                        if pid != self.id}
         self._height = _height(self.svc.node, self.id, now_s, state)
         floor_up_m = -math.inf if self._height is None else self._height[1] - self._height[0] + self.setup.min_alt_rel_m
         decisions = self.agent.step(now_s, gnss, fused, self._status, peers, floor_up_m=floor_up_m,
@@ -304,19 +311,25 @@ class HelpLoop:
         if dec.helping != self.helping:
             if dec.helping is not None:
                 self._event(now_s, f"helping {dec.helping}")
-                if self.helping is None and vehicle is not None:
+                if self.helping is None and vehicle is not None and not self._rejoin.active:
                     self._resume = vehicle.state.mode
+                self._rejoin.cancel()
                 self._want = None
             else:
                 why = next((w for _, w, _ in reversed(self.agent.helper.protocol.events) if w.startswith("released")),
                            "released")
                 self._event(now_s, f"{why.replace('released', 'released by ' + str(self.helping), 1)}, back to "
-                                   f"{self._resume or 'its mission'}")
-                self._want, self._want_sent_wall_s = self._resume, -math.inf
+                                   f"{self._resume or 'its mission'} once its way there is clear")
+                if vehicle is not None:
+                    self._rejoin.start(vehicle, self._resume)
+                else:
+                    self._want, self._want_sent_wall_s = self._resume, -math.inf
                 self._goto_enu = None
             self.helping = dec.helping
             if self.eye is not None and dec.helping is None:
                 self.eye.set_target(None)
+        if dec.helping is None and vehicle is not None:
+            self._way_back(now_s, vehicle)
         if dec.helping is None or vehicle is None:
             return
         if dec.vantage is not None:
@@ -341,6 +354,33 @@ class HelpLoop:
                 self._actions.submit("move", f"{self.id} hold",
                                      lambda: vehicle.goto(own.lat_deg, own.lon_deg, alt_rel))
         self._aim(now_s, dec.helping, dec.target)
+
+    def _way_back(self, now_s: float, vehicle) -> None:
+        """Released: back to the mode it left once the leg there keeps clear of the others (crps/rejoin.py)."""
+        if not self._rejoin.active:
+            return
+        if self.recovering:  # its own GNSS lost meanwhile: the requester's modes rule
+            self._rejoin.cancel()
+            return
+        own = self.svc.node.fix(self.id, now_s)
+        frame = self.svc.node.frame
+        own_enu = None if own is None else np.asarray(frame.to_enu(own.lat_deg, own.lon_deg, own.alt_m), float)
+        home = vehicle.state.home
+        home_enu = None if home is None else np.asarray(frame.to_enu(home.lat_deg, home.lon_deg, own.alt_m
+                                                                     if own is not None else 0.0), float)
+        verdict = self._rejoin.step(vehicle, own_enu, None if self._height is None else self._height[0],
+                                    self._others, lambda lat, lon: np.asarray(frame.to_enu(lat, lon, 0.0))[:2],
+                                    home_enu)
+        for note in self._rejoin.take_notes():
+            self._event(now_s, note)
+        if verdict == "resume":
+            self._want, self._want_sent_wall_s = self._resume, -math.inf
+        elif verdict in ("hold", "climb") and own is not None and self._height is not None:
+            up_m = self._height[0] if verdict == "hold" else self._height[0] + float(self._rejoin.goto_enu_m[2]
+                                                                                     - own_enu[2])
+            alt_rel = max(up_m, self.setup.min_alt_rel_m)
+            self._actions.submit("move", f"{self.id} {verdict} (way back blocked)",
+                                 lambda: vehicle.goto(own.lat_deg, own.lon_deg, alt_rel))
 
     def _aim(self, now_s: float, target_id: str, target_pos) -> None:
         """Gimbal at where this helper's own eye last saw the target (fresh), else at the target's newest fix,

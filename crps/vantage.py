@@ -89,7 +89,7 @@ def _min_distance(pts: np.ndarray, others: np.ndarray) -> np.ndarray:
     return np.linalg.norm(pts[:, None, :] - others[None, :, :], axis=-1).min(axis=1)
 
 
-def _path_clearance(start: np.ndarray, ends: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
+def path_clearance(start: np.ndarray, ends: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
     """(N, M) closest approach to each of ``obstacles`` (M, 3) along the straight legs from ``start`` (3,)
     to each of ``ends`` (N, 3)."""
     leg = ends - start                                               # (N, 3)
@@ -149,10 +149,10 @@ def vantage_point(target_enu_m, own_enu_m, other_drones_enu_m=(), helper_vantage
     # the way there keeps the separation too (or, from a drone already closer, does not close in): from the
     # target in its frame, from the other drones in the world
     need_target = min(cfg.min_separation_m + 3.0 * target_sigma_h_m, float(np.linalg.norm(start)) - 1e-6)
-    ok &= _path_clearance(start, offsets, np.zeros((1, 3)))[:, 0] >= need_target
+    ok &= path_clearance(start, offsets, np.zeros((1, 3)))[:, 0] >= need_target
     if len(drones):
         need = np.minimum(cfg.min_separation_m, np.linalg.norm(drones - own, axis=1) - 1e-6)
-        ok &= (_path_clearance(own, goals, drones) >= need).all(axis=1)
+        ok &= (path_clearance(own, goals, drones) >= need).all(axis=1)
     if (ok & reachable).any():
         ok &= reachable
     elif ok.any():

@@ -1,0 +1,179 @@
+"""A released helper goes back to its mission only while the leg there keeps clear of the other drones
+(crps/rejoin.py): the geometry, the leg the autopilot will fly, and two flights over real MAVLink to the simulator.
+
+In the flights the other drone stands where the autopilot's straight leg would take the helper: without the check
+the helper flies through it (the simulator's drones, like real ones, avoid nothing). Closest approaches are read
+off the simulator's truth; the rejoin sees only the two autopilots' telemetry.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from skyfix.crps.rejoin import Leg, Rejoin, RejoinConfig, leg_clearance_m, leg_of
+from skyfix.datasets.sim.simulator import Simulator, SimulatorConfig
+from skyfix.drivers.vehicle import Vehicle
+from skyfix.geo import LocalFrame
+from skyfix.mission import MissionItem
+
+SPEED = 4.0  # simulated seconds per wall second
+
+
+def test_a_leg_is_clear_of_a_drone_beside_it_and_not_of_one_whose_track_crosses_it():
+    start, goal = [0.0, 0.0, 30.0], [0.0, 100.0, 30.0]
+    beside = leg_clearance_m(start, goal, [[15.0, 50.0, 30.0]])
+    assert beside == pytest.approx([15.0])
+    # 15 m east, flying west at 5 m/s: within 20 s it crosses the leg, wherever the helper then is
+    crossing = leg_clearance_m(start, goal, [[15.0, 50.0, 30.0]], [[-5.0, 0.0, 0.0]], horizon_s=20.0)
+    assert crossing[0] < 0.5  # sampled every 0.5 m of its sweep
+    # flying away, or its velocity unknown (NaN: counted where it is)
+    away = leg_clearance_m(start, goal, [[15.0, 50.0, 30.0], [15.0, 50.0, 30.0]],
+                           [[5.0, 0.0, 0.0], [np.nan] * 3], horizon_s=20.0)
+    assert away == pytest.approx([15.0, 15.0])
+    below = leg_clearance_m(start, goal, [[0.0, 50.0, 0.0]])  # landed under the leg: 30 m below it
+    assert below == pytest.approx([30.0])
+
+
+def _to_enu(lat: float, lon: float) -> np.ndarray:
+    return np.array([lon * 1000.0, lat * 1000.0])  # a test map: 1 milli-degree = 1 m
+
+
+@pytest.mark.parametrize("autopilot, seq", [("ardupilot", 2), ("px4", 1)])
+def test_the_leg_is_to_the_current_items_position_past_do_commands(autopilot, seq):
+    items = [MissionItem.waypoint(0.05, 0.0, 20.0), MissionItem.camera_trigger_distance(10.0),
+             MissionItem.waypoint(0.1, 0.02, 35.0), MissionItem.rtl()]
+    own = np.array([0.0, 0.0, 12.0])  # fused ENU up 12 m where the autopilot reads 10 m above home
+    leg = leg_of(items, seq, autopilot, _to_enu, own, 10.0, home_enu_m=np.array([5.0, 5.0, 0.0]))
+    assert leg.what == f"waypoint {seq + 1}"  # the DO_ command is run on the way
+    assert leg.goal_enu_m == pytest.approx([20.0, 100.0, 37.0])  # 35 m above home: 25 m above here
+    rtl = leg_of(items, seq + 2, autopilot, _to_enu, own, 10.0, home_enu_m=np.array([5.0, 5.0, 0.0]))
+    assert rtl.what == "home" and rtl.goal_enu_m == pytest.approx([5.0, 5.0, 12.0])
+    assert leg_of(items, seq + 3, autopilot, _to_enu, own, 10.0, None) == Leg(None, "the mission's end")
+
+
+def _enu(frame: LocalFrame, st) -> tuple[np.ndarray, np.ndarray]:
+    p, v = st.position, st.velocity
+    return (np.asarray(frame.to_enu(p.lat_deg, p.lon_deg, p.alt_ellipsoid_m), float),
+            np.array([v.east_mps, v.north_mps, -v.down_mps]))
+
+
+def _up(v: Vehicle, alt_m: float) -> None:
+    v.set_mode("GUIDED")
+    v.arm()
+    v.takeoff(alt_m)
+
+
+def _fly(sim, helper: Vehicle, other: Vehicle, rejoin: Rejoin, *, until, sim_s: float, closest: list[float],
+         seen: list[str]) -> str | None:
+    """Step the rejoin on telemetry every 0.1 s until ``until(verdict)``; the closest truth distance kept."""
+    frame = LocalFrame(helper.state.home.lat_deg, helper.state.home.lon_deg, helper.state.home.alt_ellipsoid_m)
+    home = np.asarray(frame.to_enu(helper.state.home.lat_deg, helper.state.home.lon_deg,
+                                   helper.state.home.alt_ellipsoid_m), float)
+    t_end = sim.time_s + sim_s
+    verdict = None
+    while sim.time_s < t_end:
+        a, b = sim.truth(0), sim.truth(1)
+        closest[0] = min(closest[0], math.dist([a["east_m"], a["north_m"], a["up_m"]],
+                                               [b["east_m"], b["north_m"], b["up_m"]]))
+        own, _ = _enu(frame, helper.state)
+        pos, vel = _enu(frame, other.state)
+        verdict = rejoin.step(helper, own, helper.state.position.alt_rel_m, {"d2": (pos, vel)},
+                              lambda lat, lon: np.asarray(frame.to_enu(lat, lon, 0.0))[:2], home)
+        seen.extend(rejoin.take_notes())
+        if verdict in ("hold", "climb"):
+            target = rejoin.goto_enu_m if verdict == "climb" else own
+            lat, lon, _ = frame.to_geodetic(*target)
+            alt_rel = helper.state.position.alt_rel_m + float(target[2] - own[2])
+            helper.goto(float(lat), float(lon), alt_rel)
+        if until(verdict):
+            return verdict
+        time.sleep(0.1 / SPEED)
+    return verdict
+
+
+def _run_now(kind: str, what: str, fn) -> None:
+    fn()  # the help loop's command worker runs these; here, at once
+
+
+def test_a_helper_holds_while_a_drone_stands_in_its_leg_and_resumes_once_it_moved():
+    with Simulator(SimulatorConfig(vehicles=2, speed=SPEED, seed=3, spacing_m=30.0)) as sim:
+        helper = Vehicle.connect(sim.url(0), timeout_s=5.0)
+        other = Vehicle.connect(sim.url(1), timeout_s=5.0)
+        try:
+            for v in (helper, other):
+                v.wait_until(lambda st: st.position is not None and st.home is not None, 5.0, what="telemetry")
+            home = helper.state.home
+            frame = LocalFrame(home.lat_deg, home.lon_deg, home.alt_ellipsoid_m)
+            wp = frame.to_geodetic(0.0, 120.0, 0.0)
+            helper.upload_mission([MissionItem.waypoint(float(wp[0]), float(wp[1]), 20.0), MissionItem.rtl()])
+            _up(helper, 20.0)
+            _up(other, 20.0)
+            mid = frame.to_geodetic(0.0, 60.0, 0.0)  # the middle of the helper's leg, at its height
+            other.goto(float(mid[0]), float(mid[1]), 20.0, wait=True, timeout_s=60.0)
+            assert helper.state.mission_seq == 1  # ArduPilot: item 1, the first after home
+
+            rejoin = Rejoin(_run_now, RejoinConfig())
+            rejoin.start(helper, "AUTO")
+            closest, notes = [math.inf], []
+            first = _fly(sim, helper, other, rejoin, until=lambda v: v is not None, sim_s=5.0, closest=closest,
+                         seen=notes)
+            assert first == "hold", notes  # a climb would still pass over it within 12 m: holds
+            assert "passes" in notes[0] and "from d2" in notes[0]
+            assert _fly(sim, helper, other, rejoin, until=lambda v: v == "resume", sim_s=10.0, closest=closest,
+                        seen=notes) is None  # it stays blocked while d2 stays
+            assert helper.state.mode == "GUIDED"
+
+            away = frame.to_geodetic(40.0, 60.0, 0.0)
+            other.goto(float(away[0]), float(away[1]), 20.0)
+            assert _fly(sim, helper, other, rejoin, until=lambda v: v == "resume", sim_s=40.0, closest=closest,
+                        seen=notes) == "resume", notes
+            assert "keeps" in notes[-1]
+            helper.start_mission()
+            reached = _fly(sim, helper, other, rejoin, until=lambda _v: helper.state.mission_seq >= 2, sim_s=60.0,
+                           closest=closest, seen=notes)
+            assert helper.state.mission_seq >= 2, reached
+            # the separation the helpers keep, over the whole flight, from the truth
+            assert closest[0] >= 10.0, closest
+        finally:
+            helper.close()
+            other.close()
+
+
+def test_a_helper_low_beside_a_landed_drone_climbs_before_its_leg_over_it():
+    with Simulator(SimulatorConfig(vehicles=2, speed=SPEED, seed=4, spacing_m=13.0)) as sim:
+        helper = Vehicle.connect(sim.url(0), timeout_s=5.0)
+        other = Vehicle.connect(sim.url(1), timeout_s=5.0)
+        try:
+            for v in (helper, other):
+                v.wait_until(lambda st: st.position is not None and st.home is not None, 5.0, what="telemetry")
+            home = helper.state.home
+            frame = LocalFrame(home.lat_deg, home.lon_deg, home.alt_ellipsoid_m)
+            # the mission goes east, over the other drone standing on the ground 13 m east, up to 30 m
+            wp = frame.to_geodetic(100.0, 0.0, 0.0)
+            helper.upload_mission([MissionItem.waypoint(float(wp[0]), float(wp[1]), 30.0)])
+            _up(helper, 2.5)  # a helper that watched a landing, low beside it
+            rejoin = Rejoin(_run_now, RejoinConfig())
+            rejoin.start(helper, "AUTO")
+            closest, notes = [math.inf], []
+            assert _fly(sim, helper, other, rejoin, until=lambda v: v is not None, sim_s=5.0, closest=closest,
+                        seen=notes) == "climb", notes
+            assert "climbing" in notes[0]
+            assert _fly(sim, helper, other, rejoin, until=lambda v: v == "resume", sim_s=40.0, closest=closest,
+                        seen=notes) == "resume", notes
+            assert helper.state.position.alt_rel_m > 8.0  # up before the leg
+            helper.start_mission()
+            _fly(sim, helper, other, rejoin, until=lambda _v: helper.state.mission_seq >= 2, sim_s=60.0,
+                 closest=closest, seen=notes)
+            assert helper.state.mission_seq >= 2 or sim.truth(0)["east_m"] > 60.0
+            # it started 13 m from the landed drone; never closer than the bound (12 m) less the start's 0.5 m
+            assert closest[0] >= 11.0, closest
+            # without the climb the straight leg from 2.5 m up to 30 m at 100 m passes 5.9 m from it
+            straight = leg_clearance_m([0.0, 0.0, 2.5], [100.0, 0.0, 30.0], [[13.0, 0.0, 0.0]])
+            assert straight[0] < 10.0, straight
+        finally:
+            helper.close()
+            other.close()
