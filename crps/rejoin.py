@@ -48,6 +48,9 @@ class RejoinConfig:
     margin_m: float = 2.0
     horizon_s: float = 20.0      # a drone's velocity counts this far ahead
     climb_max_m: float = 40.0    # a blocked leg may start with a climb straight up of at most this much
+    # the mission read-back blocks the help loop's command worker this long at most (a few hundred items over a
+    # lossy telemetry radio fit; a dead link must not hold up the commands of a new assignment for a minute)
+    read_timeout_s: float = 30.0
 
 
 @dataclass(frozen=True)
@@ -139,7 +142,7 @@ class Rejoin:
 
             def read() -> None:
                 try:
-                    self._items = vehicle.download_mission()
+                    self._items = vehicle.download_mission(timeout_s=self.cfg.read_timeout_s)
                 except SkyfixError as exc:
                     self._read_failed = str(exc)
 

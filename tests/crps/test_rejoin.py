@@ -177,3 +177,24 @@ def test_a_helper_low_beside_a_landed_drone_climbs_before_its_leg_over_it():
         finally:
             helper.close()
             other.close()
+
+
+def test_a_mission_that_cannot_be_read_back_is_resumed_unchecked_and_a_mode_without_a_leg_at_once():
+    sim = Simulator(SimulatorConfig(vehicles=1, speed=SPEED, seed=5)).start()
+    helper = Vehicle.connect(sim.url(0), timeout_s=5.0)
+    try:
+        helper.wait_until(lambda st: st.position is not None and st.home is not None, 5.0, what="telemetry")
+        rejoin = Rejoin(_run_now, RejoinConfig(read_timeout_s=1.0))
+        rejoin.start(helper, "LOITER")  # stays where it is: nothing to read, nothing to check
+        assert rejoin.step(helper, None, None, {}, _to_enu, None) == "resume" and not rejoin.active
+        sim.stop()  # the autopilot stops answering
+        t0 = time.monotonic()
+        rejoin.start(helper, "AUTO")
+        assert time.monotonic() - t0 < 5.0  # read_timeout_s, and a retry's worth
+        others = {"d2": (np.zeros(3), None)}
+        assert rejoin.step(helper, np.array([0.0, 0.0, 20.0]), 20.0, others, _to_enu, None) == "resume"
+        notes = rejoin.take_notes()
+        assert len(notes) == 1 and "not read back" in notes[0] and "unchecked" in notes[0], notes
+    finally:
+        helper.close()
+        sim.stop()
