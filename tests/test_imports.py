@@ -31,7 +31,7 @@ ALLOWED = {
 }
 #: crps modules above fusion (the swarm system) and the applications on top; the rest is perception.
 CRPS_SYSTEM = {"node", "transport", "messages", "swarm", "outputs", "camera_feed", "cli", "__init__",
-               "help_protocol", "help_agent", "roles", "vantage", "help_loop"}
+               "help_protocol", "help_agent", "roles", "vantage", "help_loop", "rejoin"}
 CRPS_APPS = {"demo", "service", "serve_cli", "sim_camera", "recovery", "recovery_faults", "recovery_report"}
 
 
