@@ -166,6 +166,7 @@ class HelpLoop:
         sep_m = (setup.vantage or VantageConfig()).min_separation_m
         self._rejoin = Rejoin(self._actions.submit, RejoinConfig(separation_m=sep_m))
         self._others: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}  # ENU now, velocity (fresh) or None
+        self._team: tuple[str, ...] = ()  # the helpers of the request this one helps (itself included)
 
     @property
     def recovering(self) -> bool:
@@ -321,7 +322,7 @@ class HelpLoop:
                 self._event(now_s, f"{why.replace('released', 'released by ' + str(self.helping), 1)}, back to "
                                    f"{self._resume or 'its mission'} once its way there is clear")
                 if vehicle is not None:
-                    self._rejoin.start(vehicle, self._resume)
+                    self._rejoin.start(vehicle, self._resume, now_s, self._team, self.id)
                 else:
                     self._want, self._want_sent_wall_s = self._resume, -math.inf
                 self._goto_enu = None
@@ -332,6 +333,7 @@ class HelpLoop:
             self._way_back(now_s, vehicle)
         if dec.helping is None or vehicle is None:
             return
+        self._team = self.agent.helper.protocol.team  # kept for the release, which clears it
         if dec.vantage is not None:
             v = dec.vantage.enu_m
             if self._goto_enu is None or float(np.linalg.norm(v - self._goto_enu)) > GOTO_MOVE_M:
@@ -368,7 +370,7 @@ class HelpLoop:
         home = vehicle.state.home
         home_enu = None if home is None else np.asarray(frame.to_enu(home.lat_deg, home.lon_deg, own.alt_m
                                                                      if own is not None else 0.0), float)
-        verdict = self._rejoin.step(vehicle, own_enu, None if self._height is None else self._height[0],
+        verdict = self._rejoin.step(vehicle, now_s, own_enu, None if self._height is None else self._height[0],
                                     self._others, lambda lat, lon: np.asarray(frame.to_enu(lat, lon, 0.0))[:2],
                                     home_enu)
         for note in self._rejoin.take_notes():

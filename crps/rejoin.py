@@ -51,6 +51,7 @@ class RejoinConfig:
     # the mission read-back blocks the help loop's command worker this long at most (a few hundred items over a
     # lossy telemetry radio fit; a dead link must not hold up the commands of a new assignment for a minute)
     read_timeout_s: float = 30.0
+    stagger_s: float = 3.0       # helpers released together check their legs this far apart (id order)
 
 
 @dataclass(frozen=True)
@@ -128,13 +129,20 @@ class Rejoin:
         self._items: list[MissionItem] | None = None
         self._read_failed: str | None = None
         self._seq = -1
+        self._check_from_s = -math.inf
         self._blocked_by: str | None = None
         self._notes: list[str] = []
         self.goto_enu_m: np.ndarray | None = None  # with "climb": where to go first (ENU m)
 
-    def start(self, vehicle, resume_mode: str | None) -> None:
-        """Released: the way back to ``resume_mode`` (the mode the helper left) is to be checked."""
+    def start(self, vehicle, resume_mode: str | None, now_s: float = 0.0, team: tuple[str, ...] = (),
+              drone_id: str = "") -> None:
+        """Released at ``now_s``: the way back to ``resume_mode`` (the mode the helper left) is to be checked.
+        ``team``: the helpers of the same request, this one (``drone_id``) included. Released together, each
+        first checks its leg :attr:`RejoinConfig.stagger_s` after the one before it (in id order): a helper that
+        has just set off shows no velocity yet, so two crossing legs checked at one instant both look clear."""
         self.active, self._mode, self._blocked_by = True, resume_mode, None
+        rank = sorted(team).index(drone_id) if drone_id in team else 0
+        self._check_from_s = now_s + rank * self.cfg.stagger_s
         self._items, self._read_failed = None, None
         flavour = vehicle.autopilot if vehicle.autopilot in ("ardupilot", "px4") else "ardupilot"
         if resume_mode == role_mode(flavour, "mission"):
@@ -155,13 +163,14 @@ class Rejoin:
         notes, self._notes = self._notes, []
         return notes
 
-    def step(self, vehicle, own_enu_m, own_alt_rel_m: float | None, others: dict[str, tuple[np.ndarray, object]],
-             to_enu: Callable[[float, float], np.ndarray], home_enu_m: np.ndarray | None) -> str | None:
+    def step(self, vehicle, now_s: float, own_enu_m, own_alt_rel_m: float | None,
+             others: dict[str, tuple[np.ndarray, object]], to_enu: Callable[[float, float], np.ndarray],
+             home_enu_m: np.ndarray | None) -> str | None:
         """``"resume"`` when the helper may go back to its mode now; ``"hold"`` when it must stop where it is,
         ``"climb"`` when it is to climb straight up to :attr:`goto_enu_m` first (each once, when the way is first
         found blocked); else None (waiting: for the mission, or still blocked, or climbing).
         ``others``: id -> (ENU position now (3,), ENU velocity (3,) or None) of every other drone."""
-        if not self.active:
+        if not self.active or now_s < self._check_from_s:
             return None
         flavour = vehicle.autopilot if vehicle.autopilot in ("ardupilot", "px4") else "ardupilot"
         if self._mode == role_mode(flavour, "mission"):

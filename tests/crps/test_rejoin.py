@@ -81,7 +81,7 @@ def _fly(sim, helper: Vehicle, other: Vehicle, rejoin: Rejoin, *, until, sim_s: 
                                                [b["east_m"], b["north_m"], b["up_m"]]))
         own, _ = _enu(frame, helper.state)
         pos, vel = _enu(frame, other.state)
-        verdict = rejoin.step(helper, own, helper.state.position.alt_rel_m, {"d2": (pos, vel)},
+        verdict = rejoin.step(helper, sim.time_s, own, helper.state.position.alt_rel_m, {"d2": (pos, vel)},
                               lambda lat, lon: np.asarray(frame.to_enu(lat, lon, 0.0))[:2], home)
         seen.extend(rejoin.take_notes())
         if verdict in ("hold", "climb"):
@@ -186,15 +186,64 @@ def test_a_mission_that_cannot_be_read_back_is_resumed_unchecked_and_a_mode_with
         helper.wait_until(lambda st: st.position is not None and st.home is not None, 5.0, what="telemetry")
         rejoin = Rejoin(_run_now, RejoinConfig(read_timeout_s=1.0))
         rejoin.start(helper, "LOITER")  # stays where it is: nothing to read, nothing to check
-        assert rejoin.step(helper, None, None, {}, _to_enu, None) == "resume" and not rejoin.active
+        assert rejoin.step(helper, 0.0, None, None, {}, _to_enu, None) == "resume" and not rejoin.active
         sim.stop()  # the autopilot stops answering
         t0 = time.monotonic()
         rejoin.start(helper, "AUTO")
         assert time.monotonic() - t0 < 5.0  # read_timeout_s, and a retry's worth
         others = {"d2": (np.zeros(3), None)}
-        assert rejoin.step(helper, np.array([0.0, 0.0, 20.0]), 20.0, others, _to_enu, None) == "resume"
+        assert rejoin.step(helper, 0.0, np.array([0.0, 0.0, 20.0]), 20.0, others, _to_enu, None) == "resume"
         notes = rejoin.take_notes()
         assert len(notes) == 1 and "not read back" in notes[0] and "unchecked" in notes[0], notes
     finally:
         helper.close()
         sim.stop()
+
+
+def test_two_helpers_released_together_with_crossing_legs_go_one_after_the_other():
+    with Simulator(SimulatorConfig(vehicles=2, speed=SPEED, seed=6, spacing_m=30.0)) as sim:
+        ids = ("d1", "d3")
+        vehicles = [Vehicle.connect(sim.url(k), timeout_s=5.0) for k in range(2)]
+        try:
+            for v in vehicles:
+                v.wait_until(lambda st: st.position is not None and st.home is not None, 5.0, what="telemetry")
+            home = vehicles[0].state.home
+            frame = LocalFrame(home.lat_deg, home.lon_deg, home.alt_ellipsoid_m)
+            # d1 (at 0, 0) goes north-east, d3 (30 m east) north-west: the legs cross at (15, 10), 18 m from both
+            for v, (east, north) in zip(vehicles, ((60.0, 40.0), (-30.0, 40.0)), strict=True):
+                lat, lon, _ = frame.to_geodetic(east, north, 0.0)
+                v.upload_mission([MissionItem.waypoint(float(lat), float(lon), 20.0), MissionItem.rtl()])
+                _up(v, 20.0)
+            # flown at once at one speed they meet where the legs cross
+            assert leg_clearance_m([0.0, 0.0, 20.0], [60.0, 40.0, 20.0], [[30.0, 0.0, 20.0]],
+                                   [[-4.2, 2.8, 0.0]])[0] < 1.0
+            rejoins = [Rejoin(_run_now, RejoinConfig()) for _ in ids]
+            for r, v, me in zip(rejoins, vehicles, ids, strict=True):
+                r.start(v, "AUTO", sim.time_s, ids, me)
+            closest, notes, gone = math.inf, {me: [] for me in ids}, {}
+            t_end = sim.time_s + 60.0
+            while sim.time_s < t_end and not all(v.state.mission_seq >= 2 for v in vehicles):
+                a, b = sim.truth(0), sim.truth(1)
+                closest = min(closest, math.dist([a["east_m"], a["north_m"], a["up_m"]],
+                                                 [b["east_m"], b["north_m"], b["up_m"]]))
+                now = [_enu(frame, v.state) for v in vehicles]
+                for k, (r, v, me) in enumerate(zip(rejoins, vehicles, ids, strict=True)):
+                    other = 1 - k
+                    verdict = r.step(v, sim.time_s, now[k][0], v.state.position.alt_rel_m,
+                                     {ids[other]: now[other]}, lambda lat, lon: np.asarray(frame.to_enu(lat, lon, 0.0))[:2],
+                                     None)
+                    notes[me].extend(r.take_notes())
+                    if verdict == "resume":
+                        gone[me] = sim.time_s
+                        v.start_mission()
+                    elif verdict == "hold":
+                        lat, lon, _ = frame.to_geodetic(*now[k][0])
+                        v.goto(float(lat), float(lon), v.state.position.alt_rel_m)
+                time.sleep(0.1 / SPEED)
+            assert all(v.state.mission_seq >= 2 for v in vehicles), (notes, gone)
+            assert gone["d1"] < gone["d3"] - 3.0, gone  # d1 first; d3 checked 3 s later and waited for it
+            assert any("passes" in n and "from d1" in n for n in notes["d3"]), notes
+            assert closest >= 10.0, (closest, notes)
+        finally:
+            for v in vehicles:
+                v.close()
