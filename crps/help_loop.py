@@ -313,7 +313,8 @@ class HelpLoop:
             if dec.helping is not None:
                 self._event(now_s, f"helping {dec.helping}")
                 if self.helping is None and vehicle is not None and not self._rejoin.active:
-                    self._resume = vehicle.state.mode
+                    # a resume commanded but not yet reported by the autopilot is still the mode to go back to
+                    self._resume = self._want or vehicle.state.mode
                 self._rejoin.cancel()
                 self._want = None
             else:
