@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import time
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -99,84 +100,80 @@ def _run_now(kind: str, what: str, fn) -> None:
     fn()  # the help loop's command worker runs these; here, at once
 
 
-def test_a_helper_holds_while_a_drone_stands_in_its_leg_and_resumes_once_it_moved():
-    with Simulator(SimulatorConfig(vehicles=2, speed=SPEED, seed=3, spacing_m=30.0)) as sim:
-        helper = Vehicle.connect(sim.url(0), timeout_s=5.0)
-        other = Vehicle.connect(sim.url(1), timeout_s=5.0)
+@contextmanager
+def _flying_pair(seed: int, spacing_m: float):
+    """Two simulated copters ``spacing_m`` apart along east, linked and reporting: (sim, [vehicles], the first's
+    home frame)."""
+    with Simulator(SimulatorConfig(vehicles=2, speed=SPEED, seed=seed, spacing_m=spacing_m)) as sim:
+        vehicles = [Vehicle.connect(sim.url(k), timeout_s=5.0) for k in range(2)]
         try:
-            for v in (helper, other):
+            for v in vehicles:
                 v.wait_until(lambda st: st.position is not None and st.home is not None, 5.0, what="telemetry")
-            home = helper.state.home
-            frame = LocalFrame(home.lat_deg, home.lon_deg, home.alt_ellipsoid_m)
-            wp = frame.to_geodetic(0.0, 120.0, 0.0)
-            helper.upload_mission([MissionItem.waypoint(float(wp[0]), float(wp[1]), 20.0), MissionItem.rtl()])
-            _up(helper, 20.0)
-            _up(other, 20.0)
-            mid = frame.to_geodetic(0.0, 60.0, 0.0)  # the middle of the helper's leg, at its height
-            other.goto(float(mid[0]), float(mid[1]), 20.0, wait=True, timeout_s=60.0)
-            assert helper.state.mission_seq == 1  # ArduPilot: item 1, the first after home
-
-            rejoin = Rejoin(_run_now, RejoinConfig())
-            rejoin.start(helper, "AUTO")
-            closest, notes = [math.inf], []
-            first = _fly(sim, helper, other, rejoin, until=lambda v: v is not None, sim_s=5.0, closest=closest,
-                         seen=notes)
-            assert first == "hold", notes  # a climb would still pass over it within 12 m: holds
-            assert "passes" in notes[0] and "from d2" in notes[0]
-            assert _fly(sim, helper, other, rejoin, until=lambda v: v == "resume", sim_s=10.0, closest=closest,
-                        seen=notes) is None  # it stays blocked while d2 stays
-            assert helper.state.mode == "GUIDED"
-
-            away = frame.to_geodetic(40.0, 60.0, 0.0)
-            other.goto(float(away[0]), float(away[1]), 20.0)
-            assert _fly(sim, helper, other, rejoin, until=lambda v: v == "resume", sim_s=40.0, closest=closest,
-                        seen=notes) == "resume", notes
-            assert "keeps" in notes[-1]
-            helper.start_mission()
-            reached = _fly(sim, helper, other, rejoin, until=lambda _v: helper.state.mission_seq >= 2, sim_s=60.0,
-                           closest=closest, seen=notes)
-            assert helper.state.mission_seq >= 2, reached
-            # the separation the helpers keep, over the whole flight, from the truth
-            assert closest[0] >= 10.0, closest
+            home = vehicles[0].state.home
+            yield sim, vehicles, LocalFrame(home.lat_deg, home.lon_deg, home.alt_ellipsoid_m)
         finally:
-            helper.close()
-            other.close()
+            for v in vehicles:
+                v.close()
+
+
+def test_a_helper_holds_while_a_drone_stands_in_its_leg_and_resumes_once_it_moved():
+    with _flying_pair(3, 30.0) as (sim, (helper, other), frame):
+        wp = frame.to_geodetic(0.0, 120.0, 0.0)
+        helper.upload_mission([MissionItem.waypoint(float(wp[0]), float(wp[1]), 20.0), MissionItem.rtl()])
+        _up(helper, 20.0)
+        _up(other, 20.0)
+        mid = frame.to_geodetic(0.0, 60.0, 0.0)  # the middle of the helper's leg, at its height
+        other.goto(float(mid[0]), float(mid[1]), 20.0, wait=True, timeout_s=60.0)
+        assert helper.state.mission_seq == 1  # ArduPilot: item 1, the first after home
+
+        rejoin = Rejoin(_run_now, RejoinConfig())
+        rejoin.start(helper, "AUTO")
+        closest, notes = [math.inf], []
+        first = _fly(sim, helper, other, rejoin, until=lambda v: v is not None, sim_s=5.0, closest=closest,
+                     seen=notes)
+        assert first == "hold", notes  # a climb would still pass over it within 12 m: holds
+        assert "passes" in notes[0] and "from d2" in notes[0]
+        assert _fly(sim, helper, other, rejoin, until=lambda v: v == "resume", sim_s=10.0, closest=closest,
+                    seen=notes) is None  # it stays blocked while d2 stays
+        assert helper.state.mode == "GUIDED"
+
+        away = frame.to_geodetic(40.0, 60.0, 0.0)
+        other.goto(float(away[0]), float(away[1]), 20.0)
+        assert _fly(sim, helper, other, rejoin, until=lambda v: v == "resume", sim_s=40.0, closest=closest,
+                    seen=notes) == "resume", notes
+        assert "keeps" in notes[-1]
+        helper.start_mission()
+        reached = _fly(sim, helper, other, rejoin, until=lambda _v: helper.state.mission_seq >= 2, sim_s=60.0,
+                       closest=closest, seen=notes)
+        assert helper.state.mission_seq >= 2, reached
+        # the separation the helpers keep, over the whole flight, from the truth
+        assert closest[0] >= 10.0, closest
 
 
 def test_a_helper_low_beside_a_landed_drone_climbs_before_its_leg_over_it():
-    with Simulator(SimulatorConfig(vehicles=2, speed=SPEED, seed=4, spacing_m=13.0)) as sim:
-        helper = Vehicle.connect(sim.url(0), timeout_s=5.0)
-        other = Vehicle.connect(sim.url(1), timeout_s=5.0)
-        try:
-            for v in (helper, other):
-                v.wait_until(lambda st: st.position is not None and st.home is not None, 5.0, what="telemetry")
-            home = helper.state.home
-            frame = LocalFrame(home.lat_deg, home.lon_deg, home.alt_ellipsoid_m)
-            # the mission goes east, over the other drone standing on the ground 13 m east, up to 30 m
-            wp = frame.to_geodetic(100.0, 0.0, 0.0)
-            helper.upload_mission([MissionItem.waypoint(float(wp[0]), float(wp[1]), 30.0)])
-            _up(helper, 2.5)  # a helper that watched a landing, low beside it
-            rejoin = Rejoin(_run_now, RejoinConfig())
-            rejoin.start(helper, "AUTO")
-            closest, notes = [math.inf], []
-            assert _fly(sim, helper, other, rejoin, until=lambda v: v is not None, sim_s=5.0, closest=closest,
-                        seen=notes) == "climb", notes
-            assert "climbing" in notes[0]
-            assert _fly(sim, helper, other, rejoin, until=lambda v: v == "resume", sim_s=40.0, closest=closest,
-                        seen=notes) == "resume", notes
-            assert helper.state.position.alt_rel_m > 8.0  # up before the leg
-            helper.start_mission()
-            _fly(sim, helper, other, rejoin, until=lambda _v: helper.state.mission_seq >= 2, sim_s=60.0,
-                 closest=closest, seen=notes)
-            assert helper.state.mission_seq >= 2 or sim.truth(0)["east_m"] > 60.0
-            # it started 13 m from the landed drone; never closer than the bound (12 m) less the start's 0.5 m
-            assert closest[0] >= 11.0, closest
-            # without the climb the straight leg from 2.5 m up to 30 m at 100 m passes 5.9 m from it
-            straight = leg_clearance_m([0.0, 0.0, 2.5], [100.0, 0.0, 30.0], [[13.0, 0.0, 0.0]])
-            assert straight[0] < 10.0, straight
-        finally:
-            helper.close()
-            other.close()
+    with _flying_pair(4, 13.0) as (sim, (helper, other), frame):
+        # the mission goes east, over the other drone standing on the ground 13 m east, up to 30 m
+        wp = frame.to_geodetic(100.0, 0.0, 0.0)
+        helper.upload_mission([MissionItem.waypoint(float(wp[0]), float(wp[1]), 30.0)])
+        _up(helper, 2.5)  # a helper that watched a landing, low beside it
+        rejoin = Rejoin(_run_now, RejoinConfig())
+        rejoin.start(helper, "AUTO")
+        closest, notes = [math.inf], []
+        assert _fly(sim, helper, other, rejoin, until=lambda v: v is not None, sim_s=5.0, closest=closest,
+                    seen=notes) == "climb", notes
+        assert "climbing" in notes[0]
+        assert _fly(sim, helper, other, rejoin, until=lambda v: v == "resume", sim_s=40.0, closest=closest,
+                    seen=notes) == "resume", notes
+        assert helper.state.position.alt_rel_m > 8.0  # up before the leg
+        helper.start_mission()
+        _fly(sim, helper, other, rejoin, until=lambda _v: helper.state.mission_seq >= 2, sim_s=60.0,
+             closest=closest, seen=notes)
+        assert helper.state.mission_seq >= 2 or sim.truth(0)["east_m"] > 60.0
+        # it started 13 m from the landed drone; never closer than the bound (12 m) less the start's 0.5 m
+        assert closest[0] >= 11.0, closest
+        # without the climb the straight leg from 2.5 m up to 30 m at 100 m passes 5.9 m from it
+        straight = leg_clearance_m([0.0, 0.0, 2.5], [100.0, 0.0, 30.0], [[13.0, 0.0, 0.0]])
+        assert straight[0] < 10.0, straight
 
 
 def test_a_mission_that_cannot_be_read_back_is_resumed_unchecked_and_a_mode_without_a_leg_at_once():
@@ -201,49 +198,40 @@ def test_a_mission_that_cannot_be_read_back_is_resumed_unchecked_and_a_mode_with
 
 
 def test_two_helpers_released_together_with_crossing_legs_go_one_after_the_other():
-    with Simulator(SimulatorConfig(vehicles=2, speed=SPEED, seed=6, spacing_m=30.0)) as sim:
-        ids = ("d1", "d3")
-        vehicles = [Vehicle.connect(sim.url(k), timeout_s=5.0) for k in range(2)]
-        try:
-            for v in vehicles:
-                v.wait_until(lambda st: st.position is not None and st.home is not None, 5.0, what="telemetry")
-            home = vehicles[0].state.home
-            frame = LocalFrame(home.lat_deg, home.lon_deg, home.alt_ellipsoid_m)
-            # d1 (at 0, 0) goes north-east, d3 (30 m east) north-west: the legs cross at (15, 10), 18 m from both
-            for v, (east, north) in zip(vehicles, ((60.0, 40.0), (-30.0, 40.0)), strict=True):
-                lat, lon, _ = frame.to_geodetic(east, north, 0.0)
-                v.upload_mission([MissionItem.waypoint(float(lat), float(lon), 20.0), MissionItem.rtl()])
-                _up(v, 20.0)
-            # flown at once at one speed they meet where the legs cross
-            assert leg_clearance_m([0.0, 0.0, 20.0], [60.0, 40.0, 20.0], [[30.0, 0.0, 20.0]],
-                                   [[-4.2, 2.8, 0.0]])[0] < 1.0
-            rejoins = [Rejoin(_run_now, RejoinConfig()) for _ in ids]
-            for r, v, me in zip(rejoins, vehicles, ids, strict=True):
-                r.start(v, "AUTO", sim.time_s, ids, me)
-            closest, notes, gone = math.inf, {me: [] for me in ids}, {}
-            t_end = sim.time_s + 60.0
-            while sim.time_s < t_end and not all(v.state.mission_seq >= 2 for v in vehicles):
-                a, b = sim.truth(0), sim.truth(1)
-                closest = min(closest, math.dist([a["east_m"], a["north_m"], a["up_m"]],
-                                                 [b["east_m"], b["north_m"], b["up_m"]]))
-                now = [_enu(frame, v.state) for v in vehicles]
-                for k, (r, v, me) in enumerate(zip(rejoins, vehicles, ids, strict=True)):
-                    other = 1 - k
-                    verdict = r.step(v, sim.time_s, now[k][0], v.state.position.alt_rel_m,
-                                     {ids[other]: now[other]}, lambda lat, lon: np.asarray(frame.to_enu(lat, lon, 0.0))[:2],
-                                     None)
-                    notes[me].extend(r.take_notes())
-                    if verdict == "resume":
-                        gone[me] = sim.time_s
-                        v.start_mission()
-                    elif verdict == "hold":
-                        lat, lon, _ = frame.to_geodetic(*now[k][0])
-                        v.goto(float(lat), float(lon), v.state.position.alt_rel_m)
-                time.sleep(0.1 / SPEED)
-            assert all(v.state.mission_seq >= 2 for v in vehicles), (notes, gone)
-            assert gone["d1"] < gone["d3"] - 3.0, gone  # d1 first; d3 checked 3 s later and waited for it
-            assert any("passes" in n and "from d1" in n for n in notes["d3"]), notes
-            assert closest >= 10.0, (closest, notes)
-        finally:
-            for v in vehicles:
-                v.close()
+    ids = ("d1", "d3")
+    with _flying_pair(6, 30.0) as (sim, vehicles, frame):
+        # d1 (at 0, 0) goes north-east, d3 (30 m east) north-west: the legs cross at (15, 10), 18 m from both
+        for v, (east, north) in zip(vehicles, ((60.0, 40.0), (-30.0, 40.0)), strict=True):
+            lat, lon, _ = frame.to_geodetic(east, north, 0.0)
+            v.upload_mission([MissionItem.waypoint(float(lat), float(lon), 20.0), MissionItem.rtl()])
+            _up(v, 20.0)
+        # flown at once at one speed they meet where the legs cross
+        assert leg_clearance_m([0.0, 0.0, 20.0], [60.0, 40.0, 20.0], [[30.0, 0.0, 20.0]],
+                               [[-4.2, 2.8, 0.0]])[0] < 1.0
+        rejoins = [Rejoin(_run_now, RejoinConfig()) for _ in ids]
+        for r, v, me in zip(rejoins, vehicles, ids, strict=True):
+            r.start(v, "AUTO", sim.time_s, ids, me)
+        closest, notes, gone = math.inf, {me: [] for me in ids}, {}
+        t_end = sim.time_s + 60.0
+        while sim.time_s < t_end and not all(v.state.mission_seq >= 2 for v in vehicles):
+            a, b = sim.truth(0), sim.truth(1)
+            closest = min(closest, math.dist([a["east_m"], a["north_m"], a["up_m"]],
+                                             [b["east_m"], b["north_m"], b["up_m"]]))
+            now = [_enu(frame, v.state) for v in vehicles]
+            for k, (r, v, me) in enumerate(zip(rejoins, vehicles, ids, strict=True)):
+                other = 1 - k
+                verdict = r.step(v, sim.time_s, now[k][0], v.state.position.alt_rel_m,
+                                 {ids[other]: now[other]}, lambda lat, lon: np.asarray(frame.to_enu(lat, lon, 0.0))[:2],
+                                 None)
+                notes[me].extend(r.take_notes())
+                if verdict == "resume":
+                    gone[me] = sim.time_s
+                    v.start_mission()
+                elif verdict == "hold":
+                    lat, lon, _ = frame.to_geodetic(*now[k][0])
+                    v.goto(float(lat), float(lon), v.state.position.alt_rel_m)
+            time.sleep(0.1 / SPEED)
+        assert all(v.state.mission_seq >= 2 for v in vehicles), (notes, gone)
+        assert gone["d1"] < gone["d3"] - 3.0, gone  # d1 first; d3 checked 3 s later and waited for it
+        assert any("passes" in n and "from d1" in n for n in notes["d3"]), notes
+        assert closest >= 10.0, (closest, notes)
