@@ -235,3 +235,38 @@ def test_two_helpers_released_together_with_crossing_legs_go_one_after_the_other
         assert gone["d1"] < gone["d3"] - 3.0, gone  # d1 first; d3 checked 3 s later and waited for it
         assert any("passes" in n and "from d1" in n for n in notes["d3"]), notes
         assert closest >= 10.0, (closest, notes)
+
+
+def test_the_help_loop_holds_the_released_helper_then_sends_it_back_to_its_mission():
+    """HelpLoop._way_back's glue (the loop's other parts stood in for): the verdicts become a hold sent to the
+    autopilot and then the wanted mode; every note goes in the timeline."""
+    from types import SimpleNamespace
+
+    from skyfix.crps.help_loop import HelpLoop
+    from skyfix.types import GeoFix
+
+    with _flying_pair(7, 30.0) as (sim, (helper, _other), frame):
+        wp = frame.to_geodetic(0.0, 120.0, 0.0)
+        helper.upload_mission([MissionItem.waypoint(float(wp[0]), float(wp[1]), 20.0)])
+        _up(helper, 20.0)
+
+        def own_fix(_drone_id, now_s):  # the node's fused fix of this helper: here its autopilot's
+            p = helper.state.position
+            return GeoFix(p.lat_deg, p.lon_deg, p.alt_ellipsoid_m, np.eye(3), now_s, "test")
+
+        events: list[str] = []
+        loop = SimpleNamespace(svc=SimpleNamespace(node=SimpleNamespace(fix=own_fix, frame=frame)), id="d1", recovering=False,
+                               _actions=SimpleNamespace(submit=lambda kind, what, fn: fn()), _want=None,
+                               _want_sent_wall_s=0.0, _resume="AUTO", setup=SimpleNamespace(min_alt_rel_m=1.5),
+                               _rejoin=Rejoin(_run_now, RejoinConfig()), _event=lambda t, text: events.append(text))
+        loop._rejoin.start(helper, "AUTO", sim.time_s)
+        blocker = (np.array([0.0, 60.0, float(_enu(frame, helper.state)[0][2])]), None)  # mid-leg, its height
+        for others in ({"d2": blocker}, {"d2": blocker}, {}):
+            loop._others = others
+            loop._height = (helper.state.position.alt_rel_m, float(_enu(frame, helper.state)[0][2]))
+            HelpLoop._way_back(loop, sim.time_s, helper)
+            if others:
+                assert loop._want is None and helper.state.mode == "GUIDED", events
+        assert sum("holding until it is clear" in e for e in events) == 1, events  # said once
+        assert loop._want == "AUTO" and "nothing in the way" in events[-1], events
+        assert helper.state.mode == "GUIDED"  # _command_mode switches it, on the loop's next tick
