@@ -1,13 +1,14 @@
 """A released helper's way back to its mission, kept clear of the other drones.
 
 On release a helper resumes the mode it left. In its mission mode the autopilot flies a straight
-leg from where the helper is to the mission's current item, and that leg knows nothing of the
-drone it helped (flying home, or hovering) nor of the other helpers. :class:`Rejoin` reads the
-mission back from the autopilot, finds the leg the autopilot will fly (the current item, or the
-next one with a position after DO_ commands; home for RTL) and resumes only while the leg keeps
-``separation_m + margin_m`` from every other drone: where each is now and where its velocity takes
-it within ``horizon_s`` (a drone flying home at 5 m/s sweeps 100 m in 20 s). Otherwise the helper
-holds where it is and tries again every tick; what it waits for goes in the timeline.
+leg from where the helper is to the mission's current item (ArduPilot with MIS_RESTART 1: its
+first), and that leg knows nothing of the drone it helped (flying home, or hovering) nor of the
+other helpers. :class:`Rejoin` reads the mission back from the autopilot, finds the leg the
+autopilot will fly (that item, or the next one with a position after DO_ commands; home for RTL)
+and resumes only while the leg keeps ``separation_m + margin_m`` from every other drone: where
+each is now and where its velocity takes it within ``horizon_s`` (a drone flying home at 5 m/s
+sweeps 100 m in 20 s). Otherwise the helper holds where it is and tries again every tick; what it
+waits for goes in the timeline.
 
 Positions: ENU metres in the caller's :class:`skyfix.geo.LocalFrame`; heights of mission items
 above home (the autopilot's own height, so the fused and the autopilot's datums need not agree).
@@ -150,6 +151,8 @@ class Rejoin:
 
             def read() -> None:
                 try:
+                    if flavour == "ardupilot" and vehicle.get_param("MIS_RESTART") == 1:
+                        self._seq = 1  # AUTO starts the mission over (AP_Mission::start_or_resume), not resumes
                     self._items = vehicle.download_mission(timeout_s=self.cfg.read_timeout_s)
                 except SkyfixError as exc:
                     self._read_failed = str(exc)

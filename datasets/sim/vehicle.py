@@ -46,7 +46,7 @@ ARDUPILOT_PARAMS: dict[str, float] = {
     "EK3_SRC1_POSXY": 3, "EK3_SRC1_VELXY": 3, "EK3_SRC1_POSZ": 1, "VISO_TYPE": 0,
     "EK3_SRC2_POSXY": 0, "EK3_SRC2_VELXY": 0, "EK3_SRC2_POSZ": 1, "EK3_SRC2_VELZ": 0, "EK3_SRC2_YAW": 0,
     "WPNAV_SPEED": 500, "WPNAV_SPEED_UP": 250, "WPNAV_SPEED_DN": 150, "WPNAV_RADIUS": 200,
-    "RTL_ALT": 1500, "RTL_SPEED": 0, "LAND_SPEED": 50, "DISARM_DELAY": 10, "FS_EKF_ACTION": 1,
+    "RTL_ALT": 1500, "RTL_SPEED": 0, "LAND_SPEED": 50, "DISARM_DELAY": 10, "FS_EKF_ACTION": 1, "MIS_RESTART": 0,
     "BATT_CAPACITY": 5200, "BATT_LOW_MAH": 0, "ARMING_CHECK": 1,
     "SIM_GPS1_ENABLE": 1, "SIM_GPS1_GLTCH_X": 0, "SIM_GPS1_GLTCH_Y": 0, "SIM_GPS1_GLTCH_Z": 0,
     "SIM_WIND_SPD": 0, "SIM_WIND_DIR": 180,
@@ -57,7 +57,7 @@ INT_PARAMS: frozenset[str] = frozenset({
     "SYSID_THISMAV", "GPS1_TYPE", "GPS_TYPE", "GPS2_TYPE", "GPS_AUTO_SWITCH", "GPS_PRIMARY", "EK3_SRC1_POSXY",
     "EK3_SRC1_VELXY", "EK3_SRC1_POSZ", "VISO_TYPE", "EK3_SRC2_POSXY", "EK3_SRC2_VELXY", "EK3_SRC2_POSZ",
     "EK3_SRC2_VELZ", "EK3_SRC2_YAW", "RTL_ALT", "RTL_SPEED", "FS_EKF_ACTION", "BATT_CAPACITY",
-    "ARMING_CHECK", "SIM_GPS1_ENABLE", "SIM_GPS_DISABLE", "DISARM_DELAY",
+    "ARMING_CHECK", "SIM_GPS1_ENABLE", "SIM_GPS_DISABLE", "DISARM_DELAY", "MIS_RESTART",
     "MAV_SYS_ID", "EKF2_GPS_CTRL", "EKF2_EV_CTRL", "EKF2_HGT_REF", "SIM_GPS_BLOCK"})
 #: ArduPilot 4.6+ parameter names -> the names of earlier firmware (``legacy_params``).
 #: SIM_GPS_DISABLE is the inverse of SIM_GPS1_ENABLE.
@@ -318,7 +318,9 @@ class SimVehicle(PositionEstimator, Guidance):
         if name == "AUTO.TAKEOFF" and self._takeoff_alt_up_m is None:
             self._takeoff_alt_up_m = self.home_enu_m[2] + self.param("MIS_TAKEOFF_ALT")
         if self.behaviour == "mission":
-            if self.mission_seq < self._first_mission_index() or self.mission_seq >= len(self.mission):
+            # ArduPilot's AP_Mission::start_or_resume: MIS_RESTART 1 starts the mission over, 0 resumes its current item
+            restart = self.flavour == "ardupilot" and self.param("MIS_RESTART") == 1
+            if restart or self.mission_seq < self._first_mission_index() or self.mission_seq >= len(self.mission):
                 self.mission_seq = self._first_mission_index()
             self._mission_item_started = False
             self.events.append(("current", self.mission_seq))

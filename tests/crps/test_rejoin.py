@@ -270,3 +270,29 @@ def test_the_help_loop_holds_the_released_helper_then_sends_it_back_to_its_missi
         assert sum("holding until it is clear" in e for e in events) == 1, events  # said once
         assert loop._want == "AUTO" and "nothing in the way" in events[-1], events
         assert helper.state.mode == "GUIDED"  # _command_mode switches it, on the loop's next tick
+
+
+@pytest.mark.parametrize("restart, expected", [(0, 2), (1, 1)])
+def test_the_leg_checked_is_the_one_ardupilot_flies_with_mis_restart(restart, expected):
+    """ArduPilot resumes the current item (MIS_RESTART 0) or starts over at item 1 (1): the firmware's rule,
+    checked on SITL in tests/drivers/test_drivers_sitl.py; here the simulator and the rejoin agree with it."""
+    with _flying_pair(8, 30.0) as (sim, (helper, _other), frame):
+        wps = [frame.to_geodetic(0.0, 30.0, 0.0), frame.to_geodetic(0.0, 200.0, 0.0)]
+        helper.upload_mission([MissionItem.waypoint(float(lat), float(lon), 20.0) for lat, lon, _ in wps])
+        _up(helper, 20.0)
+        helper.start_mission()
+        helper.wait_until(lambda st: st.mission_seq == 2, 30.0, what="on its way to item 2")
+        t_end = sim.time_s + 30.0
+        while sim.truth(0)["north_m"] < 70.0 and sim.time_s < t_end:  # 40 m past item 1
+            time.sleep(0.05)
+        helper.set_mode("GUIDED")  # recruited
+        helper.set_param("MIS_RESTART", restart)
+        rejoin = Rejoin(_run_now, RejoinConfig())
+        rejoin.start(helper, "AUTO", sim.time_s)
+        own, _ = _enu(frame, helper.state)
+        assert rejoin.step(helper, sim.time_s, own, helper.state.position.alt_rel_m, {}, _to_enu, None) == "resume"
+        assert rejoin.take_notes() == [f"nothing in the way to waypoint {expected}"]
+        helper.start_mission()
+        helper.wait_until(lambda st: st.mode == "AUTO", 5.0, what="AUTO again")
+        time.sleep(0.5 / SPEED)
+        assert helper.state.mission_seq == expected

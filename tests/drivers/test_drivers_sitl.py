@@ -53,6 +53,18 @@ def _true_position(v) -> tuple[float, float, float]:
     return m.lat_int / 1e7, m.lon_int / 1e7, m.alt
 
 
+def _current_after_guided_and_back(v) -> int:
+    """GUIDED (holding), then AUTO again: the lowest mission item MISSION_CURRENT reports in the 2 s after."""
+    v.set_mode("GUIDED")
+    time.sleep(1.0)
+    v.set_mode("AUTO")
+    lowest, t_end = v.state.mission_seq, time.monotonic() + 2.0
+    while time.monotonic() < t_end:  # restarted, the copter may reach item 1 (~20 m) within the window
+        lowest = min(lowest, v.state.mission_seq)
+        time.sleep(0.02)
+    return lowest
+
+
 def test_sitl_parameters_are_typed(copter):
     gps1 = copter.get_param("GPS1_TYPE")  # ArduPilot 4.6+ name
     assert gps1 == 1 and isinstance(gps1, int)
@@ -107,6 +119,14 @@ def test_sitl_guided_flight_gate_and_100_item_mission(copter):
     v.start_mission()
     v.wait_until(lambda s: s.mission_seq >= 3, 60.0, what="AUTO past waypoint 2")
     assert any(e.kind == "mission_item_reached" for e in v.events)
+    # out of AUTO and back (a helper recruited, then released: crps/rejoin.py reads which leg it will fly):
+    # MIS_RESTART 0 resumes the current item, 1 starts over at item 1 (AP_Mission::start_or_resume)
+    assert _current_after_guided_and_back(v) >= 3
+    v.set_param("MIS_RESTART", 1)
+    try:
+        assert _current_after_guided_and_back(v) == 1
+    finally:
+        v.set_param("MIS_RESTART", 0)
     v.rtl(wait=True, timeout_s=120.0)
     h = v.state.home
     t_lat, t_lon, _ = _true_position(v)
