@@ -217,6 +217,8 @@ class HelpLoop:
                 peers[pid] = (now_fix.lat_deg, now_fix.lon_deg, now_fix.alt_m)
                 if vel is not None:
                     velocities[pid] = vel
+        # where the others are now (ENU, velocity when fresh): a released helper's way back is checked against it,
+        # from the tick of its release on (kept every tick: a few peers)
         frame = self.svc.node.frame
         self._others = {pid: (np.asarray(frame.to_enu(*p), float), velocities.get(pid)) for pid, p in peers.items()
                         if pid != self.id}
@@ -368,9 +370,8 @@ class HelpLoop:
         own = self.svc.node.fix(self.id, now_s)
         frame = self.svc.node.frame
         own_enu = None if own is None else np.asarray(frame.to_enu(own.lat_deg, own.lon_deg, own.alt_m), float)
-        home = vehicle.state.home
-        home_enu = None if home is None else np.asarray(frame.to_enu(home.lat_deg, home.lon_deg, own.alt_m
-                                                                     if own is not None else 0.0), float)
+        home = vehicle.state.home  # only its horizontal position is used (an RTL leg is flown at the helper's height)
+        home_enu = None if home is None else np.asarray(frame.to_enu(home.lat_deg, home.lon_deg, 0.0), float)
         verdict = self._rejoin.step(vehicle, now_s, own_enu, None if self._height is None else self._height[0],
                                     self._others, lambda lat, lon: np.asarray(frame.to_enu(lat, lon, 0.0))[:2],
                                     home_enu)

@@ -40,11 +40,6 @@ log = logging.getLogger(__name__)
 #: velocity for seconds) moved the fix 13 m past home with a 2.4 m sigma (two fault tests at once under load).
 EXTRAPOLATION_ACCEL_MPS2 = 2.5
 
-
-def held_velocity_cov_m2(dt_s: float) -> np.ndarray:
-    """(3, 3) ENU m^2 a position moved on ``dt_s`` at a held velocity gains: the drone may accelerate at
-    :data:`EXTRAPOLATION_ACCEL_MPS2` meanwhile, (a dt^2 / 2)^2 per axis."""
-    return np.eye(3) * (0.5 * EXTRAPOLATION_ACCEL_MPS2 * dt_s * dt_s) ** 2
 #: Velocity 1-sigma of GLOBAL_POSITION_INT's velocity, m/s (an EKF's output, not raw Doppler).
 TELEMETRY_VELOCITY_SIGMA_MPS = 0.2
 #: While the autopilot flies on the position skyfix injects, an EKF that takes no other velocity source
@@ -64,6 +59,12 @@ ECHO_CORRELATION_S = 3.0
 def echo_bias_walk(sigma_mps: float) -> float:
     """Bias random walk (m/s per sqrt s) matching an echo error of ``sigma_mps`` over ECHO_CORRELATION_S."""
     return sigma_mps * math.sqrt(2.0 / ECHO_CORRELATION_S)
+
+
+def held_velocity_cov_m2(dt_s: float) -> np.ndarray:
+    """(3, 3) ENU m^2 a position moved on ``dt_s`` at a held velocity gains: the drone may accelerate at
+    :data:`EXTRAPOLATION_ACCEL_MPS2` meanwhile, (a dt^2 / 2)^2 per axis."""
+    return np.eye(3) * (0.5 * EXTRAPOLATION_ACCEL_MPS2 * dt_s * dt_s) ** 2
 
 
 class LogSink(Protocol):

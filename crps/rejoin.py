@@ -130,6 +130,7 @@ class Rejoin:
         self._items: list[MissionItem] | None = None
         self._read_failed: str | None = None
         self._seq = -1
+        self._flavour = "ardupilot"
         self._check_from_s = -math.inf
         self._blocked_by: str | None = None
         self._notes: list[str] = []
@@ -145,7 +146,7 @@ class Rejoin:
         rank = sorted(team).index(drone_id) if drone_id in team else 0
         self._check_from_s = now_s + rank * self.cfg.stagger_s
         self._items, self._read_failed = None, None
-        flavour = vehicle.autopilot if vehicle.autopilot in ("ardupilot", "px4") else "ardupilot"
+        self._flavour = flavour = vehicle.autopilot if vehicle.autopilot == "px4" else "ardupilot"
         if resume_mode == role_mode(flavour, "mission"):
             self._seq = vehicle.state.mission_seq
 
@@ -175,7 +176,7 @@ class Rejoin:
         ``others``: id -> (ENU position now (3,), ENU velocity (3,) or None) of every other drone."""
         if not self.active or now_s < self._check_from_s:
             return None
-        flavour = vehicle.autopilot if vehicle.autopilot in ("ardupilot", "px4") else "ardupilot"
+        flavour = self._flavour
         if self._mode == role_mode(flavour, "mission"):
             if self._read_failed is not None:
                 return self._go(f"the mission was not read back ({self._read_failed}): back to it unchecked")
